@@ -1,0 +1,13 @@
+"""JAX backend: pure jitted steps, lax.scan rollouts, differentiable end to end."""
+from __future__ import annotations
+
+from ...core.interfaces import AbstractBackend
+
+
+class JaxBackend(AbstractBackend):
+    name = "jax"
+
+    def build(self, scene, transfer, precision="fp32", **options):
+        from .stepper import JaxStepper
+
+        return JaxStepper(scene, transfer, precision, **options)

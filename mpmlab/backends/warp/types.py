@@ -1,0 +1,34 @@
+"""Warp vector/matrix/struct types per (dimension, precision), created once and cached.
+
+Every Warp kernel and law function in mpmlab is built by a factory over these types, so one
+source serves 2D/3D and fp32/fp64 (Warp's kernel-factory pattern).
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from types import SimpleNamespace
+
+import warp as wp
+
+wp.config.quiet = True
+
+SCALARS = {"fp32": wp.float32, "fp64": wp.float64}
+
+
+@lru_cache(maxsize=None)
+def warp_types(dim: int, precision: str) -> SimpleNamespace:
+    scalar = SCALARS[precision]
+    vec = wp.types.vector(dim, scalar)
+    mat = wp.types.matrix((dim, dim), scalar)
+
+    # All law state fields (mpmlab.core.interfaces.STATE_FIELDS); a law reads and writes only those it
+    # declares, the stepper loads/stores only those, so unused members cost nothing in memory.
+    @wp.struct
+    class LawState:
+        F: mat
+        J: scalar
+        sigma: mat
+        eps_p: scalar
+
+    return SimpleNamespace(dim=dim, precision=precision, scalar=scalar, vec=vec, mat=mat, LawState=LawState,
+                           ivec=wp.types.vector(dim, wp.int32))

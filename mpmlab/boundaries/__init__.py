@@ -1,0 +1,200 @@
+"""Built-in boundaries (backend-neutral descriptions; each names its JAX and Warp implementation).
+
+Grid boundaries act on grid velocities after the grid update (JAX-MPM Sec. 2.2.2), in the order
+listed in the scene; particle constraints and loads act on particle sets selected at t = 0.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Mapping, Sequence
+
+import numpy as np
+
+from ..core.errors import ConfigError
+from ..core.geometry import make_shape
+from ..core.interfaces import AbstractBoundary
+
+WALL_KINDS = ("sticky", "slip", "separate", "none")
+
+
+def _impl(name: str) -> dict[str, str]:
+    return {"jax": f"mpmlab.backends.jax.boundaries:{name}", "warp": f"mpmlab.backends.warp.boundaries:{name}"}
+
+
+def _faces(dim: int) -> list[str]:
+    return [f"{'xyz'[a]}{s}" for a in range(dim) for s in "-+"]
+
+
+@dataclass(frozen=True)
+class Walls(AbstractBoundary):
+    """Domain walls: nodes within ``thickness`` cells of a domain face get that face's condition.
+
+    ``sticky``: v = 0; ``slip``: normal component zeroed; ``separate``: normal component zeroed only
+    when moving into the wall (the Taichi mpm3d / NCLaw App. D free-slip box); ``none``: open.
+    ``faces`` overrides ``default`` per face, keys ``x-``, ``x+``, ``y-``, ``y+``, ``z-``, ``z+``.
+    """
+
+    name: ClassVar[str] = "walls"
+    implementations: ClassVar[dict] = _impl("walls")
+    default: str = "separate"
+    faces: Mapping[str, str] = field(default_factory=dict)
+    thickness: int = 3
+
+    def face_kinds(self, dim: int) -> list[str]:
+        return [self.faces.get(f, self.default) for f in _faces(dim)]
+
+    def validate(self, scene) -> None:
+        names = _faces(scene.dim)
+        for f, k in list(self.faces.items()) + [("default", self.default)]:
+            if f != "default" and f not in names:
+                raise ConfigError(f"boundary 'walls': unknown face '{f}' in a {scene.dim}D scene; faces are {names}.")
+            if k not in WALL_KINDS:
+                raise ConfigError(f"boundary 'walls': face '{f}' kind '{k}' unknown; use one of {WALL_KINDS}.")
+        if not 1 <= self.thickness <= min(scene.cells) // 2:
+            raise ConfigError(f"boundary 'walls': thickness = {self.thickness} cells must be in [1, {min(scene.cells) // 2}].")
+
+
+@dataclass(frozen=True)
+class FrictionWalls(AbstractBoundary):
+    """Coulomb friction on one domain face (JAX-MPM Eqs. 35-36, Bardenhagen 2001).
+
+    Nodes within ``thickness`` cells of ``face`` moving into the wall lose their normal velocity and
+    their tangential speed is reduced by mu * v_n (stick if |v_t| <= mu v_n). The coefficient is
+    either piecewise constant over ``len(mu)`` equal segments along ``along`` (an axis name), or given
+    per node (``per_node=True``: ``mu`` has one entry per grid node along ``along``).
+    """
+
+    name: ClassVar[str] = "friction_walls"
+    implementations: ClassVar[dict] = _impl("friction_walls")
+    face: str = "y-"
+    mu: Sequence[float] = (0.0,)
+    along: str = "x"
+    thickness: int = 3
+    per_node: bool = False
+
+    @property
+    def axis(self) -> int:
+        return "xyz".index(self.face[0])
+
+    @property
+    def side(self) -> int:
+        return -1 if self.face[1] == "-" else 1
+
+    @property
+    def along_axis(self) -> int:
+        return "xyz".index(self.along)
+
+    def validate(self, scene) -> None:
+        if self.face not in _faces(scene.dim):
+            raise ConfigError(f"boundary 'friction_walls': face '{self.face}' not one of {_faces(scene.dim)}.")
+        if self.along not in "xyz"[: scene.dim] or self.along_axis == self.axis:
+            raise ConfigError(f"boundary 'friction_walls': 'along' = '{self.along}' must be a tangential axis of face '{self.face}'.")
+        mu = np.asarray(self.mu, float)
+        if mu.ndim != 1 or len(mu) == 0 or np.any(mu < 0) or not np.all(np.isfinite(mu)):
+            raise ConfigError("boundary 'friction_walls': mu must be a non-empty list of non-negative coefficients.")
+        if self.per_node and len(mu) != scene.grid_shape[self.along_axis]:
+            raise ConfigError(
+                f"boundary 'friction_walls': per_node mu needs {scene.grid_shape[self.along_axis]} entries "
+                f"(grid nodes along {self.along}), got {len(mu)}."
+            )
+
+
+@dataclass(frozen=True)
+class Plane(AbstractBoundary):
+    """A half-space boundary (inclined plane): nodes with (x - point) . normal < 0 are constrained.
+
+    ``normal`` points into the free side. ``kind``: sticky / slip / separate, with optional Coulomb
+    ``friction`` for ``separate`` (as ``FrictionWalls``).
+    """
+
+    name: ClassVar[str] = "plane"
+    implementations: ClassVar[dict] = _impl("plane")
+    point: Sequence[float] = (0.0, 0.0, 0.0)
+    normal: Sequence[float] = (0.0, 1.0, 0.0)
+    kind: str = "separate"
+    friction: float = 0.0
+
+    def unit_normal(self) -> np.ndarray:
+        n = np.asarray(self.normal, float)
+        return n / np.linalg.norm(n)
+
+    def validate(self, scene) -> None:
+        if len(self.point) != scene.dim or len(self.normal) != scene.dim:
+            raise ConfigError(f"boundary 'plane': point and normal need {scene.dim} components.")
+        if not np.linalg.norm(self.normal) > 0:
+            raise ConfigError("boundary 'plane': normal must be nonzero.")
+        if self.kind not in ("sticky", "slip", "separate"):
+            raise ConfigError(f"boundary 'plane': kind '{self.kind}' must be sticky, slip or separate.")
+        if self.friction < 0:
+            raise ConfigError("boundary 'plane': friction must be non-negative.")
+
+
+@dataclass(frozen=True)
+class BoxObstacle(AbstractBoundary):
+    """A static rigid box (JAX-MPM Sec. 4.2.1, Eq. 33): grid nodes inside lose the velocity component
+    along the outward normal of the nearest face when it points into the box (frictionless slip)."""
+
+    name: ClassVar[str] = "box_obstacle"
+    implementations: ClassVar[dict] = _impl("box_obstacle")
+    lo: Sequence[float] = (0.0, 0.0, 0.0)
+    hi: Sequence[float] = (0.0, 0.0, 0.0)
+
+    def validate(self, scene) -> None:
+        lo, hi = np.asarray(self.lo, float), np.asarray(self.hi, float)
+        if lo.shape != (scene.dim,) or hi.shape != (scene.dim,) or np.any(hi <= lo):
+            raise ConfigError(f"boundary 'box_obstacle': lo/hi need {scene.dim} components with hi > lo.")
+
+
+@dataclass(frozen=True)
+class ParticleVelocity(AbstractBoundary):
+    """Prescribed velocity on the particles inside ``region`` at t = 0, during [t_start, t_end)."""
+
+    name: ClassVar[str] = "particle_velocity"
+    implementations: ClassVar[dict] = _impl("particle_velocity")
+    stage: ClassVar[str] = "particle_velocity"
+    region: Mapping[str, Any] = field(default_factory=dict)
+    velocity: Sequence[float] = (0.0, 0.0, 0.0)
+    t_start: float = 0.0
+    t_end: float = float("inf")
+
+    def select(self, x0: np.ndarray) -> np.ndarray:
+        spec = dict(self.region)
+        return np.nonzero(make_shape(spec.pop("kind"), **spec).contains(x0))[0]
+
+    def validate(self, scene) -> None:
+        if "kind" not in self.region:
+            raise ConfigError(f"boundary '{self.name}': region needs a shape 'kind' (box, sphere, ...).")
+        if len(self.velocity) != scene.dim:
+            raise ConfigError(f"boundary '{self.name}': velocity needs {scene.dim} components.")
+        if len(self.select(scene.particles().x)) == 0:
+            raise ConfigError(f"boundary '{self.name}': region {dict(self.region)} contains no particle.")
+
+
+@dataclass(frozen=True)
+class ParticleLoad(ParticleVelocity):
+    """A total force ``force`` [N] on the particles inside ``region``, shared in proportion to their
+    mass, during [t_start, t_end)."""
+
+    name: ClassVar[str] = "particle_load"
+    implementations: ClassVar[dict] = _impl("particle_load")
+    stage: ClassVar[str] = "particle_force"
+    force: Sequence[float] = (0.0, 0.0, 0.0)
+
+    def validate(self, scene) -> None:
+        object.__setattr__(self, "velocity", self.force)  # reuse the component-count check
+        super().validate(scene)
+
+
+def make_boundary(spec: Mapping[str, Any]) -> AbstractBoundary:
+    """Build a registered boundary from ``{"kind": name, **options}``."""
+    from ..core import registry
+
+    spec = dict(spec)
+    kind = spec.pop("kind", None)
+    if kind is None:
+        raise ConfigError(f"boundary {spec} needs a 'kind'; known: {', '.join(registry.boundaries.names())}.")
+    cls = registry.boundaries.get(kind)
+    try:
+        return cls(**spec)
+    except TypeError as exc:
+        raise ConfigError(f"boundary '{kind}': {exc}.") from None

@@ -1,0 +1,63 @@
+"""Errors a user can cause. Each carries one sentence: what is wrong, where, and what to do.
+
+The CLI prints ``str(err)`` without a traceback and exits non-zero (see ``mpmlab.cli``).
+"""
+from __future__ import annotations
+
+
+class MpmlabError(Exception):
+    """Base class of every error mpmlab raises for a user mistake or a failed simulation."""
+
+
+class ConfigError(MpmlabError):
+    """A configuration value is wrong (bad type, out of range, inconsistent)."""
+
+
+class InvalidParameterError(ConfigError):
+    """A material or scene parameter lies outside its valid range."""
+
+
+class UnknownPluginError(ConfigError):
+    """A registered name (law, transfer, boundary, observation, backend, scene) does not exist."""
+
+    def __init__(self, kind: str, name: str, known: list[str]):
+        self.kind, self.name, self.known = kind, name, known
+        super().__init__(
+            f"unknown {kind} '{name}'; known {kind}s: {', '.join(sorted(known)) or '(none)'}. "
+            f"Pick one of those, or install the plugin package that provides '{name}'."
+        )
+
+
+class MissingImplementationError(ConfigError):
+    """A plugin exists but has no implementation for the chosen backend."""
+
+    def __init__(self, kind: str, name: str, backend: str, available: list[str]):
+        self.kind, self.name, self.backend = kind, name, backend
+        super().__init__(
+            f"{kind} '{name}' has no implementation for backend '{backend}' "
+            f"(implemented for: {', '.join(sorted(available)) or 'none'}); choose another backend or {kind}."
+        )
+
+
+class TimeStepError(ConfigError):
+    """The requested time step exceeds the CFL bound."""
+
+
+class SimulationDiverged(MpmlabError):
+    """A guard found a non-finite value, an inverted element or a particle outside the domain.
+
+    Attributes:
+        step: the first step at which the bad value was seen.
+        particle: index of the offending particle.
+        field: name of the field (``x``, ``v``, ``F``, ``J``, ...).
+        value: the offending value (as a Python float or a short string).
+        trajectory: the frames produced before the failure (a ``Trajectory``), or None.
+    """
+
+    def __init__(self, step: int, particle: int, field: str, value, hint: str = "", trajectory=None):
+        self.step, self.particle, self.field, self.value, self.hint = step, particle, field, value, hint
+        self.trajectory = trajectory
+        msg = f"simulation diverged at step {step}: particle {particle} has {field} = {value}"
+        if hint:
+            msg += f"; {hint}"
+        super().__init__(msg)

@@ -1,0 +1,210 @@
+"""Backend-independent rollout driver: frames, guards and divergence localisation.
+
+A backend stepper implements a few primitives (``init``, ``_advance``, ``_is_bad``, ``to_numpy``);
+this base class turns them into ``rollout`` with the stability guards of issue #2:
+
+* every ``check_every`` steps a device-side reduction asks "is any x/v/law state non-finite, any
+  J <= 0, any particle outside the domain interior?" (one scalar crosses to the host);
+* only when it says yes, the chunk is replayed one step at a time from its saved start to find the
+  exact step, and the offending particle/field/value is found on the host, so the guard costs one
+  reduction per check, not per step;
+* ``SimulationDiverged`` carries the frames produced so far (``.trajectory``).
+"""
+from __future__ import annotations
+
+import time
+from abc import abstractmethod
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import ConfigError, SimulationDiverged
+from .interfaces import AbstractStepper, AbstractTransfer
+from .scene import Scene
+from .state import Trajectory
+
+
+class BaseStepper(AbstractStepper):
+    backend_name = "?"
+
+    def __init__(self, scene: Scene, transfer: AbstractTransfer, precision: str = "fp32", check_every: int | None = None):
+        if precision not in ("fp32", "fp64"):
+            raise ConfigError(f"precision '{precision}' unknown; use 'fp32' or 'fp64'.")
+        for b in scene.boundaries:
+            b.validate(scene)
+        self.scene = scene
+        self.transfer = transfer
+        self.precision = precision
+        self.dim = scene.dim
+        self.dt = scene.resolve_dt()
+        self.particles = scene.particles()
+        self.groups = self.particles.groups
+        self.check_every = check_every
+        self.compile_time_s = 0.0
+
+    # ---- primitives a backend implements ---------------------------------------------------
+    @abstractmethod
+    def _advance(self, state, steps: int):
+        """Advance ``steps`` steps (compiled loop); returns the new state."""
+
+    @abstractmethod
+    def _is_bad(self, state) -> bool:
+        """Device-side guard reduction: any non-finite value, J <= 0 or particle outside the domain."""
+
+    def step(self, state):
+        return self._advance(state, 1)
+
+    # ---- shared logic ----------------------------------------------------------------------
+    def meta(self) -> dict[str, Any]:
+        s = self.scene
+        return {
+            "dim": s.dim, "dt": self.dt, "dx": s.dx, "grid_origin": s.origin.tolist(), "grid_shape": list(s.grid_shape),
+            "gravity": s.gravity.tolist(), "backend": self.backend_name, "transfer": self.transfer.name,
+            "transfer_options": self.transfer.options(), "precision": self.precision, "scene": s.name,
+            "laws": [g.law.name for g in self.groups],
+        }
+
+    def locate_failure(self, npstate: dict[str, np.ndarray]) -> tuple[int, str, Any] | None:
+        """(particle, field, value) of the first bad value in a NumPy state, or None if all is well."""
+        lo, hi = self.scene.inner_bounds
+        for name in ("x", "v"):
+            a = npstate[name]
+            bad = ~np.all(np.isfinite(a), axis=1)
+            if bad.any():
+                p = int(np.argmax(bad)); return p, name, a[p].tolist()
+        for name in ("F", "J", "sigma", "eps_p", "C"):
+            if name not in npstate:
+                continue
+            a = npstate[name].reshape(len(npstate[name]), -1)
+            idx = npstate.get(name + "_particles", np.arange(len(a)))
+            bad = ~np.all(np.isfinite(a), axis=1)
+            if bad.any():
+                k = int(np.argmax(bad)); return int(idx[k]), name, a[k].tolist()
+        if "J" in npstate or "F" in npstate:
+            for name in ("J", "F"):
+                if name not in npstate:
+                    continue
+                J = npstate[name] if name == "J" else np.linalg.det(npstate["F"])
+                idx = npstate.get(name + "_particles", np.arange(len(J)))
+                bad = J <= 0
+                if bad.any():
+                    k = int(np.argmax(bad)); return int(idx[k]), "J", float(J[k])
+        x = npstate["x"]
+        out = np.any((x < lo) | (x >= hi), axis=1)
+        if out.any():
+            p = int(np.argmax(out)); return p, "x (outside the domain)", x[p].tolist()
+        return None
+
+    def cfl_number(self, npstate) -> float:
+        speed = float(np.nanmax(np.linalg.norm(npstate["v"], axis=1), initial=0.0))
+        return self.dt * (self.scene.wave_speed() + speed) / self.scene.dx
+
+    def _diverged(self, start_state, start_step: int, steps: int, traj_so_far: Callable[[], Trajectory]):
+        """Replay a failed chunk one step at a time to name the exact step, then raise."""
+        state = start_state
+        prev = self.to_numpy(state)
+        for k in range(steps):
+            state = self._advance(state, 1)
+            now = self.to_numpy(state)
+            bad = self.locate_failure(now)
+            if bad is not None:
+                p, field, value = bad
+                C = self.cfl_number(prev)
+                hint = (f"CFL number was {C:.3g} (cfl_limit {self.scene.cfl_limit:g}) one step before; "
+                        f"reduce dt (or use dt: auto), stiffen less, or check boundaries")
+                raise SimulationDiverged(start_step + k + 1, p, field, value, hint, trajectory=traj_so_far())
+            prev = now
+        # The reduction flagged the chunk but the replay did not reproduce it (non-determinism).
+        raise SimulationDiverged(start_step + steps, -1, "state", "non-finite (not reproduced on replay)",
+                                 trajectory=traj_so_far())
+
+    def rollout(self, state=None, steps: int = 100, every: int = 1, fields: tuple[str, ...] = (),
+                progress: bool | None = None, on_frame: Callable | None = None) -> Trajectory:
+        """Run ``steps`` steps keeping every ``every``-th frame (frame 0 = the initial state).
+
+        Args:
+            state: start state (default ``init()``).
+            fields: extra per-particle fields to keep per frame (``F``, ``C``, ``J``, ``sigma``, ``eps_p``).
+            progress: show a tqdm bar (None: only when stderr is a terminal).
+            on_frame: called as ``on_frame(frame_index, numpy_state)`` after each kept frame.
+        """
+        if steps < 0 or every < 1:
+            raise ConfigError(f"rollout needs steps >= 0 and every >= 1 (got steps={steps}, every={every}).")
+        from tqdm.auto import tqdm
+
+        state = self.init() if state is None else state
+        check = self.check_every or every
+        frames: list[dict[str, np.ndarray]] = []
+        step_ids: list[int] = []
+
+        def keep(npstate, step_id):
+            frames.append({k: npstate[k] for k in ("x", "v", *fields) if k in npstate})
+            step_ids.append(step_id)
+            if on_frame is not None:
+                on_frame(len(frames) - 1, npstate)
+
+        def partial():
+            return self._trajectory(frames, step_ids, fields)
+
+        npstate = self.to_numpy(state)
+        bad = self.locate_failure(npstate)
+        if bad is not None:
+            raise SimulationDiverged(0, bad[0], bad[1], bad[2], "the initial state is already invalid")
+        keep(npstate, 0)
+        done = 0
+        bar = tqdm(total=steps, disable=None if progress is None else not progress, mininterval=0.5,
+                   unit="step", leave=False)
+        t_first = None
+        try:
+            while done < steps:
+                # chunk boundary: next kept frame or next guard check, whichever comes first
+                next_frame = (done // every + 1) * every
+                next_check = (done // check + 1) * check
+                n = min(next_frame, next_check, steps) - done
+                start_state, start_step = state, done
+                t0 = time.perf_counter()
+                state = self._advance(state, n)
+                if t_first is None:
+                    self._block(state)
+                    t_first = time.perf_counter() - t0
+                done += n
+                if done % check == 0 or done == steps:
+                    if self._is_bad(state):
+                        self._diverged(start_state, start_step, n, partial)
+                if done % every == 0:
+                    keep(self.to_numpy(state), done)
+                bar.update(n)
+        finally:
+            bar.close()
+        return partial()
+
+    def _block(self, state) -> None:
+        """Wait for asynchronous work (JAX dispatch); no-op by default."""
+
+    def _trajectory(self, frames, step_ids, fields) -> Trajectory:
+        P = self.particles
+        nparams = max(len(g.law.params) for g in self.groups)
+        params = np.full((P.count, nparams), np.nan)
+        materials = []
+        for g in self.groups:
+            params[g.start:g.stop, : g.params.shape[1]] = g.params
+            materials.append({"law": g.law.name, "param_names": list(g.law.param_names()),
+                              "start": g.start, "stop": g.stop, "provenance": _provenance(g.law.name)})
+        stack = lambda k: np.stack([f[k] for f in frames]) if frames else np.zeros((0,))
+        extra = {k: stack(k) for k in fields if frames and k in frames[0]}
+        fp = {k: self._field_particles(k) for k in extra}
+        steps = np.asarray(step_ids, dtype=np.int64)
+        return Trajectory(stack("x"), stack("v"), steps * self.dt, steps, P.mass, P.volume, P.material_id,
+                          P.body_id, materials, params, self.meta(), extra, fp)
+
+    def _field_particles(self, name: str) -> np.ndarray:
+        if name in ("x", "v", "C"):
+            return np.arange(self.particles.count)
+        idx = [np.arange(g.start, g.stop) for g in self.groups if name in g.law.state_fields]
+        return np.concatenate(idx) if idx else np.zeros(0, int)
+
+
+def _provenance(name: str) -> str:
+    from . import registry
+
+    return registry.laws.provenance(name)

@@ -1,0 +1,32 @@
+"""Warp fixed corotated law (NCLaw Eq. 12), built per (dim, precision)."""
+from __future__ import annotations
+
+from functools import lru_cache
+from types import SimpleNamespace
+
+import warp as wp
+
+from ...backends.warp.linalg import warp_linalg
+from ...backends.warp.types import warp_types
+
+
+@lru_cache(maxsize=None)
+def make(dim: int, precision: str) -> SimpleNamespace:
+    T = warp_types(dim, precision)
+    La = warp_linalg(dim, precision)
+    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+
+    @wp.func
+    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
+        mu, lam = La.lame(prm[p, 0], prm[p, 1])
+        U, sig, V = La.svd_rotations(s.F)
+        J = wp.determinant(s.F)
+        return scalar(2.0) * mu * (s.F - U @ wp.transpose(V)) @ wp.transpose(s.F) + lam * J * (J - scalar(1.0)) * wp.identity(dim, scalar)
+
+    @wp.func
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
+        out = s
+        out.F = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
+        return out
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update)

@@ -1,0 +1,49 @@
+"""The Python API's entry point: build a stepper for a scene on a backend, roll it out."""
+from __future__ import annotations
+
+from typing import Any
+
+from .core import registry
+from .core.errors import ConfigError, MissingImplementationError
+from .core.interfaces import AbstractTransfer
+from .core.scene import Scene
+from .transfers import make_transfer
+
+
+def check_capabilities(scene: Scene, backend: str, transfer: AbstractTransfer) -> None:
+    """Fail before anything runs if a law, transfer or boundary has no implementation for ``backend``."""
+    registry.backends.get(backend)  # unknown backend -> UnknownPluginError listing the known ones
+    for body in scene.bodies:
+        law = registry.laws.get(body.material)
+        if backend not in law.implementations:
+            raise MissingImplementationError("law", law.name, backend, list(law.implementations))
+    if backend not in transfer.implementations:
+        raise MissingImplementationError("transfer", transfer.name, backend, list(transfer.implementations))
+    for b in scene.boundaries:
+        if backend not in b.implementations:
+            raise MissingImplementationError("boundary", b.name, backend, list(b.implementations))
+
+
+def build_stepper(scene: Scene, backend: str = "jax", transfer: Any = "mls", precision: str = "fp32", **options):
+    """Build a compiled stepper.
+
+    Args:
+        scene: the ``Scene``.
+        backend: registered backend name (``jax`` or ``warp``).
+        transfer: a registered transfer name (``pic``, ``flip``, ``apic``, ``mls``, ``tpic``) or a transfer object.
+        precision: ``fp32`` or ``fp64``.
+        **options: backend options (``check_every``: guard cadence in steps).
+    """
+    if isinstance(transfer, str):
+        transfer = make_transfer(transfer)
+    if precision not in ("fp32", "fp64"):
+        raise ConfigError(f"precision '{precision}' unknown; use 'fp32' or 'fp64'.")
+    check_capabilities(scene, backend, transfer)
+    return registry.backends.get(backend)().build(scene, transfer, precision, **options)
+
+
+def simulate(scene: Scene, steps: int, every: int = 1, backend: str = "jax", transfer: Any = "mls",
+             precision: str = "fp32", fields: tuple[str, ...] = (), **options):
+    """Build and roll out in one call; returns a ``Trajectory``."""
+    stepper = build_stepper(scene, backend, transfer, precision, **options)
+    return stepper.rollout(steps=steps, every=every, fields=fields)
