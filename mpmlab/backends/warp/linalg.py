@@ -1,5 +1,4 @@
 """Warp per-particle linear algebra, built per (dim, precision)."""
-from __future__ import annotations
 
 from functools import lru_cache
 from types import SimpleNamespace
@@ -25,7 +24,22 @@ def warp_linalg(dim: int, precision: str) -> SimpleNamespace:
         if wp.static(dim == 3):
             wp.svd3(F, U, s, V)
         else:
-            wp.svd2(F, U, s, V)
+            # wp.svd2 loses U and V when the singular values are equal (F a scaled rotation, the rest state
+            # of every rigid motion), so 2D uses the closed form: polar angle, then the symmetric eigenproblem.
+            th = wp.atan2(F[1, 0] - F[0, 1], F[0, 0] + F[1, 1])
+            R = mat(wp.cos(th), -wp.sin(th), wp.sin(th), wp.cos(th))
+            Sm = wp.transpose(R) @ F
+            phi = scalar(0.5) * wp.atan2(Sm[0, 1] + Sm[1, 0], Sm[0, 0] - Sm[1, 1])
+            V = mat(wp.cos(phi), -wp.sin(phi), wp.sin(phi), wp.cos(phi))
+            Dg = wp.transpose(V) @ Sm @ V
+            s = vec(Dg[0, 0], Dg[1, 1])
+            if wp.abs(s[0]) < wp.abs(s[1]):   # order by magnitude, as LAPACK does
+                V = mat(-V[0, 1], V[0, 0], -V[1, 1], V[1, 0])
+                s = vec(s[1], s[0])
+            U = R @ V
+            if s[0] < scalar(0.0):            # keep the sign on the last singular value
+                s = -s
+                U = -U
         if wp.determinant(U) < scalar(0.0):
             for i in range(dim):
                 U[i, dim - 1] = -U[i, dim - 1]

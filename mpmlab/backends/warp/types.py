@@ -3,7 +3,6 @@
 Every Warp kernel and law function in mpmlab is built by a factory over these types, so one
 source serves 2D/3D and fp32/fp64 (Warp's kernel-factory pattern).
 """
-from __future__ import annotations
 
 from functools import lru_cache
 from types import SimpleNamespace

@@ -1,5 +1,4 @@
 """Warp fixed corotated law (NCLaw Eq. 12), built per (dim, precision)."""
-from __future__ import annotations
 
 from functools import lru_cache
 from types import SimpleNamespace

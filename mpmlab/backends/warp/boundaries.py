@@ -1,0 +1,196 @@
+"""Warp implementations of the built-in boundaries (``mpmlab.boundaries``).
+
+Domain walls are fused into the grid-update kernel (their face kinds are kernel arguments); the
+others are small kernels launched only when the scene has them. Node sets and normals come from the
+same NumPy code as the JAX side (``mpmlab.backends.boundary_geometry``).
+"""
+
+from functools import lru_cache
+from types import SimpleNamespace
+
+import numpy as np
+import warp as wp
+
+from ...boundaries import _faces
+from ..boundary_geometry import box_obstacle_normals, friction_node_mu_index, wall_masks
+from .kernels import WALL_CODES
+from .types import warp_types
+
+
+@lru_cache(maxsize=None)
+def _coulomb_func(dim, precision):
+    T = warp_types(dim, precision)
+    scalar, vec = T.scalar, T.vec
+
+    @wp.func
+    def coulomb(v: vec, n: vec, mu: scalar):
+        """JAX-MPM Eqs. 35-36 against outward normal n (into the obstacle); identity unless v.n > 0."""
+        vn = wp.dot(v, n)
+        out = v
+        if vn > scalar(0.0):
+            vt = v - vn * n
+            vt_norm = wp.length(vt)
+            if vt_norm <= mu * vn:
+                out = vec()
+            else:
+                out = vt * (scalar(1.0) - mu * vn / vt_norm)
+        return out
+
+    return coulomb
+
+
+@lru_cache(maxsize=None)
+def _node_kernels(dim, precision):
+    T = warp_types(dim, precision)
+    scalar, vec = T.scalar, T.vec
+    coulomb = _coulomb_func(dim, precision)
+
+    @wp.kernel(module="unique")
+    def friction(grid_v: wp.array(dtype=vec), nodes: wp.array(dtype=int), mu_index: wp.array(dtype=int),
+                 mu: wp.array(dtype=scalar), n: vec, out: wp.array(dtype=vec)):
+        k = wp.tid()
+        i = nodes[k]
+        out[i] = coulomb(grid_v[i], n, mu[mu_index[k]])
+
+    @wp.kernel(module="unique")
+    def plane(grid_v: wp.array(dtype=vec), nodes: wp.array(dtype=int), n_in: vec, kind: int,
+              friction: wp.array(dtype=scalar), out: wp.array(dtype=vec)):
+        k = wp.tid()
+        i = nodes[k]
+        v = grid_v[i]
+        if kind == 1:
+            v = vec()
+        elif kind == 2:
+            v = v - wp.dot(v, n_in) * n_in
+        else:
+            v = coulomb(v, -n_in, friction[0])
+        out[i] = v
+
+    @wp.kernel(module="unique")
+    def obstacle(grid_v: wp.array(dtype=vec), nodes: wp.array(dtype=int), normals: wp.array(dtype=vec),
+                 out: wp.array(dtype=vec)):
+        k = wp.tid()
+        i = nodes[k]
+        v = grid_v[i]
+        vn = wp.dot(v, normals[k])
+        if vn < scalar(0.0):
+            v = v - vn * normals[k]   # JAX-MPM Eq. 33, only into the box
+        out[i] = v
+
+    @wp.kernel(module="unique")
+    def set_velocity(v: wp.array(dtype=vec), idx: wp.array(dtype=int), target: wp.array(dtype=vec)):
+        k = wp.tid()
+        v[idx[k]] = target[0]
+
+    @wp.kernel(module="unique")
+    def add_force(ext: wp.array(dtype=vec), idx: wp.array(dtype=int), share: wp.array(dtype=scalar),
+                  force: wp.array(dtype=vec)):
+        k = wp.tid()
+        ext[idx[k]] = ext[idx[k]] + share[k] * force[0]
+
+    return SimpleNamespace(friction=friction, plane=plane, obstacle=obstacle, set_velocity=set_velocity,
+                           add_force=add_force)
+
+
+class _GridBC:
+    """A grid boundary acting on a node subset; ``apply(grid_v, t)`` updates grid_v."""
+
+    def __init__(self, stepper, nodes):
+        self.stepper = stepper
+        self.nodes = wp.array(np.asarray(nodes, dtype=np.int32), dtype=int, device=stepper.device)
+        self.K = _node_kernels(stepper.dim, stepper.precision)
+
+
+def walls(b, scene, stepper):
+    codes = [WALL_CODES[k] for k in b.face_kinds(scene.dim)]
+    return SimpleNamespace(kind="walls", codes=codes, thickness=b.thickness, params={})
+
+
+def friction_walls(b, scene, stepper):
+    T = stepper.T
+    mask = wall_masks(scene, b.thickness)[b.face]
+    nodes = np.nonzero(mask)[0]
+    bc = _GridBC(stepper, nodes)
+    bc.mu_index = wp.array(friction_node_mu_index(b, scene)[nodes].astype(np.int32), dtype=int, device=stepper.device)
+    n = np.zeros(scene.dim); n[b.axis] = b.side
+    bc.n = T.vec(*n)
+    bc.params = {"mu": wp.array(np.asarray(b.mu, float), dtype=T.scalar, device=stepper.device, requires_grad=False)}
+
+    def apply(grid_v, t):
+        wp.launch(bc.K.friction, dim=len(nodes), inputs=[grid_v, bc.nodes, bc.mu_index, bc.params["mu"], bc.n, grid_v],
+                  device=stepper.device)
+
+    bc.apply = apply
+    bc.kind = "grid"
+    return bc
+
+
+def plane(b, scene, stepper):
+    from ..boundary_geometry import node_positions
+
+    T = stepper.T
+    n_in = b.unit_normal()
+    behind = (node_positions(scene) - np.asarray(b.point, float)) @ n_in < 0
+    nodes = np.nonzero(behind)[0]
+    bc = _GridBC(stepper, nodes)
+    kind = {"sticky": 1, "slip": 2, "separate": 3}[b.kind]
+    bc.params = {"friction": wp.array([b.friction], dtype=T.scalar, device=stepper.device)}
+
+    def apply(grid_v, t):
+        if len(nodes):
+            wp.launch(bc.K.plane, dim=len(nodes), inputs=[grid_v, bc.nodes, T.vec(*n_in), kind, bc.params["friction"], grid_v],
+                      device=stepper.device)
+
+    bc.apply = apply
+    bc.kind = "grid"
+    return bc
+
+
+def box_obstacle(b, scene, stepper):
+    inside, normals = box_obstacle_normals(b, scene)
+    nodes = np.nonzero(inside)[0]
+    bc = _GridBC(stepper, nodes)
+    bc.normals = wp.array(normals[nodes], dtype=stepper.T.vec, device=stepper.device)
+    bc.params = {}
+
+    def apply(grid_v, t):
+        if len(nodes):
+            wp.launch(bc.K.obstacle, dim=len(nodes), inputs=[grid_v, bc.nodes, bc.normals, grid_v], device=stepper.device)
+
+    bc.apply = apply
+    bc.kind = "grid"
+    return bc
+
+
+def particle_velocity(b, scene, stepper):
+    idx = b.select(scene.particles().x)
+    bc = SimpleNamespace(kind="particle_velocity")
+    K = _node_kernels(stepper.dim, stepper.precision)
+    ia = wp.array(idx.astype(np.int32), dtype=int, device=stepper.device)
+    bc.params = {"velocity": wp.array([b.velocity], dtype=stepper.T.vec, device=stepper.device)}
+
+    def apply_particles(v, t):
+        if b.t_start < t <= b.t_end:
+            wp.launch(K.set_velocity, dim=len(idx), inputs=[v, ia, bc.params["velocity"]], device=stepper.device)
+
+    bc.apply_particles = apply_particles
+    return bc
+
+
+def particle_load(b, scene, stepper):
+    P = scene.particles()
+    idx = b.select(P.x)
+    bc = SimpleNamespace(kind="particle_force")
+    K = _node_kernels(stepper.dim, stepper.precision)
+    ia = wp.array(idx.astype(np.int32), dtype=int, device=stepper.device)
+    share = wp.array(P.mass[idx] / P.mass[idx].sum(), dtype=stepper.T.scalar, device=stepper.device)
+    bc.params = {"force": wp.array([b.force], dtype=stepper.T.vec, device=stepper.device)}
+
+    def add_force(ext, t):
+        if b.t_start <= t < b.t_end:
+            wp.launch(K.add_force, dim=len(idx), inputs=[ext, ia, share, bc.params["force"]], device=stepper.device)
+            return True
+        return False
+
+    bc.add_force = add_force
+    return bc
