@@ -116,7 +116,7 @@ class JaxStepper(BaseStepper):
 
         # stress (Kirchhoff) from each law present ------------------------------------------------
         tau = jnp.concatenate([jax.vmap(law.kirchhoff)(st, prm) for law, st, prm in
-                               zip(self._laws, state["law"], params["law"])], axis=0)  # [N, D, D]
+                               zip(self._laws, state["law"], params["law"])], axis=0).astype(x.dtype)  # [N, D, D]
 
         # P2G ------------------------------------------------------------------------------------
         p_mom = mass[:, None] * v
@@ -179,7 +179,9 @@ class JaxStepper(BaseStepper):
         laws = []
         for g, law, st, prm in zip(self.groups, self._laws, state["law"], params["law"]):
             gv = grad_v[g.start:g.stop]
-            laws.append(jax.vmap(law.update, in_axes=(0, 0, None, 0))(st, gv, dt, prm))
+            upd = jax.vmap(law.update, in_axes=(0, 0, None, 0))(st, gv, dt, prm)
+            # a law (or a plugin's law) may build constants in float64: keep the state in the stepper's precision
+            laws.append({k: a.astype(x.dtype) for k, a in upd.items()})
         new["law"] = tuple(laws)
         return new
 

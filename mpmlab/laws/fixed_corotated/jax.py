@@ -9,15 +9,15 @@ from ...backends.jax.linalg import lame, polar_rotation
 
 
 def make(dim: int) -> SimpleNamespace:
-    eye = jnp.eye(dim)
-
     def kirchhoff(state, prm):
         F = state["F"]
+        eye = jnp.eye(dim, dtype=F.dtype)
         mu, lam = lame(prm[0], prm[1])
         J = jnp.linalg.det(F)
         return 2.0 * mu * (F - polar_rotation(F)) @ F.T + lam * J * (J - 1.0) * eye
 
     def update(state, grad_v, dt, prm):
-        return {"F": (eye + dt * grad_v) @ state["F"]}
+        F = state["F"]
+        return {"F": (jnp.eye(dim, dtype=F.dtype) + dt * grad_v) @ F}
 
     return SimpleNamespace(kirchhoff=kirchhoff, update=update)
