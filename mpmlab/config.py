@@ -1,0 +1,530 @@
+"""Typed configuration: the Hydra schema of ``mpmlab`` and its conversion to a :class:`mpmlab.Scene`.
+
+The YAML config tree (``mpmlab/conf``, also reachable as the top-level ``conf/``) is validated against
+the dataclasses below, which are registered in Hydra's ``ConfigStore``: a misspelled key or a value of
+the wrong type fails while Hydra composes the config, before anything runs.
+
+Physics is chosen by registered name (``material.law``, ``transfer.name``, ``backend.name``,
+``scene.boundaries.<b>.kind``); parameters are checked by the classes that own them (a law's
+``ParamSpec`` ranges, a boundary's ``validate``, the scene's CFL bound) when :func:`build_scene` turns
+the config into a ``Scene``. ``_target_`` is left for generic objects (optimisers, networks) that later
+tasks instantiate.
+
+Layout of the composed config::
+
+    backend:   {name, check_every, device}            # config group backend/ (jax, warp)
+    transfer:  {name, flip_ratio}                      # transfer/ (pic, flip, apic, mls, tpic)
+    precision: {name}                                  # precision/ (fp32, fp64)
+    material:  {law, params, density, label}           # material/: the default material of the scene
+    scene:     {name, dim, dx, domain, gravity, dt, bodies{...}, boundaries{...}, resolution, ...}
+    task:      {name, ...}                             # task/ (simulate, replay; later issues add more)
+    output:    {trajectory, recording, record_every, color_by, fields, plots, overwrite}
+    steps, frame_every, seed, input, debug, progress   # top-level keys
+
+Python use (no Hydra app needed)::
+
+    from mpmlab.config import compose, build_scene
+    cfg = compose(["scene=dam_break_2d", "scene.resolution=tiny"])
+    scene = build_scene(cfg)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Union
+
+from omegaconf import II, MISSING, DictConfig, ListConfig, OmegaConf
+
+from .core import registry
+from .core.errors import ConfigError
+
+#: The packaged config tree (the repository's top-level ``conf/`` links here).
+CONF_DIR = Path(__file__).resolve().parent / "conf"
+#: Name of the primary config in :data:`CONF_DIR`.
+PRIMARY = "config"
+#: ConfigStore name of the root schema (the primary config's first default).
+SCHEMA_NAME = "mpmlab_schema"
+
+
+# ---------------------------------------------------------------------------------------------
+# schema
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class BackendConfig:
+    """A registered backend (``mpmlab.backends`` entry points: ``jax``, ``warp``)."""
+
+    name: str = "jax"
+    #: steps between divergence guards (None: at every kept frame)
+    check_every: Optional[int] = None
+    #: Warp device (``cpu``, ``cuda:0``); None = the backend's default
+    device: Optional[str] = None
+
+
+@dataclass
+class TransferConfig:
+    """A registered transfer scheme (``pic``, ``flip``, ``apic``, ``mls``, ``tpic``) and its options."""
+
+    name: str = "mls"
+    #: FLIP/PIC blend of ``flip`` (1 = pure FLIP); None = the scheme's default
+    flip_ratio: Optional[float] = None
+
+
+@dataclass
+class PrecisionConfig:
+    name: str = "fp32"
+
+
+@dataclass
+class MaterialConfig:
+    """A registered constitutive law with its parameters (checked by the law's ``ParamSpec``)."""
+
+    law: str = MISSING
+    params: Dict[str, float] = field(default_factory=dict)
+    #: rest density [kg/m^3]
+    density: float = 1000.0
+    #: a human name for plots and recordings (``jelly``, ``sand``)
+    label: str = ""
+
+
+@dataclass
+class ShapeConfig:
+    """A body shape: ``box`` (lo, hi), ``sphere`` (center, radius; a disc in 2D), ``cylinder`` (base,
+    radius, height, axis) or ``mesh`` (path, scale, translate; a path relative to ``mpmlab/assets``
+    or any OBJ/STL/PLY file)."""
+
+    kind: str = MISSING
+    lo: Optional[List[float]] = None
+    hi: Optional[List[float]] = None
+    center: Optional[List[float]] = None
+    radius: Optional[float] = None
+    base: Optional[List[float]] = None
+    height: Optional[float] = None
+    axis: Optional[int] = None
+    path: Optional[str] = None
+    scale: Optional[float] = None
+    translate: Optional[List[float]] = None
+
+
+@dataclass
+class BodyConfig:
+    """One body of the scene; ``material: null`` takes the top-level ``material``."""
+
+    shape: ShapeConfig = MISSING
+    material: Optional[MaterialConfig] = None
+    #: initial linear velocity [m/s]
+    velocity: Optional[List[float]] = None
+    #: initial angular velocity about the body's centroid [rad/s]: a number in 2D, a 3-vector in 3D
+    angular_velocity: Optional[Any] = None
+    particles_per_cell: int = 1
+    #: ``regular``, ``jittered`` or ``random`` (with ``count``)
+    sampling: str = "regular"
+    count: Optional[int] = None
+    particle_volume: Optional[float] = None
+    #: set false to leave the body out (``scene.bodies.<name>.enabled=false``)
+    enabled: bool = True
+
+
+@dataclass
+class BoundaryConfig:
+    """A registered boundary (``walls``, ``friction_walls``, ``plane``, ``box_obstacle``,
+    ``particle_velocity``, ``particle_load``, or a plugin's) and the options it takes.
+
+    Only the options a boundary declares may be set (the others stay null); ``condition`` is the
+    ``plane`` boundary's own ``kind`` (sticky / slip / separate); ``extra`` passes options of plugin
+    boundaries that this schema does not name.
+    """
+
+    kind: str = MISSING
+    enabled: bool = True
+    # walls
+    default: Optional[str] = None
+    faces: Optional[Dict[str, str]] = None
+    thickness: Optional[int] = None
+    # friction_walls
+    face: Optional[str] = None
+    mu: Optional[List[float]] = None
+    along: Optional[str] = None
+    per_node: Optional[bool] = None
+    # plane
+    point: Optional[List[float]] = None
+    normal: Optional[List[float]] = None
+    condition: Optional[str] = None
+    friction: Optional[float] = None
+    # box_obstacle
+    lo: Optional[List[float]] = None
+    hi: Optional[List[float]] = None
+    # particle_velocity / particle_load
+    region: Optional[ShapeConfig] = None
+    velocity: Optional[List[float]] = None
+    force: Optional[List[float]] = None
+    t_start: Optional[float] = None
+    t_end: Optional[float] = None
+    extra: Dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class DomainConfig:
+    """The region inside the walls [m]; the grid extends ``pad_cells`` cells beyond it on every side
+    (a wall of ``thickness`` t acts on the nodes with index < t, so ``pad_cells = t - 1`` puts the
+    innermost constrained node on the face ``lo`` / ``hi``)."""
+
+    lo: List[float] = MISSING
+    hi: List[float] = MISSING
+    pad_cells: int = 0
+
+
+@dataclass
+class SceneConfig:
+    name: str = MISSING
+    description: str = ""
+    #: where the scene comes from (paper, section)
+    source: str = ""
+    dim: int = 3
+    #: grid spacing [m]
+    dx: float = MISSING
+    domain: DomainConfig = field(default_factory=DomainConfig)
+    gravity: Optional[List[float]] = None
+    #: time step [s], or ``auto`` (CFL number ``cfl``)
+    dt: Union[float, str] = "auto"
+    cfl: float = 0.3
+    #: largest CFL number accepted for a fixed dt
+    cfl_limit: float = 0.5
+    #: default rollout length and frame spacing of the scene (top-level ``steps`` / ``frame_every``)
+    steps: int = 1000
+    frame_every: int = 10
+    bodies: Dict[str, BodyConfig] = field(default_factory=dict)
+    boundaries: Dict[str, BoundaryConfig] = field(default_factory=dict)
+    #: the chosen entry of ``resolutions`` (values are picked by interpolation in the scene YAML)
+    resolution: str = "default"
+    resolutions: Dict[str, Dict[str, Any]] = field(default_factory=dict)
+    #: scene-specific knobs used by the scene's own interpolations (e.g. ``aspect_ratio``)
+    vars: Dict[str, Any] = field(default_factory=dict)
+    #: a registered scene builder (``mpmlab.scenes`` entry point or ``module:function``) instead of bodies
+    builder: Optional[str] = None
+    builder_args: Dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class TaskConfig:
+    """Base of every task's options; ``name`` selects the task function (``mpmlab.tasks``)."""
+
+    name: str = MISSING
+
+
+@dataclass
+class SimulateTaskConfig(TaskConfig):
+    name: str = "simulate"
+
+
+@dataclass
+class ReplayTaskConfig(TaskConfig):
+    """Turn an ``mpmlab.trajectory`` HDF5 file (top-level ``input``) into a recording."""
+
+    name: str = "replay"
+
+
+@dataclass
+class OutputConfig:
+    """What a run writes into its Hydra run directory."""
+
+    trajectory: bool = True
+    recording: bool = True
+    #: keep every k-th frame in the recording (thinning)
+    record_every: int = 1
+    #: particle colours: ``material`` or a scalar (``speed``, ``J``, ``eps_p``, ``stress``)
+    color_by: str = "material"
+    #: per-particle fields stored in the trajectory besides x and v (kept where the laws carry them)
+    fields: List[str] = field(default_factory=lambda: ["F", "C", "J", "sigma", "eps_p"])
+    #: energy-over-time PNG
+    plots: bool = True
+    #: replace outputs already in the run directory (otherwise that is an error)
+    overwrite: bool = False
+
+
+@dataclass
+class MpmlabConfig:
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    transfer: TransferConfig = field(default_factory=TransferConfig)
+    precision: PrecisionConfig = field(default_factory=PrecisionConfig)
+    material: MaterialConfig = field(default_factory=MaterialConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    task: TaskConfig = field(default_factory=SimulateTaskConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    #: time steps to run (default: the scene's)
+    steps: int = II("scene.steps")
+    #: steps between kept frames (default: the scene's)
+    frame_every: int = II("scene.frame_every")
+    seed: int = 0
+    #: input file of tasks that read one (``task=replay input=run/trajectory.h5``)
+    input: Optional[str] = None
+    #: print tracebacks (also: environment variable MPMLAB_DEBUG=1)
+    debug: bool = False
+    #: progress bar: null = only when stderr is a terminal
+    progress: Optional[bool] = None
+
+
+_REGISTERED = False
+
+
+def _product(*args: Any) -> float:
+    out = 1.0
+    for a in args:
+        out *= float(a)
+    return out
+
+
+def register_resolvers() -> None:
+    """``${mpmlab.mul:a,b,...}`` and ``${mpmlab.add:a,b,...}`` for scene geometry derived from
+    ``scene.vars`` (e.g. a column height = L0 x aspect ratio)."""
+    OmegaConf.register_new_resolver("mpmlab.mul", _product, replace=True)
+    OmegaConf.register_new_resolver("mpmlab.add", lambda *a: float(sum(float(x) for x in a)), replace=True)
+
+
+def register_configs() -> None:
+    """Store the schemas in Hydra's ConfigStore (idempotent; done on import of this module)."""
+    global _REGISTERED
+    if _REGISTERED:
+        return
+    from hydra.core.config_store import ConfigStore
+
+    register_resolvers()
+    cs = ConfigStore.instance()
+    cs.store(name=SCHEMA_NAME, node=MpmlabConfig)
+    # per-task schemas, extended by conf/task/<name>.yaml (defaults: [/schema/task/<name>@_here_, _self_])
+    cs.store(group="schema/task", name="simulate", node=SimulateTaskConfig)
+    cs.store(group="schema/task", name="replay", node=ReplayTaskConfig)
+    _REGISTERED = True
+
+
+register_configs()
+
+
+def register_task_schema(name: str, node: type) -> None:
+    """Register a task's option dataclass (a ``TaskConfig`` subclass) as ``schema/task/<name>``; the
+    task's YAML extends it with ``defaults: [/schema/task/<name>@_here_, _self_]``."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(group="schema/task", name=name, node=node)
+
+
+# ---------------------------------------------------------------------------------------------
+# composing without the CLI (tests, notebooks)
+# ---------------------------------------------------------------------------------------------
+def compose(overrides: list[str] | tuple[str, ...] = (), config_name: str = PRIMARY,
+            return_hydra_config: bool = False) -> DictConfig:
+    """Compose the packaged config with Hydra overrides, as ``mpmlab <overrides>`` would.
+
+    Plugin config groups (``mpmlab.configs`` entry points) are on the search path as on the CLI.
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    register_search_path_plugin()
+    gh = GlobalHydra.instance()
+    was = gh.is_initialized()
+    if was:  # a test or notebook already holds a Hydra context: use ours, then put nothing back
+        gh.clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return hydra_compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def register_search_path_plugin() -> None:
+    """Register mpmlab's Hydra search-path plugin explicitly.
+
+    Hydra finds ``hydra_plugins.mpmlab_searchpath`` by scanning the ``hydra_plugins`` namespace; some
+    editable installs hide namespace portions from that scan, so the CLI registers it as well
+    (``Plugins.register`` ignores a class it already knows).
+    """
+    try:
+        from hydra.core.plugins import Plugins
+        from hydra_plugins.mpmlab_searchpath import MpmlabSearchPathPlugin
+    except ImportError:  # pragma: no cover - a broken install; Hydra's own scan may still find it
+        return
+    Plugins.instance().register(MpmlabSearchPathPlugin)
+
+
+# ---------------------------------------------------------------------------------------------
+# config -> Scene
+# ---------------------------------------------------------------------------------------------
+def _plain(node: Any) -> Any:
+    """A resolved plain-Python copy (lists -> lists, dicts -> dicts), None for None."""
+    if isinstance(node, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(node, resolve=True)
+    return node
+
+
+def _tuples(v: Any) -> Any:
+    """Lists -> tuples, recursively (boundaries are frozen dataclasses)."""
+    if isinstance(v, list):
+        return tuple(_tuples(a) for a in v)
+    if isinstance(v, dict):
+        return {k: _tuples(a) for k, a in v.items()}
+    return v
+
+
+def _shape_dict(shape: Any) -> dict:
+    return {k: v for k, v in _plain(shape).items() if v is not None}
+
+
+def check_resolution(scene_cfg: DictConfig) -> None:
+    """Refuse an unknown ``scene.resolution`` with the list of the scene's resolutions."""
+    known = list(scene_cfg.resolutions.keys())
+    name = scene_cfg.resolution
+    if known and name not in known:
+        raise ConfigError(
+            f"scene '{scene_cfg.name}' has no resolution '{name}'; choose one of {', '.join(known)} "
+            f"(scene.resolution={known[0]})."
+        )
+
+
+def material_of(cfg: DictConfig, body_cfg: DictConfig | None = None) -> dict:
+    """The material a body uses (its own, else the top-level ``material``) as a plain dict."""
+    mat = body_cfg.material if body_cfg is not None and body_cfg.material is not None else cfg.material
+    return _plain(mat)
+
+
+def _body(cfg: DictConfig, name: str, b: DictConfig):
+    from .core.scene import Body
+
+    where = f"scene '{cfg.scene.name}', body '{name}'"
+    if OmegaConf.is_missing(b, "shape") or OmegaConf.is_missing(b.shape, "kind"):
+        raise ConfigError(f"{where}: no shape; set scene.bodies.{name}.shape.kind (box, sphere, cylinder, mesh).")
+    mat_node = b.material if b.material is not None else cfg.material
+    if mat_node is None or OmegaConf.is_missing(mat_node, "law"):
+        raise ConfigError(f"{where}: no material; choose one with material=<name> or set scene.bodies.{name}.material.law.")
+    mat = _plain(mat_node)
+    registry.laws.get(mat["law"])  # unknown law -> the list of known laws
+    return Body(
+        shape=_shape_dict(b.shape), material=mat["law"], params=dict(mat["params"]), density=float(mat["density"]),
+        velocity=_plain(b.velocity), angular_velocity=_plain(b.angular_velocity),
+        particles_per_cell=int(b.particles_per_cell), sampling=b.sampling, count=b.count,
+        particle_volume=b.particle_volume, name=name,
+    )
+
+
+def make_boundary_from_config(name: str, bc: DictConfig):
+    """A boundary object from a ``BoundaryConfig`` node (options left null are not passed)."""
+    import dataclasses
+
+    spec = _plain(bc)
+    kind = spec.pop("kind")
+    spec.pop("enabled", None)
+    extra = spec.pop("extra", None) or {}
+    condition = spec.pop("condition", None)
+    cls = registry.boundaries.get(kind)
+    opts = {k: v for k, v in spec.items() if v is not None}
+    if condition is not None:
+        opts["kind"] = condition  # the plane's sticky / slip / separate
+    if isinstance(opts.get("region"), dict):
+        opts["region"] = {k: v for k, v in opts["region"].items() if v is not None}
+    opts.update(extra)
+    accepted = [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else None
+    if accepted is not None:
+        wrong = sorted(set(opts) - set(accepted))
+        if wrong:
+            shown = ["condition" if a == "kind" else a for a in accepted]
+            raise ConfigError(
+                f"boundary '{name}' ({kind}) does not take option(s) {', '.join(wrong)}; it takes "
+                f"{', '.join(shown) or 'none'}. Remove them from scene.boundaries.{name}."
+            )
+    opts = {k: (v if k in ("faces", "region") else _tuples(v)) for k, v in opts.items()}
+    try:
+        return cls(**opts)
+    except TypeError as exc:
+        raise ConfigError(f"boundary '{name}' ({kind}): {exc}; check scene.boundaries.{name}.") from None
+
+
+def _builder(name: str):
+    if name in registry.scenes:
+        return registry.scenes.get(name)
+    if ":" in name or "." in name:
+        try:
+            return registry.load_object(name)
+        except (ImportError, AttributeError) as exc:
+            raise ConfigError(f"scene builder '{name}' cannot be imported ({exc}); check scene.builder.") from None
+    registry.scenes.get(name)  # raises UnknownPluginError with the known names
+
+
+def build_scene(cfg: DictConfig, validate: bool = True):
+    """The ``mpmlab.Scene`` described by a composed config (``cfg.scene`` + ``cfg.material``).
+
+    With ``validate`` (default) every check that can fail before a run is done here: law names and
+    parameter ranges, shapes, particles inside the domain, boundary options, the CFL bound of a fixed
+    ``dt``. Raises ``ConfigError`` (one sentence: what, where, what to do).
+    """
+    from .core.scene import Scene
+
+    sc = cfg.scene
+    check_resolution(sc)
+    seed = int(cfg.get("seed", 0))
+    if sc.builder:
+        fn = _builder(sc.builder)
+        args = _plain(sc.builder_args) or {}
+        try:
+            scene = fn(**args)
+        except TypeError as exc:
+            raise ConfigError(f"scene '{sc.name}': builder '{sc.builder}' rejected scene.builder_args ({exc}).") from None
+        scene.name = sc.name
+    else:
+        bodies = [_body(cfg, name, b) for name, b in sc.bodies.items() if b.enabled]
+        if not bodies:
+            raise ConfigError(f"scene '{sc.name}' has no enabled body; add one under scene.bodies.")
+        boundaries = [make_boundary_from_config(name, b) for name, b in sc.boundaries.items() if b.enabled]
+        lo = [float(a) for a in sc.domain.lo]
+        hi = [float(a) for a in sc.domain.hi]
+        if len(lo) != sc.dim or len(hi) != sc.dim:
+            raise ConfigError(f"scene '{sc.name}': scene.domain.lo and .hi need {sc.dim} coordinates each (dim = {sc.dim}).")
+        pad = int(sc.domain.pad_cells) * float(sc.dx)
+        dt = sc.dt
+        if isinstance(dt, str) and dt != "auto":
+            try:
+                dt = float(dt)
+            except ValueError:
+                raise ConfigError(f"scene '{sc.name}': scene.dt = '{dt}' must be a number of seconds or 'auto'.") from None
+        scene = Scene(
+            dim=int(sc.dim), dx=float(sc.dx), domain=([a - pad for a in lo], [b + pad for b in hi]), bodies=bodies,
+            gravity=_plain(sc.gravity), boundaries=boundaries, dt=dt, cfl=float(sc.cfl),
+            cfl_limit=float(sc.cfl_limit), name=sc.name, seed=seed,
+        )
+    if validate:
+        scene.particles()
+        for b in scene.boundaries:
+            b.validate(scene)
+        scene.resolve_dt()
+    return scene
+
+
+def make_transfer_from_config(cfg: DictConfig):
+    from .transfers import make_transfer
+
+    opts = {k: v for k, v in _plain(cfg.transfer).items() if k != "name" and v is not None}
+    return make_transfer(cfg.transfer.name, **opts)
+
+
+def check_run_options(cfg: DictConfig) -> None:
+    """Top-level options that no class downstream checks with a clear message."""
+    if cfg.steps < 0:
+        raise ConfigError(f"steps = {cfg.steps} must be >= 0.")
+    if cfg.frame_every < 1:
+        raise ConfigError(f"frame_every = {cfg.frame_every} must be >= 1.")
+    if cfg.output.record_every < 1:
+        raise ConfigError(f"output.record_every = {cfg.output.record_every} must be >= 1.")
+    if cfg.precision.name not in ("fp32", "fp64"):
+        raise ConfigError(f"precision '{cfg.precision.name}' unknown; use precision=fp32 or precision=fp64.")
+
+
+def describe_scene(scene) -> dict:
+    """Small JSON-able facts about a built scene (for summaries and logs)."""
+    P = scene.particles()
+    return {
+        "scene": scene.name, "dim": scene.dim, "dx": scene.dx, "grid_cells": list(scene.cells),
+        "particles": int(P.count), "laws": [g.law.name for g in P.groups],
+        "bodies": [b.name for b in scene.bodies], "boundaries": [b.name for b in scene.boundaries],
+        "dt": float(scene.resolve_dt()),
+        "cfl_number": float(scene.cfl_number(scene.resolve_dt())) if math.isfinite(scene.wave_speed()) else None,
+    }
