@@ -78,9 +78,12 @@ def _node_kernels(dim, precision):
         out[i] = v
 
     @wp.kernel(module="unique")
-    def set_velocity(v: wp.array(dtype=vec), idx: wp.array(dtype=int), target: wp.array(dtype=vec)):
+    def set_velocity(v: wp.array(dtype=vec), x_in: wp.array(dtype=vec), x: wp.array(dtype=vec),
+                     idx: wp.array(dtype=int), target: wp.array(dtype=vec), dt: scalar):
         k = wp.tid()
-        v[idx[k]] = target[0]
+        p = idx[k]
+        v[p] = target[0]
+        x[p] = x_in[p] + dt * target[0]   # a prescribed particle also moves with its velocity
 
     @wp.kernel(module="unique")
     def add_force(ext: wp.array(dtype=vec), idx: wp.array(dtype=int), share: wp.array(dtype=scalar),
@@ -169,9 +172,10 @@ def particle_velocity(b, scene, stepper):
     ia = wp.array(idx.astype(np.int32), dtype=int, device=stepper.device)
     bc.params = {"velocity": wp.array([b.velocity], dtype=stepper.T.vec, device=stepper.device)}
 
-    def apply_particles(v, t):
+    def apply_particles(v, x_in, x, t):
         if b.t_start < t <= b.t_end:
-            wp.launch(K.set_velocity, dim=len(idx), inputs=[v, ia, bc.params["velocity"]], device=stepper.device)
+            wp.launch(K.set_velocity, dim=len(idx), inputs=[v, x_in, x, ia, bc.params["velocity"], stepper.dt_s],
+                      device=stepper.device)
 
     bc.apply_particles = apply_particles
     return bc

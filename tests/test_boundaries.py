@@ -1,0 +1,145 @@
+"""Every boundary: JAX and Warp agree (fp64), and each does the physics it promises."""
+import numpy as np
+import pytest
+
+import mpmlab
+from mpmlab.boundaries import (BoxObstacle, FrictionWalls, ParticleLoad, ParticleVelocity, Plane, Walls,
+                               make_boundary)
+from mpmlab.core import registry
+
+BACKENDS = ("jax", "warp")
+
+
+def block(dim, lo, hi, velocity=None, E=5e4, ppc=None, material="fixed_corotated", params=None):
+    return mpmlab.Body(shape={"kind": "box", "lo": lo, "hi": hi}, material=material,
+                       params=params or {"E": E, "nu": 0.3}, density=1000.0,
+                       particles_per_cell=ppc or 2**dim, velocity=velocity)
+
+
+def scene_for(kind, dim):
+    g = [0.0, -9.8] + [0.0] * (dim - 2)
+    z = [0.5] * (dim - 2)
+    zlo, zhi = [0.4] * (dim - 2), [0.6] * (dim - 2)
+    walls = Walls(default="slip", thickness=2)
+    floorless = Walls(default="slip", faces={"y-": "none"}, thickness=2)  # the friction wall is the floor
+    if kind == "walls":
+        bcs = [Walls(faces={"x-": "sticky", "x+": "slip", "y-": "separate"}, default="separate", thickness=2)]
+        bodies = [block(dim, [0.12, 0.1] + zlo, [0.3, 0.3] + zhi, velocity=[-1.0, -1.0] + [0.0] * (dim - 2))]
+    elif kind == "friction_walls":
+        bcs = [floorless, FrictionWalls(face="y-", mu=[0.1, 0.5, 0.2], along="x", thickness=2)]
+        bodies = [block(dim, [0.1, 0.1] + zlo, [0.3, 0.2] + zhi, velocity=[1.5, 0.0] + [0.0] * (dim - 2))]
+    elif kind == "friction_walls_per_node":
+        nodes = 21
+        bcs = [floorless, FrictionWalls(face="y-", mu=list(np.linspace(0.0, 0.6, nodes)), along="x", thickness=2,
+                                        per_node=True)]
+        bodies = [block(dim, [0.1, 0.1] + zlo, [0.3, 0.2] + zhi, velocity=[1.5, 0.0] + [0.0] * (dim - 2))]
+    elif kind == "plane":
+        n = [0.5, 1.0] + [0.0] * (dim - 2)
+        bcs = [walls, Plane(point=[0.5, 0.3] + z, normal=n, kind="separate", friction=0.2)]
+        bodies = [block(dim, [0.45, 0.4] + zlo, [0.6, 0.5] + zhi)]
+    elif kind == "box_obstacle":
+        bcs = [walls, BoxObstacle(lo=[0.4, 0.1] + zlo, hi=[0.6, 0.3] + zhi)]
+        bodies = [block(dim, [0.42, 0.45] + zlo, [0.58, 0.55] + zhi, velocity=[0.0, -2.0] + [0.0] * (dim - 2))]
+    elif kind == "particle_velocity":
+        bcs = [walls, ParticleVelocity(region={"kind": "box", "lo": [0.1, 0.0] + [0.0] * (dim - 2),
+                                               "hi": [0.16, 1.0] + [1.0] * (dim - 2)},
+                                       velocity=[0.0, 0.5] + [0.0] * (dim - 2), t_end=0.05)]
+        bodies = [block(dim, [0.1, 0.3] + zlo, [0.4, 0.4] + zhi)]
+    elif kind == "particle_load":
+        bcs = [ParticleLoad(region={"kind": "box", "lo": [0.3, 0.0] + [0.0] * (dim - 2), "hi": [0.36, 1.0] + [1.0] * (dim - 2)},
+                            force=[20.0, 5.0] + [0.0] * (dim - 2), t_start=0.01, t_end=0.04)]
+        g = None
+        bodies = [block(dim, [0.3, 0.3] + zlo, [0.5, 0.4] + zhi)]
+    else:
+        raise ValueError(kind)
+    return mpmlab.Scene(dim=dim, dx=0.05, domain=([0.0] * dim, [1.0] * dim), bodies=bodies, gravity=g,
+                        boundaries=bcs, dt=5e-4, name=kind)
+
+
+KINDS = ("walls", "friction_walls", "friction_walls_per_node", "plane", "box_obstacle", "particle_velocity",
+         "particle_load")
+
+
+def test_every_registered_boundary_is_covered():
+    covered = {k.replace("_per_node", "") for k in KINDS}
+    assert set(registry.boundaries.names()) <= covered
+
+
+@pytest.mark.parametrize("dim", (2, 3))
+@pytest.mark.parametrize("kind", KINDS)
+def test_jax_warp_agree(kind, dim):
+    scene = scene_for(kind, dim)
+    steps = 120 if dim == 2 else 60
+    a = mpmlab.simulate(scene, steps, steps, "jax", "apic", "fp64")
+    b = mpmlab.simulate(scene, steps, steps, "warp", "apic", "fp64")
+    scale = np.max(np.abs(a.v[-1])) + 1e-12
+    assert np.max(np.abs(a.v[-1] - b.v[-1])) <= 1e-9 * scale
+    assert np.max(np.abs(a.x[-1] - b.x[-1])) <= 1e-9
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_coulomb_friction_decelerates_at_mu_g(backend):
+    """A block sliding on a floor with Coulomb friction mu loses speed at mu g (JAX-MPM Eqs. 35-36)."""
+    mu, v0, g = 0.3, 1.0, 9.8
+    body = block(2, [0.1, 0.1], [0.3, 0.2], velocity=[v0, 0.0], E=2e5)
+    scene = mpmlab.Scene(dim=2, dx=0.025, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -g],
+                         boundaries=[Walls(default="slip", faces={"y-": "none"}, thickness=4),
+                                     FrictionWalls(face="y-", mu=[mu], thickness=4)],
+                         dt=2e-4)
+    t_end = 0.2
+    traj = mpmlab.simulate(scene, int(t_end / 2e-4), 100, backend, "apic", "fp64")
+    vx = np.einsum("n,tn->t", traj.mass, traj.v[..., 0]) / traj.mass.sum()
+    expected = v0 - mu * g * traj.time
+    # after the first contact transient, within 10% of the analytic speed loss
+    late = traj.time > 0.05
+    assert np.all(np.abs(vx[late] - expected[late]) <= 0.1 * (v0 - expected[late]))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_sticky_wall_stops_particles(backend):
+    scene = scene_for("walls", 2)
+    traj = mpmlab.simulate(scene, 300, 300, backend, "pic", "fp64")
+    near_sticky = traj.x[-1, :, 0] < 2 * scene.dx
+    assert near_sticky.any()
+    assert np.max(np.abs(traj.v[-1, near_sticky, 0])) < 0.05
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_prescribed_particle_velocity(backend):
+    scene = scene_for("particle_velocity", 2)
+    b = scene.boundaries[1]
+    idx = b.select(scene.particles().x)
+    traj = mpmlab.simulate(scene, 80, 10, backend, "apic", "fp64")
+    inside = (traj.time > 0) & (traj.time <= b.t_end)
+    assert np.allclose(traj.v[inside][:, idx], np.asarray(b.velocity), atol=1e-12)
+    # they move with the prescribed velocity
+    k = np.nonzero(inside)[0][-1]
+    assert np.allclose(traj.x[k, idx] - traj.x[0, idx], np.asarray(b.velocity) * traj.time[k], atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_particle_load_impulse(backend):
+    """No gravity, no walls: the momentum gained equals force x load duration exactly."""
+    scene = scene_for("particle_load", 2)
+    b = scene.boundaries[0]
+    traj = mpmlab.simulate(scene, 100, 100, backend, "apic", "fp64")
+    P = np.einsum("n,tnd->td", traj.mass, traj.v)
+    impulse = np.asarray(b.force) * (b.t_end - b.t_start)
+    assert np.allclose(P[-1] - P[0], impulse, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_box_obstacle_stops_falling_block(backend):
+    scene = scene_for("box_obstacle", 2)
+    traj = mpmlab.simulate(scene, 400, 400, backend, "apic", "fp64")
+    # the obstacle top is at y = 0.3: the block rests on it (within about one cell), never inside
+    assert traj.x[-1, :, 1].min() > 0.3 - 1.5 * scene.dx
+
+
+def test_bad_boundary_input_is_clear():
+    with pytest.raises(mpmlab.ConfigError, match="unknown face"):
+        Walls(faces={"q-": "slip"}).validate(scene_for("walls", 2))
+    with pytest.raises(mpmlab.UnknownPluginError, match="known boundarys|known boundary"):
+        make_boundary({"kind": "trampoline"})
+    with pytest.raises(mpmlab.ConfigError, match="per_node mu needs"):
+        FrictionWalls(face="y-", mu=[0.1, 0.2], per_node=True).validate(scene_for("walls", 2))
