@@ -161,13 +161,18 @@ class ParticleVelocity(AbstractBoundary):
         spec = dict(self.region)
         return np.nonzero(make_shape(spec.pop("kind"), **spec).contains(x0))[0]
 
-    def validate(self, scene) -> None:
+    def _check(self, scene, vector, what: str) -> None:
         if "kind" not in self.region:
             raise ConfigError(f"boundary '{self.name}': region needs a shape 'kind' (box, sphere, ...).")
-        if len(self.velocity) != scene.dim:
-            raise ConfigError(f"boundary '{self.name}': velocity needs {scene.dim} components.")
+        if len(vector) != scene.dim:
+            raise ConfigError(f"boundary '{self.name}': {what} needs {scene.dim} components.")
+        if not self.t_end > self.t_start:
+            raise ConfigError(f"boundary '{self.name}': t_end = {self.t_end} must exceed t_start = {self.t_start}.")
         if len(self.select(scene.particles().x)) == 0:
             raise ConfigError(f"boundary '{self.name}': region {dict(self.region)} contains no particle.")
+
+    def validate(self, scene) -> None:
+        self._check(scene, self.velocity, "velocity")
 
 
 @dataclass(frozen=True)
@@ -181,8 +186,7 @@ class ParticleLoad(ParticleVelocity):
     force: Sequence[float] = (0.0, 0.0, 0.0)
 
     def validate(self, scene) -> None:
-        object.__setattr__(self, "velocity", self.force)  # reuse the component-count check
-        super().validate(scene)
+        self._check(scene, self.force, "force")
 
 
 def make_boundary(spec: Mapping[str, Any]) -> AbstractBoundary:
