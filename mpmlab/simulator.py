@@ -42,8 +42,9 @@ def build_stepper(scene: Scene, backend: str = "jax", transfer: Any = "mls", pre
     return registry.backends.get(backend)().build(scene, transfer, precision, **options)
 
 
-def simulate(scene: Scene, steps: int, every: int = 1, backend: str = "jax", transfer: Any = "mls",
+def simulate(scene: Scene, steps: int, every: int | None = None, backend: str = "jax", transfer: Any = "mls",
              precision: str = "fp32", fields: tuple[str, ...] = (), **options):
-    """Build and roll out in one call; returns a ``Trajectory``."""
+    """Build and roll out in one call, keeping every ``every``-th step (default: the scene's
+    ``substeps`` per frame); returns a ``Trajectory``."""
     stepper = build_stepper(scene, backend, transfer, precision, **options)
     return stepper.rollout(steps=steps, every=every, fields=fields)

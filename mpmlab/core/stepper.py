@@ -118,9 +118,11 @@ class BaseStepper(AbstractStepper):
         raise SimulationDiverged(start_step + steps, -1, "state", "non-finite (not reproduced on replay)",
                                  trajectory=traj_so_far())
 
-    def rollout(self, state=None, steps: int = 100, every: int = 1, fields: tuple[str, ...] = (),
+    def rollout(self, state=None, steps: int = 100, every: int | None = None, fields: tuple[str, ...] = (),
                 progress: bool | None = None, on_frame: Callable | None = None) -> Trajectory:
         """Run ``steps`` steps keeping every ``every``-th frame (frame 0 = the initial state).
+
+        ``every`` defaults to the scene's ``substeps`` (time steps per output frame).
 
         Args:
             state: start state (default ``init()``).
@@ -128,6 +130,7 @@ class BaseStepper(AbstractStepper):
             progress: show a tqdm bar (None: only when stderr is a terminal).
             on_frame: called as ``on_frame(frame_index, numpy_state)`` after each kept frame.
         """
+        every = self.scene.substeps if every is None else every
         if steps < 0 or every < 1:
             raise ConfigError(f"rollout needs steps >= 0 and every >= 1 (got steps={steps}, every={every}).")
         from tqdm.auto import tqdm
