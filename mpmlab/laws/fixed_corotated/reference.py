@@ -13,6 +13,22 @@ def first_piola(F, prm):
     return 2.0 * mu * (F - polar_rotation(F)) + lam * J * (J - 1.0) * np.linalg.inv(F).T
 
 
+def energy(F, prm):
+    """Stored energy density per reference volume, psi = mu sum_i (s_i - 1)^2 + lambda/2 (J - 1)^2
+    (Stomakhin et al. 2012), i.e. mu |F - R|^2 + lambda/2 (J - 1)^2, whose derivative is ``first_piola``.
+
+    Vectorised: ``F`` [..., D, D] and ``prm`` [..., P] (or [P]) broadcast; the last singular value
+    carries det(F)'s sign (as in ``svd_rotations``), so inverted elements are penalised.
+    """
+    F = np.asarray(F, dtype=float)
+    prm = np.asarray(prm, dtype=float)
+    mu, lam = lame(prm[..., 0], prm[..., 1])
+    s = np.linalg.svd(F, compute_uv=False)
+    J = np.linalg.det(F)
+    s[..., -1] = np.where(J < 0.0, -s[..., -1], s[..., -1])
+    return mu * np.sum((s - 1.0) ** 2, axis=-1) + 0.5 * lam * (J - 1.0) ** 2
+
+
 def kirchhoff(state, prm):
     """tau = P F^T = 2 mu (F - R) F^T + lambda J (J - 1) I (no inverse needed, defined for J <= 0)."""
     F = state["F"]

@@ -1,0 +1,644 @@
+"""HDF5 trajectories: schema ``mpmlab.trajectory`` version 1, atomic writes, LagrangeBench export.
+
+Layout (every array keeps the dtype of the ``Trajectory`` it came from, so a round trip is exact)::
+
+    /                 attrs: schema="mpmlab.trajectory", schema_version=1, dim, dt, substeps_per_frame,
+                             backend, transfer, precision, mpmlab_version, created_by, config_yaml,
+                             metadata_json (Trajectory.meta as JSON), frame_count, complete
+                             (+ diverged, diverged_step, ..., error for a stream ended by an exception;
+                             + the caller's extra_attrs)
+    /grid             attrs: shape, dx, origin
+    /particles/       material_id [N] i4, body_id [N] i4, mass [N], volume [N],
+                      params [N, P] (NaN-padded; attr names_json: the parameter names of each material)
+    /materials        attrs: laws_json (per material: law, param_names, start, stop, provenance)
+    /frames/          x [T, N, D], v [T, N, D], time [T], step [T] i8, and every Trajectory field
+                      (F [T, N_F, D, D], C, J, sigma, eps_p, ...); chunks (1, N, ...), lzf + shuffle
+    /field_particles/ <field> [N_F] i8: the particles each field covers
+
+A file is written to a temporary file in the target's directory, ``complete`` is set last, and the
+file is published with one rename: a target path never holds a half-written file, and an existing
+file is replaced only with ``overwrite=True``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from ..core.errors import ConfigError, SimulationDiverged
+from ..core.state import Trajectory
+
+SCHEMA = "mpmlab.trajectory"
+SCHEMA_VERSION = 1
+_FRAME_CORE = ("x", "v", "time", "step")
+_RESERVED_ATTRS = {"schema", "schema_version", "dim", "dt", "substeps_per_frame", "backend", "transfer",
+                   "precision", "mpmlab_version", "created_by", "config_yaml", "metadata_json", "frame_count",
+                   "complete", "diverged", "diverged_step", "diverged_particle", "diverged_field",
+                   "diverged_message", "error"}
+
+
+# ---- atomic publication (shared with mpmlab.io.rerun) --------------------------------------------
+def _exists_error(path: Path) -> ConfigError:
+    return ConfigError(f"'{path}' already exists; pass overwrite=True to replace it, or choose another path.")
+
+
+def check_target(path: str | os.PathLike, overwrite: bool) -> Path:
+    """The target as a ``Path`` (parent folders created); refuses an existing file unless ``overwrite``."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"'{path}' is a directory; give a file path to write to.")
+    if path.exists() and not overwrite:
+        raise _exists_error(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def temp_path(path: Path) -> Path:
+    """A fresh empty temporary file next to ``path`` (same file system, so the rename is atomic)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    return Path(tmp)
+
+
+def _umask() -> int:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0o022
+
+
+def publish(tmp: Path, path: Path, overwrite: bool) -> None:
+    """Move the finished ``tmp`` onto ``path`` in one step; ``tmp`` is gone afterwards in every case.
+
+    Without ``overwrite`` the move is a hard link, which fails atomically if ``path`` appeared meanwhile.
+    """
+    try:
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600
+        if overwrite:
+            os.replace(tmp, path)
+            return
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise _exists_error(path) from None
+        except OSError:  # a file system without hard links
+            if path.exists():
+                raise _exists_error(path) from None
+            os.replace(tmp, path)
+    finally:
+        discard(tmp)
+
+
+def discard(tmp: Path | None) -> None:
+    if tmp is not None:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+
+
+def write_atomically(path: str | os.PathLike, write: Callable[[Path], None], overwrite: bool = False) -> Path:
+    """Call ``write(tmp)`` on a temporary file next to ``path``, then publish it as ``path``."""
+    path = check_target(path, overwrite)
+    tmp = temp_path(path)
+    try:
+        write(tmp)
+        publish(tmp, path, overwrite)
+    except BaseException:
+        discard(tmp)
+        raise
+    return path
+
+
+# ---- JSON helpers ------------------------------------------------------------------------------
+def _json_default(o: Any):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (set, frozenset)):
+        return sorted(o)
+    if isinstance(o, os.PathLike):
+        return os.fspath(o)
+    return str(o)
+
+
+def to_json(obj: Any) -> str:
+    return json.dumps(obj, default=_json_default)
+
+
+def _attr_value(v: Any):
+    """An h5py-storable attribute value (scalars, strings, numeric arrays); anything else as JSON."""
+    if isinstance(v, (str, bool, int, float, np.generic)):
+        return v
+    if isinstance(v, np.ndarray) and v.dtype.kind in "biuf":
+        return v
+    if isinstance(v, (list, tuple)) and v and all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in v):
+        return np.asarray(v)
+    return to_json(v)
+
+
+def _py(v: Any):
+    """An attribute read back as a plain Python value."""
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, bytes):
+        return v.decode()
+    return v
+
+
+# ---- writing -----------------------------------------------------------------------------------
+def _compression_kwargs(compression: str | None) -> dict:
+    if compression is None:
+        return {}
+    if compression == "lzf":
+        return {"compression": "lzf", "shuffle": True}
+    if compression == "gzip":
+        return {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+    raise ConfigError(f"compression '{compression}' unknown; use 'lzf' (default), 'gzip' or None.")
+
+
+def _frame_spacing(step: np.ndarray) -> int:
+    """Steps between consecutive frames (-1 when the spacing is not uniform, 0 for one frame)."""
+    step = np.asarray(step)
+    if len(step) < 2:
+        return 0
+    d = np.diff(step)
+    return int(d[0]) if np.all(d == d[0]) else -1
+
+
+def _check_fields(traj: Trajectory) -> None:
+    for name, a in traj.fields.items():
+        if not name or "/" in name or name in _FRAME_CORE:
+            raise ConfigError(f"trajectory field name '{name}' cannot be stored; rename it (not x, v, time, step, "
+                              f"no '/').")
+        if len(a) != traj.frame_count:
+            raise ConfigError(f"trajectory field '{name}' has {len(a)} frames but x has {traj.frame_count}; "
+                              f"every field needs one entry per frame.")
+
+
+def _write_static(f, traj: Trajectory, config_yaml: str, extra_attrs: dict | None) -> None:
+    from .. import __version__
+
+    meta = traj.meta or {}
+    a = f.attrs
+    a["schema"] = SCHEMA
+    a["schema_version"] = SCHEMA_VERSION
+    a["dim"] = int(meta.get("dim", traj.x.shape[-1] if traj.x.ndim == 3 else 0))
+    a["dt"] = float(meta.get("dt", np.nan))
+    a["substeps_per_frame"] = _frame_spacing(traj.step)
+    for key in ("backend", "transfer", "precision"):
+        a[key] = str(meta.get(key, ""))
+    a["mpmlab_version"] = __version__
+    a["created_by"] = f"mpmlab {__version__}"
+    a["config_yaml"] = config_yaml or ""
+    a["metadata_json"] = to_json(meta)
+    a["complete"] = False
+    for k, v in (extra_attrs or {}).items():
+        if k in _RESERVED_ATTRS:
+            raise ConfigError(f"extra_attrs key '{k}' is reserved by the {SCHEMA} schema; rename it.")
+        a[k] = _attr_value(v)
+
+    g = f.create_group("grid")
+    if "grid_shape" in meta:
+        g.attrs["shape"] = np.asarray(meta["grid_shape"], dtype=np.int64)
+    if "dx" in meta:
+        g.attrs["dx"] = float(meta["dx"])
+    if "grid_origin" in meta:
+        g.attrs["origin"] = np.asarray(meta["grid_origin"], dtype=float)
+
+    p = f.create_group("particles")
+    p.create_dataset("material_id", data=np.asarray(traj.material_id), dtype="i4")
+    p.create_dataset("body_id", data=np.asarray(traj.body_id), dtype="i4")
+    p.create_dataset("mass", data=np.asarray(traj.mass))
+    p.create_dataset("volume", data=np.asarray(traj.volume))
+    p.create_dataset("params", data=np.asarray(traj.params))
+    p["params"].attrs["names_json"] = to_json([list(m.get("param_names", [])) for m in traj.materials])
+
+    m = f.create_group("materials")
+    m.attrs["laws_json"] = to_json(list(traj.materials))
+    f.create_group("frames")
+    f.create_group("field_particles")
+
+
+def _create_frame_dataset(frames, name: str, per_frame_shape: tuple, dtype, comp: dict):
+    chunks = (1, *(max(1, s) for s in per_frame_shape)) if per_frame_shape else (4096,)
+    return frames.create_dataset(name, shape=(0, *per_frame_shape), maxshape=(None, *per_frame_shape),
+                                 chunks=chunks, dtype=dtype, **comp)
+
+
+def _finish(f, frame_count: int, complete: bool, exc: BaseException | None = None) -> None:
+    a = f.attrs
+    a["frame_count"] = int(frame_count)
+    if isinstance(exc, SimulationDiverged):
+        a["diverged"] = True
+        a["diverged_step"] = int(exc.step)
+        a["diverged_particle"] = int(exc.particle)
+        a["diverged_field"] = str(exc.field)
+        a["diverged_message"] = str(exc)
+    elif exc is not None:
+        a["error"] = f"{type(exc).__name__}: {exc}"
+    if complete:
+        a["complete"] = True  # last: a file with complete=True has everything
+    f.flush()
+
+
+def write_trajectory(path: str | os.PathLike, traj: Trajectory, config_yaml: str = "",
+                     extra_attrs: dict | None = None, compression: str | None = "lzf",
+                     overwrite: bool = False) -> Path:
+    """Write ``traj`` as an ``mpmlab.trajectory`` v1 HDF5 file, atomically.
+
+    Args:
+        path: target file; parent folders are created.
+        traj: the trajectory (arrays keep their dtypes).
+        config_yaml: the resolved configuration (e.g. ``OmegaConf.to_yaml(cfg)``), stored verbatim.
+        extra_attrs: more root attributes (scalars, strings, numeric arrays; others stored as JSON).
+        compression: ``"lzf"`` (default, with shuffle), ``"gzip"`` (level 4, archives) or None.
+        overwrite: replace an existing file (otherwise that raises ``ConfigError``).
+
+    Returns:
+        The path written.
+    """
+    import h5py
+
+    comp = _compression_kwargs(compression)
+    _check_fields(traj)
+
+    def write(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as f:
+            _write_static(f, traj, config_yaml, extra_attrs)
+            fr = f["frames"]
+            T = traj.frame_count
+            arrays = {"x": traj.x, "v": traj.v, **traj.fields}
+            for name, arr in arrays.items():
+                arr = np.asarray(arr)
+                ds = _create_frame_dataset(fr, name, arr.shape[1:], arr.dtype, comp)
+                ds.resize(T, axis=0)
+                if T:
+                    ds[...] = arr
+            for name, arr, dtype in (("time", traj.time, None), ("step", traj.step, np.int64)):
+                arr = np.asarray(arr, dtype=dtype)
+                ds = _create_frame_dataset(fr, name, (), arr.dtype, comp)
+                ds.resize(T, axis=0)
+                if T:
+                    ds[...] = arr
+            for name in traj.fields:
+                idx = traj.field_particles.get(name, np.arange(traj.fields[name].shape[1]))
+                f["field_particles"].create_dataset(name, data=np.asarray(idx, dtype=np.int64))
+            _finish(f, T, complete=True)
+
+    return write_atomically(path, write, overwrite)
+
+
+class TrajectoryWriter:
+    """Stream frames into an ``mpmlab.trajectory`` file as a rollout produces them.
+
+    Usable as the rollout's ``on_frame`` callback::
+
+        stepper = mpmlab.build_stepper(scene, "jax", precision="fp64")
+        with TrajectoryWriter("run.h5", stepper=stepper, fields=("F",), every=10) as w:
+            stepper.rollout(steps=1000, every=10, fields=("F",), on_frame=w)
+
+    Frames go to a temporary file next to ``path``; leaving the ``with`` block publishes it atomically
+    with ``complete=True``. If an exception ends the block (e.g. ``SimulationDiverged``), the frames
+    already written are kept: the file is still published, with ``complete=False`` and the reason
+    (``diverged``, ``diverged_step``, ``diverged_particle``, ``diverged_field``, ``diverged_message``,
+    or ``error``) in the root attributes; if no frame was written, nothing is published.
+
+    Args:
+        path: target file.
+        static: a ``Trajectory`` supplying the static data (mass, volume, ids, materials, params, meta);
+            its frames are ignored. Give this or ``stepper``.
+        stepper: a built stepper to take the static data from.
+        fields: per-particle fields to store besides x and v (``F``, ``C``, ``J``, ``sigma``, ``eps_p``).
+        every: the rollout's frame spacing in steps; frame k then has step ``k * every`` (exactly as
+            ``rollout`` numbers them). Without it the step is ``round(t / dt)`` from the state's time.
+        config_yaml, extra_attrs, compression, overwrite: as for ``write_trajectory``.
+    """
+
+    def __init__(self, path: str | os.PathLike, static: Trajectory | None = None, *, stepper=None,
+                 fields: Sequence[str] = (), every: int | None = None, config_yaml: str = "",
+                 extra_attrs: dict | None = None, compression: str | None = "lzf", overwrite: bool = False):
+        if (static is None) == (stepper is None):
+            raise ConfigError("TrajectoryWriter needs exactly one of static= (a Trajectory) or stepper=.")
+        if static is None:
+            static = stepper._trajectory([], [], ())
+        if every is not None and every < 1:
+            raise ConfigError(f"TrajectoryWriter: every must be >= 1 (got {every}).")
+        self.path = check_target(path, overwrite)
+        self.static = static
+        self.fields = tuple(fields)
+        for name in self.fields:
+            if not name or "/" in name or name in _FRAME_CORE:
+                raise ConfigError(f"field name '{name}' cannot be stored; rename it (not x, v, time, step, no '/').")
+        self.every = every
+        self.config_yaml = config_yaml
+        self.extra_attrs = extra_attrs
+        self.comp = _compression_kwargs(compression)
+        self.overwrite = overwrite
+        self.dt = float((static.meta or {}).get("dt", np.nan))
+        self.frame_count = 0
+        self._tmp: Path | None = None
+        self._f = None
+        self._steps: list[int] = []
+        self._closed = False
+
+    # ---- lifecycle -------------------------------------------------------------------------
+    def open(self) -> "TrajectoryWriter":
+        import h5py
+
+        if self._f is not None:
+            return self
+        self._tmp = temp_path(self.path)
+        try:
+            self._f = h5py.File(self._tmp, "w")
+            _write_static(self._f, self.static, self.config_yaml, self.extra_attrs)
+        except BaseException:
+            if self._f is not None:
+                self._f.close()
+            discard(self._tmp)
+            raise
+        return self
+
+    def __enter__(self) -> "TrajectoryWriter":
+        return self.open()
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        self.close(exc)
+        return False
+
+    def close(self, exc: BaseException | None = None) -> Path | None:
+        """Finalise and publish (``complete`` unless ``exc`` is given); returns the path, or None if
+        an exception ended a stream that had no frame (then nothing is written)."""
+        if self._closed:
+            return self.path
+        self._closed = True
+        if self._f is None:
+            if exc is not None:
+                return None
+            self.open()
+        f, tmp = self._f, self._tmp
+        try:
+            if exc is not None and self.frame_count == 0:
+                f.close()
+                discard(tmp)
+                return None
+            fr = f["frames"]
+            for name in ("x", "v", "time", "step", *self.fields):
+                if name in fr and fr[name].shape[0] != self.frame_count:
+                    fr[name].resize(self.frame_count, axis=0)  # drop a frame interrupted mid-write
+            if "x" not in fr:  # no frame at all: empty datasets of unknown particle shape
+                N, D = len(self.static.mass), int((self.static.meta or {}).get("dim", 0))
+                for name in ("x", "v"):
+                    _create_frame_dataset(fr, name, (N, D), np.float64, self.comp)
+                _create_frame_dataset(fr, "time", (), np.float64, self.comp)
+                _create_frame_dataset(fr, "step", (), np.int64, self.comp)
+            f.attrs["substeps_per_frame"] = _frame_spacing(np.asarray(self._steps))
+            _finish(f, self.frame_count, complete=exc is None, exc=exc)
+            f.close()
+            publish(tmp, self.path, self.overwrite)
+        except BaseException:
+            try:
+                f.close()
+            except Exception:
+                pass
+            discard(tmp)
+            raise
+        return self.path
+
+    # ---- frames ----------------------------------------------------------------------------
+    def __call__(self, frame_index: int, npstate: dict) -> None:
+        """The rollout ``on_frame`` callback: store the kept frame ``npstate``."""
+        if self.every is not None:
+            step = int(frame_index) * self.every
+        elif "t" in npstate and np.isfinite(self.dt):
+            step = int(round(float(npstate["t"]) / self.dt))
+        else:
+            step = int(frame_index)
+        time = step * self.dt if np.isfinite(self.dt) else float(npstate.get("t", np.nan))
+        missing = [k for k in self.fields if k not in npstate]
+        if missing:
+            have = sorted(k for k in npstate if k not in ("x", "v", "t") and not k.endswith("_particles"))
+            raise ConfigError(f"TrajectoryWriter: the state has no field {missing}; it has {have or 'none'} "
+                              f"(fields depend on the laws and the transfer).")
+        fields = {k: npstate[k] for k in self.fields}
+        particles = {k: npstate[k + "_particles"] for k in self.fields if k + "_particles" in npstate}
+        self.add_frame(npstate["x"], npstate["v"], time, step, fields, particles)
+
+    def add_frame(self, x, v, time: float, step: int, fields: dict | None = None,
+                  field_particles: dict | None = None) -> None:
+        """Append one frame: ``x``, ``v`` [N, D], its time and step, and the writer's ``fields``."""
+        if self._closed:
+            raise ConfigError("TrajectoryWriter is closed; open a new writer to write more frames.")
+        self.open()
+        fields = fields or {}
+        missing = [k for k in self.fields if k not in fields]
+        if missing:
+            raise ConfigError(f"TrajectoryWriter: frame {self.frame_count} lacks field(s) {missing} "
+                              f"that the writer was asked to store.")
+        fr = self._f["frames"]
+        arrays = {"x": np.asarray(x), "v": np.asarray(v), **{k: np.asarray(fields[k]) for k in self.fields}}
+        if self.frame_count == 0:
+            for name, arr in arrays.items():
+                _create_frame_dataset(fr, name, arr.shape, arr.dtype, self.comp)
+            _create_frame_dataset(fr, "time", (), np.float64, self.comp)
+            _create_frame_dataset(fr, "step", (), np.int64, self.comp)
+            fp = self._f["field_particles"]
+            for name in self.fields:
+                idx = (field_particles or {}).get(name)
+                if idx is None:
+                    idx = self.static.field_particles.get(name, np.arange(arrays[name].shape[0]))
+                fp.create_dataset(name, data=np.asarray(idx, dtype=np.int64))
+        k = self.frame_count
+        for name, arr in {**arrays, "time": np.float64(time), "step": np.int64(step)}.items():
+            ds = fr[name]
+            if arr.shape != ds.shape[1:]:
+                raise ConfigError(f"TrajectoryWriter: frame {k} has {name} of shape {arr.shape}, "
+                                  f"earlier frames {ds.shape[1:]}; the particle set cannot change.")
+            ds.resize(k + 1, axis=0)
+            ds[k] = arr
+        self._steps.append(int(step))
+        self.frame_count = k + 1
+
+
+# ---- reading -----------------------------------------------------------------------------------
+def _open_checked(path: str | os.PathLike):
+    import h5py
+
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"trajectory file '{path}' does not exist; check the path.")
+    if path.is_dir():
+        raise ConfigError(f"'{path}' is a directory, not a trajectory file; give the .h5 file inside it.")
+    if not h5py.is_hdf5(path):
+        raise ConfigError(f"'{path}' is not an HDF5 file, so it cannot be an {SCHEMA} file; "
+                          f"give a file written by mpmlab.io.write_trajectory.")
+    f = h5py.File(path, "r")
+    schema = _py(f.attrs.get("schema", None))
+    version = _py(f.attrs.get("schema_version", None))
+    if schema != SCHEMA:
+        found = f"schema '{schema}'" if schema is not None else \
+            f"no 'schema' attribute (top-level entries: {', '.join(sorted(f.keys())) or 'none'})"
+        f.close()
+        raise ConfigError(f"'{path}' is an HDF5 file but not an {SCHEMA} file: it has {found}.")
+    if version != SCHEMA_VERSION:
+        f.close()
+        raise ConfigError(f"'{path}' holds {SCHEMA} version {version}, but this mpmlab reads version "
+                          f"{SCHEMA_VERSION}; read it with the mpmlab version that wrote it.")
+    return f
+
+
+def read_attrs(path: str | os.PathLike) -> dict[str, Any]:
+    """The root attributes of an ``mpmlab.trajectory`` file as plain Python values."""
+    with _open_checked(path) as f:
+        return {k: _py(v) for k, v in f.attrs.items()}
+
+
+def read_trajectory(path: str | os.PathLike, require_complete: bool = False) -> Trajectory:
+    """Read an ``mpmlab.trajectory`` v1 file back into a ``Trajectory`` (dtypes as written; the
+    ids come back as int64, as a rollout makes them).
+
+    A file that is not complete (a stream ended by a divergence or an error) is read with a warning,
+    or refused with ``require_complete=True``. A missing file, a file that is not HDF5, or an HDF5 file
+    of another schema or version raises ``ConfigError``.
+    """
+    with _open_checked(path) as f:
+        attrs = f.attrs
+        if not bool(attrs.get("complete", False)):
+            why = _py(attrs.get("diverged_message", None)) or _py(attrs.get("error", None)) or "writing stopped early"
+            msg = f"'{path}' is incomplete ({why}); it holds the {f['frames/x'].shape[0]} frames written before."
+            if require_complete:
+                raise ConfigError(msg)
+            warnings.warn(msg, stacklevel=2)
+        meta = json.loads(_py(attrs["metadata_json"]))
+        materials = json.loads(_py(f["materials"].attrs["laws_json"]))
+        p = f["particles"]
+        fr = f["frames"]
+        fields = {k: fr[k][()] for k in fr if k not in _FRAME_CORE}
+        fp = f["field_particles"]
+        field_particles = {k: fp[k][()] for k in fields if k in fp}
+        return Trajectory(
+            x=fr["x"][()], v=fr["v"][()], time=fr["time"][()], step=fr["step"][()],
+            mass=p["mass"][()], volume=p["volume"][()],
+            material_id=p["material_id"][()].astype(np.int64), body_id=p["body_id"][()].astype(np.int64),
+            materials=materials, params=p["params"][()], meta=meta, fields=fields, field_particles=field_particles,
+        )
+
+
+# ---- LagrangeBench export ----------------------------------------------------------------------
+def _as_trajectories(src) -> list[Trajectory]:
+    if isinstance(src, (Trajectory, str, os.PathLike)):
+        src = [src]
+    out = []
+    for s in src:
+        out.append(s if isinstance(s, Trajectory) else read_trajectory(s))
+    if not out:
+        raise ConfigError("export_lagrangebench needs at least one trajectory.")
+    return out
+
+
+def _stats(arrays: list[np.ndarray], dim: int) -> tuple[list, list]:
+    """Per-dimension mean and std over all frames and particles (std < 1e-7 -> 1, as LagrangeBench)."""
+    arrays = [a.reshape(-1, dim) for a in arrays if a.size]
+    if not arrays:
+        return [0.0] * dim, [1.0] * dim
+    a = np.concatenate(arrays).astype(np.float64)
+    mean, std = a.mean(0), a.std(0)
+    std = np.where(std < 1e-7, 1.0, std)
+    return mean.tolist(), std.tolist()
+
+
+def export_lagrangebench(traj_or_path: Trajectory | str | os.PathLike | Iterable, out_dir: str | os.PathLike,
+                         split: str = "train", case: str | None = None, overwrite: bool = False) -> Path:
+    """Export trajectories in the LagrangeBench dataset layout (tumaer/lagrangebench).
+
+    Writes ``out_dir/{split}.h5`` with one group per trajectory (``"00000"``, ``"00001"``, ...) holding
+    ``position`` [T, N, D] float32 and ``particle_type`` [N] (= material_id), and ``out_dir/metadata.json``
+    with ``case, solver, dim, dx (grid spacing), dt (solver step), write_every (steps per frame),
+    sequence_length (T - 1), sequence_length_<split>, num_trajs_<split>, num_particles_max, bounds,
+    periodic_boundary_conditions, default_connectivity_radius (1.45 x particle spacing),
+    vel_mean/vel_std, acc_mean/acc_std``. As in LagrangeBench, velocities and accelerations are
+    per-frame position differences (not divided by dt), and a std below 1e-7 is stored as 1.
+    An existing metadata.json (another split) is updated; the statistics come from the ``train`` split
+    when it is exported, else from this split if none are stored yet.
+
+    Args:
+        traj_or_path: a ``Trajectory``, an ``mpmlab.trajectory`` file, or a list of them.
+        out_dir: dataset folder (created).
+        split: ``train``, ``valid`` or ``test`` (the file name).
+        case: the case name (default: the scene name, upper case).
+        overwrite: replace an existing ``{split}.h5``.
+    """
+    import h5py
+
+    trajs = _as_trajectories(traj_or_path)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    first = trajs[0]
+    meta = first.meta or {}
+    dim = int(meta.get("dim", first.x.shape[-1]))
+    dx = float(meta.get("dx", np.nan))
+    for t in trajs:
+        if t.x.shape[-1] != dim:
+            raise ConfigError(f"export_lagrangebench: trajectories mix dimensions ({dim} and {t.x.shape[-1]}); "
+                              f"export them to separate datasets.")
+
+    def write(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as f:
+            for i, t in enumerate(trajs):
+                g = f.create_group(f"{i:05d}")
+                g.create_dataset("position", data=np.asarray(t.x, dtype=np.float32), compression="gzip")
+                g.create_dataset("particle_type", data=np.asarray(t.material_id, dtype=np.int64))
+
+    h5_path = write_atomically(out_dir / f"{split}.h5", write, overwrite)
+
+    md_path = out_dir / "metadata.json"
+    md: dict[str, Any] = {}
+    if md_path.exists():
+        try:
+            md = json.loads(md_path.read_text())
+        except (OSError, ValueError):
+            md = {}
+    if "grid_origin" in meta and "grid_shape" in meta and np.isfinite(dx):
+        lo = np.asarray(meta["grid_origin"], dtype=float)
+        hi = lo + (np.asarray(meta["grid_shape"], dtype=float) - 1.0) * dx
+    else:
+        allx = np.concatenate([t.x.reshape(-1, dim) for t in trajs])
+        lo, hi = allx.min(0), allx.max(0)
+    spacing = float(np.median(first.volume) ** (1.0 / dim)) if len(first.volume) else dx
+    seq = [t.frame_count - 1 for t in trajs]
+    md.update({
+        "case": case or str(meta.get("scene", "mpmlab")).upper(),
+        "solver": "mpmlab",
+        "backend": meta.get("backend", ""), "transfer": meta.get("transfer", ""),
+        "dim": dim, "dx": dx, "dt": float(meta.get("dt", np.nan)),
+        "write_every": _frame_spacing(first.step),
+        "sequence_length": int(min(seq)),
+        f"sequence_length_{split}": int(min(seq)), f"num_trajs_{split}": len(trajs),
+        "num_particles_max": int(max(max(t.particle_count for t in trajs), md.get("num_particles_max", 0))),
+        "periodic_boundary_conditions": [False] * dim,
+        "bounds": np.stack([lo, hi], axis=1).tolist(),
+        "particle_spacing": spacing,
+        "default_connectivity_radius": 1.45 * spacing,
+    })
+    if split == "train" or "vel_mean" not in md:
+        x32 = [np.asarray(t.x, dtype=np.float32).astype(np.float64) for t in trajs]
+        vel = [np.diff(x, axis=0) for x in x32]
+        acc = [np.diff(u, axis=0) for u in vel]
+        md["vel_mean"], md["vel_std"] = _stats(vel, dim)
+        md["acc_mean"], md["acc_std"] = _stats(acc, dim)
+
+    write_atomically(md_path, lambda tmp: tmp.write_text(json.dumps(md, indent=2, default=_json_default)),
+                     overwrite=True)
+    return h5_path
