@@ -1,0 +1,73 @@
+"""Non-associated Drucker-Prager plasticity with tension cutoff on the Jaumann stress rate
+(JAX-MPM Sec. 2.3 Eq. 21 and App. A, Eqs. A.1-A.19; after FLAC's Drucker-Prager model): granular flow."""
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+from ...core.errors import InvalidParameterError
+from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
+from . import reference as _reference
+
+
+class Law(AbstractConstitutiveLaw):
+    """Hypo-elastic Drucker-Prager: Jaumann-rotated Cauchy stress + isotropic elastic increment, then the
+    three-zone return map of JAX-MPM App. A (elastic / shear failure / tensile failure).
+
+    State: ``J`` (volume ratio), ``sigma`` (Cauchy stress, tension positive) and ``eps_p`` (equivalent
+    plastic strain, A.15 / A.18; never decreases). Kirchhoff stress tau = J sigma.
+
+    Parameters: bulk modulus K and Poisson ratio nu (G = 3K(1-2nu)/(2(1+nu)), lambda = K - 2G/3),
+    friction angle phi and dilation angle psi <= phi [deg], cohesion c and tension cutoff sigma_t, which
+    must not exceed the cone apex k_phi / q_phi (q_phi, k_phi, q_psi as in App. A).
+
+    Limitations:
+
+    * 2D is a 2D continuum, not plane strain: sigma_m = tr(sigma)/2 and the deviator is taken w.r.t. the
+      2x2 identity (the paper's A.3 divides by 3); the out-of-plane stress sigma_zz is not tracked. The
+      cone constants q_phi, k_phi are still the 3D (compression-cone) fits of App. A, so 2D strengths are
+      an approximation of the 3D material. The elastic increment uses the 3D lambda = K - 2G/3.
+    * The return map follows App. A literally. In Zone II with f_t >= 0 and a trial mean stress beyond the
+      apex (sigma_m > k_phi / q_phi, reachable for small dilation), A.13 gives tau < 0, i.e. the returned
+      deviator flips sign (the paper's scheme does not project to the apex there).
+    * The Jaumann update (A.2, Eq. 21) is first order in dt, as in the paper.
+    """
+
+    name: ClassVar[str] = "drucker_prager_jaumann"
+    params = (
+        ParamSpec("bulk_modulus", "Pa", 0.7e6, low=0.0, low_open=True, doc="bulk modulus K"),
+        ParamSpec("nu", "-", 0.3, low=-1.0, high=0.5, low_open=True, high_open=True, doc="Poisson ratio"),
+        ParamSpec("friction_angle", "deg", 19.8, low=0.0, high=90.0, high_open=True,
+                  doc="internal friction angle phi"),
+        ParamSpec("dilation_angle", "deg", 0.0, low=0.0, high=90.0, high_open=True, doc="dilation angle psi"),
+        ParamSpec("cohesion", "Pa", 0.0, low=0.0, doc="cohesion c"),
+        ParamSpec("tensile_strength", "Pa", 0.0, low=0.0, doc="tension cutoff sigma_t"),
+    )
+    state_fields = ("J", "sigma", "eps_p")
+    plastic = True
+    reference = _reference
+    implementations: ClassVar[dict] = {
+        "jax": "mpmlab.laws.drucker_prager_jaumann.jax:make",
+        "warp": "mpmlab.laws.drucker_prager_jaumann.warp:make",
+    }
+
+    @classmethod
+    def check_consistency(cls, params, where):
+        phi, psi = params["friction_angle"], params["dilation_angle"]
+        if psi > phi:
+            raise InvalidParameterError(
+                f"{where}: law '{cls.name}': dilation angle 'dilation_angle' = {psi:g} deg exceeds the friction "
+                f"angle 'friction_angle' = {phi:g} deg; set dilation_angle <= friction_angle.")
+        q_phi, k_phi, _ = _reference.cone_constants(phi, psi, params["cohesion"])
+        st = params["tensile_strength"]
+        if q_phi > 0.0 and st > k_phi / q_phi * (1.0 + 1e-12):
+            raise InvalidParameterError(
+                f"{where}: law '{cls.name}': tensile strength 'tensile_strength' = {st:g} Pa exceeds the "
+                f"Drucker-Prager cone apex k_phi/q_phi = {k_phi / q_phi:g} Pa (cohesion {params['cohesion']:g} Pa, "
+                f"friction angle {phi:g} deg); set tensile_strength <= {k_phi / q_phi:g} Pa or raise the cohesion.")
+
+    @classmethod
+    def wave_speed(cls, params, density):
+        K = params["bulk_modulus"]
+        G, _ = _reference.moduli(K, params["nu"])
+        return math.sqrt((K + 4.0 * G / 3.0) / density)

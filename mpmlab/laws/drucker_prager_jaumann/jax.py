@@ -1,0 +1,70 @@
+"""JAX Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A); per particle, vmapped by the stepper.
+
+Branch-free: every zone is computed and picked with ``jnp.where``; tau = sqrt(s:s/2) and the Zone II ratio
+use safe arguments so that gradients stay finite at zero deviator (the rest state)."""
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import jax.numpy as jnp
+
+DEG = math.pi / 180.0
+R3 = math.sqrt(3.0)
+
+
+def make(dim: int) -> SimpleNamespace:
+    eye = jnp.eye(dim)
+
+    def kirchhoff(state, prm):
+        return state["J"] * state["sigma"]
+
+    def update(state, grad_v, dt, prm):
+        K, nu, phi, psi, c, st = prm[0], prm[1], prm[2] * DEG, prm[3] * DEG, prm[4], prm[5]
+        G = 3.0 * K * (1.0 - 2.0 * nu) / (2.0 * (1.0 + nu))
+        lam = K - 2.0 * G / 3.0
+        sp, ss = jnp.sin(phi), jnp.sin(psi)
+        q_phi = 6.0 * sp / (R3 * (3.0 + sp))
+        k_phi = 6.0 * c * jnp.cos(phi) / (R3 * (3.0 + sp))
+        q_psi = 6.0 * ss / (R3 * (3.0 + ss))
+
+        # A.1-A.2 (Eq. 21): Jaumann rotation + isotropic elastic increment
+        sigma = state["sigma"]
+        dd = 0.5 * (grad_v + grad_v.T) * dt
+        dw = 0.5 * (grad_v - grad_v.T) * dt
+        trial = sigma + sigma @ dw.T + dw @ sigma + lam * jnp.trace(dd) * eye + 2.0 * G * dd
+
+        # A.3-A.4 (2D: tr/2, see Law)
+        sm = jnp.trace(trial) / dim
+        s = trial - sm * eye
+        ss2 = 0.5 * jnp.sum(s * s)
+        pos = ss2 > 0.0
+        tau = jnp.where(pos, jnp.sqrt(jnp.where(pos, ss2, 1.0)), 0.0)
+
+        # A.5-A.11
+        fs = tau - k_phi + q_phi * sm
+        ft = sm - st
+        tau_p = k_phi - q_phi * st
+        alpha_p = jnp.sqrt(1.0 + q_phi * q_phi) - q_phi
+        h = tau - tau_p - alpha_p * (sm - st)
+        zone2 = jnp.where(ft < 0.0, fs > 0.0, h > 0.0)
+        zone3 = (ft >= 0.0) & (h <= 0.0)
+
+        # Zone II, A.12-A.16
+        dl_s = fs / (G + K * q_phi * q_psi)
+        sm2 = sm - K * q_psi * dl_s
+        tau2 = k_phi - q_phi * sm2
+        tpos = tau > 0.0
+        ratio = jnp.where(tpos, tau2 / jnp.where(tpos, tau, 1.0), 0.0)
+        sig2 = ratio * s + sm2 * eye
+        de2 = dl_s * jnp.sqrt(1.0 / 3.0 + 2.0 / 9.0 * q_psi * q_psi)
+        # Zone III, A.17-A.19
+        sig3 = trial + (st - sm) * eye
+        de3 = math.sqrt(2.0) / 3.0 * (sm - st) / K
+
+        new_sigma = jnp.where(zone2, sig2, jnp.where(zone3, sig3, trial))
+        deps = jnp.where(zone2, de2, jnp.where(zone3, de3, 0.0))
+        J = state["J"] * jnp.linalg.det(eye + dt * grad_v)
+        return {"J": J, "sigma": new_sigma, "eps_p": state["eps_p"] + deps}
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update)

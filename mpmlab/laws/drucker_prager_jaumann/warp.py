@@ -1,0 +1,89 @@
+"""Warp Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A), built per (dim, precision)."""
+
+import math
+from functools import lru_cache
+from types import SimpleNamespace
+
+import warp as wp
+
+from ...backends.warp.types import warp_types
+
+DEG = math.pi / 180.0
+R3 = math.sqrt(3.0)
+SQRT2_3 = math.sqrt(2.0) / 3.0
+
+
+@lru_cache(maxsize=None)
+def make(dim: int, precision: str) -> SimpleNamespace:
+    T = warp_types(dim, precision)
+    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+    DIMF = float(dim)   # sigma_m = tr / D (2D continuum in 2D, see Law)
+
+    @wp.func
+    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
+        return s.J * s.sigma
+
+    @wp.func
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
+        K = prm[p, 0]
+        nu = prm[p, 1]
+        phi = prm[p, 2] * scalar(DEG)
+        psi = prm[p, 3] * scalar(DEG)
+        c = prm[p, 4]
+        st = prm[p, 5]
+        G = scalar(3.0) * K * (scalar(1.0) - scalar(2.0) * nu) / (scalar(2.0) * (scalar(1.0) + nu))
+        lam = K - scalar(2.0) * G / scalar(3.0)
+        sp = wp.sin(phi)
+        sps = wp.sin(psi)
+        q_phi = scalar(6.0) * sp / (scalar(R3) * (scalar(3.0) + sp))
+        k_phi = scalar(6.0) * c * wp.cos(phi) / (scalar(R3) * (scalar(3.0) + sp))
+        q_psi = scalar(6.0) * sps / (scalar(R3) * (scalar(3.0) + sps))
+        eye = wp.identity(dim, scalar)
+
+        # A.1-A.2 (Eq. 21): Jaumann rotation + isotropic elastic increment
+        sig = s.sigma
+        dd = scalar(0.5) * dt * (grad_v + wp.transpose(grad_v))
+        dw = scalar(0.5) * dt * (grad_v - wp.transpose(grad_v))
+        trial = sig + sig @ wp.transpose(dw) + dw @ sig + lam * wp.trace(dd) * eye + scalar(2.0) * G * dd
+
+        # A.3-A.4 (2D: tr/2, see Law)
+        sm = wp.trace(trial) / scalar(DIMF)
+        dev = trial - sm * eye
+        ss2 = scalar(0.5) * wp.ddot(dev, dev)
+        tau = scalar(0.0)
+        if ss2 > scalar(0.0):
+            tau = wp.sqrt(ss2)
+
+        # A.5-A.11
+        fs = tau - k_phi + q_phi * sm
+        ft = sm - st
+        tau_p = k_phi - q_phi * st
+        alpha_p = wp.sqrt(scalar(1.0) + q_phi * q_phi) - q_phi
+        h = tau - tau_p - alpha_p * (sm - st)
+
+        out = s
+        new_sig = trial
+        deps = scalar(0.0)
+        zone2 = False
+        if ft < scalar(0.0):
+            zone2 = fs > scalar(0.0)
+        else:
+            zone2 = h > scalar(0.0)
+        if zone2:
+            dl = fs / (G + K * q_phi * q_psi)                     # A.16
+            sm2 = sm - K * q_psi * dl                             # A.12
+            tau2 = k_phi - q_phi * sm2                            # A.13
+            ratio = scalar(0.0)
+            if tau > scalar(0.0):
+                ratio = tau2 / tau
+            new_sig = ratio * dev + sm2 * eye                     # A.14
+            deps = dl * wp.sqrt(scalar(1.0) / scalar(3.0) + scalar(2.0) / scalar(9.0) * q_psi * q_psi)  # A.15
+        elif ft >= scalar(0.0):
+            new_sig = trial + (st - sm) * eye                     # A.17
+            deps = scalar(SQRT2_3) * (sm - st) / K                # A.18-A.19
+        out.sigma = new_sig
+        out.eps_p = s.eps_p + deps
+        out.J = s.J * wp.determinant(eye + dt * grad_v)
+        return out
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update)

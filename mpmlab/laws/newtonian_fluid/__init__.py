@@ -1,0 +1,47 @@
+"""Weakly compressible Newtonian fluid (JAX-MPM Sec. 2.3, Eqs. 19-20): dam breaks, water."""
+from __future__ import annotations
+
+from typing import ClassVar
+
+from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
+from . import reference as _reference
+
+
+class Law(AbstractConstitutiveLaw):
+    """sigma = -p I + 2 mu (D - tr(D)/3 I), p = c^2 (rho0 / J - rho0); a hypo-elastic, J-based fluid.
+
+    State: ``J`` (volume ratio, J <- J det(I + dt grad_v)) and ``sigma`` (Cauchy stress, kept for
+    output; it is recomputed from J and grad_v every step). Kirchhoff stress tau = J sigma.
+
+    Deviations from the paper, on purpose:
+
+    * Eq. 19 writes the viscous term with the strain *increment* Delta d = D dt, which is not a stress
+      (Pa s times a dimensionless number); we use the strain *rate* D = sym(grad_v), the Newtonian law.
+    * The deviator uses tr(D)/3 in 2D as well (plane-strain / 3D deviator, as in Eq. 19), so a 2D
+      isotropic expansion carries a small viscous stress; this is the paper's convention.
+    * Eq. 20's density update rho^{n+1} = rho^n / (1 + det(Delta d)) is read as the exact volume update
+      rho = rho0 / J with J <- J det(I + dt grad_v).
+    """
+
+    name: ClassVar[str] = "newtonian_fluid"
+    params = (
+        ParamSpec("sound_speed", "m/s", 35.0, low=0.0, low_open=True, doc="numerical sound speed c"),
+        ParamSpec("viscosity", "Pa s", 1.01e-3, low=0.0, doc="dynamic viscosity mu"),
+        ParamSpec("rest_density", "kg/m^3", None, low=0.0, low_open=True,
+                  doc="reference density rho0 (defaults to the body density)"),
+    )
+    state_fields = ("J", "sigma")
+    plastic = False
+    reference = _reference
+    implementations: ClassVar[dict] = {
+        "jax": "mpmlab.laws.newtonian_fluid.jax:make",
+        "warp": "mpmlab.laws.newtonian_fluid.warp:make",
+    }
+
+    @classmethod
+    def default_from_density(cls, name, density):
+        return density if name == "rest_density" else None
+
+    @classmethod
+    def wave_speed(cls, params, density):
+        return float(params["sound_speed"])

@@ -1,0 +1,23 @@
+"""JAX weakly compressible Newtonian fluid (JAX-MPM Eqs. 19-20); per particle, vmapped by the stepper."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import jax.numpy as jnp
+
+
+def make(dim: int) -> SimpleNamespace:
+    eye = jnp.eye(dim)
+
+    def kirchhoff(state, prm):
+        return state["J"] * state["sigma"]
+
+    def update(state, grad_v, dt, prm):
+        c, mu, rho0 = prm[0], prm[1], prm[2]
+        J = state["J"] * jnp.linalg.det(eye + dt * grad_v)
+        p = c * c * (rho0 / J - rho0)                          # Eq. 20, rho = rho0 / J
+        D = 0.5 * (grad_v + grad_v.T)                          # strain rate (Eq. 19 uses D dt: see Law)
+        sigma = -p * eye + 2.0 * mu * (D - jnp.trace(D) / 3.0 * eye)   # 1/3 also in 2D (paper's deviator)
+        return {"J": J, "sigma": sigma}
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update)

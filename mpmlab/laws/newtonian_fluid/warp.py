@@ -1,0 +1,35 @@
+"""Warp weakly compressible Newtonian fluid (JAX-MPM Eqs. 19-20), built per (dim, precision)."""
+
+from functools import lru_cache
+from types import SimpleNamespace
+
+import warp as wp
+
+from ...backends.warp.types import warp_types
+
+
+@lru_cache(maxsize=None)
+def make(dim: int, precision: str) -> SimpleNamespace:
+    T = warp_types(dim, precision)
+    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+
+    @wp.func
+    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
+        return s.J * s.sigma
+
+    @wp.func
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
+        c = prm[p, 0]
+        mu = prm[p, 1]
+        rho0 = prm[p, 2]
+        eye = wp.identity(dim, scalar)
+        out = s
+        J = s.J * wp.determinant(eye + dt * grad_v)
+        pres = c * c * (rho0 / J - rho0)                        # Eq. 20, rho = rho0 / J
+        D = scalar(0.5) * (grad_v + wp.transpose(grad_v))       # strain rate (Eq. 19 uses D dt: see Law)
+        out.J = J
+        # 1/3 also in 2D (the paper's deviator)
+        out.sigma = -pres * eye + scalar(2.0) * mu * (D - wp.trace(D) / scalar(3.0) * eye)
+        return out
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update)

@@ -1,0 +1,219 @@
+"""Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A): return-map properties on the reference,
+JAX and Warp (fp64). With grad_v = 0 the trial stress is the given stress, so (sigma_m, tau) pick the zone."""
+import math
+from functools import lru_cache
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mpmlab.core import registry
+from mpmlab.core.errors import InvalidParameterError
+
+from .lawtools import EVAL
+
+LAW = registry.laws.get("drucker_prager_jaumann")
+REF = LAW.reference
+BACKENDS = ("reference", "jax", "warp")
+DIMS = (2, 3)
+K, NU, PHI, PSI, COH = 1.0e6, 0.3, 30.0, 10.0, 2.0e3
+Q, KPHI, QPSI = REF.cone_constants(PHI, PSI, COH)
+ST = 0.5 * KPHI / Q
+PRM = np.array([K, NU, PHI, PSI, COH, ST])
+SCALE = 1e4   # stress scale of the test states [Pa]
+
+
+@lru_cache(maxsize=None)
+def _jax_update(dim):
+    import jax
+
+    from mpmlab.backends.jax import stepper  # noqa: F401  (enables x64)
+
+    return jax.jit(jax.vmap(LAW.implementation("jax", "law")(dim).update, in_axes=(0, 0, None, 0)))
+
+
+def update(backend, dim, states, L, dt, prm=PRM):
+    if backend != "jax":
+        return EVAL[backend](LAW, dim, "update", states, prm, np.asarray(L), dt)
+    # jitted (the eager vmap of the branch-free return map is slow); one compile per (dim, count)
+    st = {f: np.array([s[f] for s in states]) for f in LAW.state_fields}
+    new = _jax_update(dim)(st, np.asarray(L), dt, np.tile(prm, (len(states), 1)))
+    return [{k: np.asarray(v[i]) for k, v in new.items()} for i in range(len(states))]
+
+
+def rotation(dim, rng):
+    if dim == 3:
+        return Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
+    th = rng.uniform(0, 2 * np.pi)
+    return np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+
+
+def stress(dim, sm, tau, rng):
+    """A symmetric stress with mean stress sm and A.4 shear invariant tau, randomly oriented."""
+    s = np.zeros((dim, dim))
+    s[0, 0], s[1, 1] = 1.0, -0.3
+    s = rng.standard_normal() * s + rng.standard_normal((dim, dim))
+    s = 0.5 * (s + s.T)
+    s -= np.trace(s) / dim * np.eye(dim)
+    s *= tau / math.sqrt(0.5 * np.sum(s * s))
+    return s + sm * np.eye(dim)
+
+
+def random_states(dim, n, rng):
+    states = []
+    for _ in range(n):
+        sig = stress(dim, rng.uniform(-3, 1) * SCALE, rng.uniform(0, 1.5) * SCALE, rng)
+        states.append({"J": rng.uniform(0.9, 1.1), "sigma": sig, "eps_p": rng.uniform(0, 0.05)})
+    return states
+
+
+def zone_of(sig):
+    sm, _, tau = REF.invariants(sig)
+    return REF.zone(sm, tau, PRM)
+
+
+@pytest.mark.parametrize("dim", DIMS)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_rest_stays_stress_free(backend, dim):
+    st = [{k: v[0] for k, v in LAW.initial_state(1, dim).items()}]
+    prm = LAW.resolve_params({}, "t", density=1800.0)
+    prm = np.array([prm[k] for k in LAW.param_names()])
+    for _ in range(3):
+        st = update(backend, dim, st, np.zeros((1, dim, dim)), 1e-3, prm)
+    assert st[0]["J"] == 1.0 and st[0]["eps_p"] == 0.0
+    assert np.max(np.abs(st[0]["sigma"])) == 0.0
+
+
+@pytest.mark.parametrize("dim", DIMS)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_elastic_increment_zone1(backend, dim):
+    """Zone I: sigma + lambda tr(dd) I + 2 G dd (+ Jaumann rotation), no plastic strain."""
+    rng = np.random.default_rng(0)
+    G, lam = REF.moduli(K, NU)
+    sig = stress(dim, -2.0 * SCALE, 0.1 * SCALE, rng)
+    L = 0.01 * rng.standard_normal((dim, dim))
+    dt = 1e-3
+    dd, dw = 0.5 * (L + L.T) * dt, 0.5 * (L - L.T) * dt
+    want = sig + sig @ dw.T + dw @ sig + lam * np.trace(dd) * np.eye(dim) + 2 * G * dd
+    assert zone_of(want) == 1
+    n = update(backend, dim, [{"J": 1.0, "sigma": sig, "eps_p": 0.01}], [L], dt)[0]
+    assert np.max(np.abs(n["sigma"] - want)) <= 1e-12 * SCALE
+    assert n["eps_p"] == 0.01
+    assert abs(n["J"] - np.linalg.det(np.eye(dim) + dt * L)) <= 1e-15
+
+
+@pytest.mark.parametrize("dim", DIMS)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_zone2_returns_onto_shear_surface(backend, dim):
+    """Both Zone II branches (f_t < 0, and f_t >= 0 with h > 0) end on f_s = 0 with A.15's eps_p increment."""
+    rng = np.random.default_rng(1)
+    G, _ = REF.moduli(K, NU)
+    trials = []
+    for sm in (-3.0 * SCALE, -0.5 * SCALE, 0.0, 0.5 * ST):          # compressive / mild: f_t < 0
+        trials.append(stress(dim, sm, KPHI - Q * sm + rng.uniform(0.1, 1.0) * SCALE, rng))
+    for sm in (ST, 1.2 * ST, 1.6 * ST):                             # f_t >= 0, h > 0
+        tau_p, alpha_p = KPHI - Q * ST, math.sqrt(1 + Q * Q) - Q
+        trials.append(stress(dim, sm, tau_p + alpha_p * (sm - ST) + 0.2 * SCALE, rng))
+    assert all(zone_of(t) == 2 for t in trials)
+    new = update(backend, dim, [{"J": 1.0, "sigma": t, "eps_p": 0.0} for t in trials],
+                 np.zeros((len(trials), dim, dim)), 1e-3)
+    for t, n in zip(trials, new):
+        sm, s, tau = REF.invariants(n["sigma"])
+        assert sm <= KPHI / Q                                      # returned below the apex (tau >= 0)
+        assert abs(tau - KPHI + Q * sm) <= 1e-9 * SCALE            # f_s = 0
+        sm_t, s_t, tau_t = REF.invariants(t)
+        assert np.max(np.abs(s * tau_t - s_t * tau)) <= 1e-9 * SCALE * tau_t   # radial: same deviator direction
+        dl = (tau_t - KPHI + Q * sm_t) / (G + K * Q * QPSI)
+        assert abs(n["eps_p"] - dl * math.sqrt(1 / 3 + 2 / 9 * QPSI ** 2)) <= 1e-12 * max(n["eps_p"], 1e-3)
+        assert abs(sm - (sm_t - K * QPSI * dl)) <= 1e-9 * SCALE    # A.12
+
+
+@pytest.mark.parametrize("dim", DIMS)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_zone3_caps_mean_stress_at_tensile_strength(backend, dim):
+    rng = np.random.default_rng(2)
+    trials = [stress(dim, sm, tau, rng) for sm, tau in
+              ((1.1 * ST, 0.0), (1.5 * ST, 0.1 * (KPHI - Q * ST)), (5.0 * ST, 0.5 * (KPHI - Q * ST)))]
+    assert all(zone_of(t) == 3 for t in trials)
+    new = update(backend, dim, [{"J": 1.0, "sigma": t, "eps_p": 0.0} for t in trials],
+                 np.zeros((len(trials), dim, dim)), 1e-3)
+    for t, n in zip(trials, new):
+        sm, s, _ = REF.invariants(n["sigma"])
+        sm_t, s_t, _ = REF.invariants(t)
+        assert abs(sm - ST) <= 1e-12 * SCALE                        # A.17: sigma_m = sigma_t
+        assert np.max(np.abs(s - s_t)) <= 1e-12 * SCALE            # deviator untouched
+        assert abs(n["eps_p"] - math.sqrt(2) / 3 * (sm_t - ST) / K) <= 1e-15   # A.18-A.19
+
+
+@pytest.mark.parametrize("dim", DIMS)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_jaumann_objectivity(backend, dim):
+    """update(R sigma R^T, R L R^T) = R update(sigma, L) R^T, in all three zones."""
+    rng = np.random.default_rng(3)
+    states = random_states(dim, 24, rng)
+    L = 20.0 * rng.standard_normal((len(states), dim, dim))
+    dt = 1e-3
+    R = [rotation(dim, rng) for _ in states]
+    a = update(backend, dim, states, L, dt)
+    rs = [dict(s, sigma=r @ s["sigma"] @ r.T) for s, r in zip(states, R)]
+    b = update(backend, dim, rs, [r @ l @ r.T for r, l in zip(R, L)], dt)
+    zones = set()
+    for s, l, r, x, y in zip(states, L, R, a, b):
+        zones.add(zone_of(REF.jaumann_trial(s["sigma"], l, dt, PRM)))
+        assert np.max(np.abs(r @ x["sigma"] @ r.T - y["sigma"])) <= 1e-9 * SCALE
+        assert abs(x["eps_p"] - y["eps_p"]) <= 1e-12
+        assert abs(x["J"] - y["J"]) <= 1e-13
+    assert zones == {1, 2, 3}
+
+
+@pytest.mark.parametrize("dim", DIMS)
+def test_backends_match_reference_and_eps_p_never_decreases(dim):
+    rng = np.random.default_rng(4)
+    states = random_states(dim, 64, rng)
+    L = 20.0 * rng.standard_normal((len(states), dim, dim))
+    ref = update("reference", dim, states, L, 1e-3)
+    assert {zone_of(REF.jaumann_trial(s["sigma"], l, 1e-3, PRM)) for s, l in zip(states, L)} == {1, 2, 3}
+    for backend in ("reference", "jax", "warp"):
+        got = update(backend, dim, states, L, 1e-3)
+        assert all(g["eps_p"] >= s["eps_p"] for g, s in zip(got, states))
+        for f in LAW.state_fields:
+            x, y = np.array([g[f] for g in got]), np.array([r[f] for r in ref])
+            assert np.max(np.abs(x - y)) <= 1e-10 * np.max(np.abs(y)), (backend, f)
+
+
+@pytest.mark.parametrize("dim", DIMS)
+def test_jax_gradients_finite_at_rest(dim):
+    import jax
+    import jax.numpy as jnp
+
+    from mpmlab.backends.jax import stepper  # noqa: F401  (enables x64)
+
+    impl = LAW.implementation("jax", "law")(dim)
+
+    def loss(prm, L):
+        st = {"J": jnp.array(1.0), "sigma": jnp.zeros((dim, dim)), "eps_p": jnp.array(0.0)}
+        for _ in range(2):
+            st = impl.update(st, L, 1e-3, prm)
+        return jnp.sum(st["sigma"] ** 2) + st["eps_p"]
+
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))
+    for L in (np.zeros((dim, dim)), 30.0 * np.eye(dim), 50.0 * np.ones((dim, dim))):
+        g = grad(jnp.asarray(PRM), jnp.asarray(L))
+        assert all(bool(jnp.all(jnp.isfinite(x))) for x in g)
+
+
+def test_parameters_checks_and_wave_speed():
+    prm = LAW.resolve_params({}, "t", density=1800.0)
+    assert prm["bulk_modulus"] == 0.7e6 and prm["friction_angle"] == 19.8 and prm["tensile_strength"] == 0.0
+    G, lam = REF.moduli(K, NU)
+    assert math.isclose(lam, K - 2 * G / 3) and math.isclose(K, lam + 2 * G / 3)
+    assert math.isclose(G, K * 3 * (1 - 2 * NU) / (2 * (1 + NU)))
+    assert math.isclose(LAW.wave_speed(dict(zip(LAW.param_names(), PRM)), 2000.0), math.sqrt((K + 4 * G / 3) / 2000.0))
+    with pytest.raises(InvalidParameterError, match="dilation"):
+        LAW.resolve_params({"friction_angle": 20.0, "dilation_angle": 25.0}, "t")
+    with pytest.raises(InvalidParameterError, match="apex"):
+        LAW.resolve_params({"tensile_strength": 1.0}, "t")           # cohesionless: apex at 0
+    LAW.resolve_params({"cohesion": COH, "friction_angle": PHI, "tensile_strength": KPHI / Q}, "t")
+    LAW.resolve_params({"friction_angle": 0.0, "cohesion": 10.0, "tensile_strength": 1e9}, "t")  # q_phi = 0
+    with pytest.raises(InvalidParameterError):
+        LAW.resolve_params({"friction_angle": 90.0}, "t")
