@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -29,6 +30,15 @@ EXIT_INTERRUPTED = 130
 log = logging.getLogger("mpmlab")
 
 _DEBUG_TOKENS = {"debug=true", "debug=True", "debug=1", "+debug=true", "++debug=true", "debug=yes"}
+
+
+class _Abort(BaseException):
+    """Carries a single run's error past Hydra's job runner, which catches ``Exception`` and prints an
+    extra "Error executing job" line; ``main`` unwraps it and prints the one-line message."""
+
+    def __init__(self, error: BaseException):
+        super().__init__(error)
+        self.error = error
 
 
 class JobFailed(Exception):
@@ -64,13 +74,24 @@ def _task_function(cfg) -> dict:
         if isinstance(exc, (KeyboardInterrupt, SystemExit)):
             raise
         code, message = describe_error(exc)
-        log.error(message)  # also into the job's log file
-        if multirun and not (cfg.debug or _debug_env()):
+        if not multirun:
+            _log_to_files(message)
+            raise _Abort(exc) from None
+        log.error(message)
+        if not (cfg.debug or _debug_env()):
             # launchers pickle job errors across processes; mpmlab errors with rich constructors do not
             # survive that, so the sweep gets a plain picklable error with the same sentence
             raise JobFailed(f"job {hc.job.get('num')} ({hc.job.override_dirname or 'no overrides'}): {message}",
                             code) from None
         raise
+
+
+def _log_to_files(message: str) -> None:
+    """Record the error in the run's log file only (the console gets the one line from ``main``)."""
+    record = logging.LogRecord("mpmlab", logging.ERROR, __file__, 0, message, None, None)
+    for h in logging.getLogger().handlers:
+        if isinstance(h, logging.FileHandler):
+            h.handle(record)
 
 
 def _debug_env() -> bool:
@@ -108,7 +129,7 @@ def _composition_message(exc) -> str:
                     opts.append(line.strip())
                 elif line.strip():
                     break
-        head = head.replace("In 'config': ", "")
+        head = re.sub(r"^In '[^']*': ", "", head)
         return f"{head}; available options in '{group}': {', '.join(opts)}."
     cause = exc.__cause__
     if isinstance(cause, (ConfigAttributeError, ConfigKeyError)):
@@ -119,8 +140,13 @@ def _composition_message(exc) -> str:
         return f"{head.rstrip('.')}: {_omegaconf_detail(cause)}; fix the value (`mpmlab --cfg job` shows the options and types)."
     if "Could not override" in text and "No match in the defaults list" in text:
         return f"{head} Pick a config group listed by `mpmlab --help`."
-    rest = [l.strip() for l in lines[1:] if l.strip() and not l.startswith("\t")]
-    return " ".join([head] + rest[:2])
+    rest = []
+    for line in lines[1:]:
+        if line.startswith("Config search path"):
+            break
+        if line.strip() and not line.startswith("\t"):
+            rest.append(line.strip())
+    return re.sub(r"^In '[^']*': ", "", " ".join([head] + rest[:2]))
 
 
 def describe_error(exc: BaseException) -> tuple[int, str]:
@@ -145,6 +171,8 @@ def describe_error(exc: BaseException) -> tuple[int, str]:
         return EXIT_CONFIG, msg
     if isinstance(exc, OmegaConfBaseException):
         return EXIT_CONFIG, f"invalid configuration: {_omegaconf_detail(exc)}; fix the value (`mpmlab --cfg job` shows the options)."
+    if isinstance(exc, ValueError) and "can be specified" in str(exc):  # Hydra's flag conflicts
+        return EXIT_CONFIG, f"{_first_line(str(exc))} (e.g. `mpmlab --cfg job scene=...`, without -m)."
     if isinstance(exc, OSError):
         where = exc.filename or ""
         what = exc.strerror or type(exc).__name__
@@ -185,6 +213,16 @@ def main(argv: list[str] | None = None) -> int:
         code = 0
     except SystemExit as exc:  # argparse (--help, bad flags) and Hydra's own exits
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except BrokenPipeError:  # `mpmlab --help | head`
+        sys.stdout = open(os.devnull, "w")
+        code = 0
+    except _Abort as abort:
+        code, message = describe_error(abort.error)
+        if debug:
+            import traceback
+
+            traceback.print_exception(abort.error)
+        print(f"mpmlab: error: {message}", file=sys.stderr)
     except KeyboardInterrupt:
         print("mpmlab: interrupted; outputs written so far are complete files (trajectory.h5 is marked incomplete).",
               file=sys.stderr)

@@ -249,7 +249,7 @@ class MpmlabConfig:
     precision: PrecisionConfig = field(default_factory=PrecisionConfig)
     material: MaterialConfig = field(default_factory=MaterialConfig)
     scene: SceneConfig = field(default_factory=SceneConfig)
-    task: TaskConfig = field(default_factory=SimulateTaskConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     #: time steps to run (default: the scene's)
     steps: int = II("scene.steps")
@@ -291,21 +291,21 @@ def register_configs() -> None:
     register_resolvers()
     cs = ConfigStore.instance()
     cs.store(name=SCHEMA_NAME, node=MpmlabConfig)
-    # per-task schemas, extended by conf/task/<name>.yaml (defaults: [/schema/task/<name>@_here_, _self_])
-    cs.store(group="schema/task", name="simulate", node=SimulateTaskConfig)
-    cs.store(group="schema/task", name="replay", node=ReplayTaskConfig)
+    # per-task schemas, extended by conf/task/<name>.yaml (defaults: [/mpmlab_task_<name>@_here_, _self_])
+    register_task_schema("simulate", SimulateTaskConfig)
+    register_task_schema("replay", ReplayTaskConfig)
     _REGISTERED = True
 
 
-register_configs()
-
-
 def register_task_schema(name: str, node: type) -> None:
-    """Register a task's option dataclass (a ``TaskConfig`` subclass) as ``schema/task/<name>``; the
-    task's YAML extends it with ``defaults: [/schema/task/<name>@_here_, _self_]``."""
+    """Register a task's option dataclass (a ``TaskConfig`` subclass) as ``mpmlab_task_<name>``; the
+    task's YAML ``conf/task/<name>.yaml`` extends it: ``defaults: [/mpmlab_task_<name>@_here_, _self_]``."""
     from hydra.core.config_store import ConfigStore
 
-    ConfigStore.instance().store(group="schema/task", name=name, node=node)
+    ConfigStore.instance().store(name=f"mpmlab_task_{name}", node=node)
+
+
+register_configs()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -373,9 +373,9 @@ def _shape_dict(shape: Any) -> dict:
 
 def check_resolution(scene_cfg: DictConfig) -> None:
     """Refuse an unknown ``scene.resolution`` with the list of the scene's resolutions."""
-    known = list(scene_cfg.resolutions.keys())
+    known = list(scene_cfg.resolutions.keys()) or ["default"]
     name = scene_cfg.resolution
-    if known and name not in known:
+    if name not in known:
         raise ConfigError(
             f"scene '{scene_cfg.name}' has no resolution '{name}'; choose one of {', '.join(known)} "
             f"(scene.resolution={known[0]})."

@@ -78,7 +78,10 @@ def run(cfg, ctx) -> dict:
     if backend == "warp" and not cfg.debug:
         import warp
 
-        warp.config.quiet = True  # no per-module load lines on the console
+        # no per-module "load on device" lines on the console (warp 1.19: log_level; older: quiet)
+        if hasattr(warp, "LOG_WARNING"):
+            warp.config.log_level = warp.LOG_WARNING
+        warp.config.quiet = True
 
     write_config(out, cfg, ctx.overwrite)
     P = scene.particles()
