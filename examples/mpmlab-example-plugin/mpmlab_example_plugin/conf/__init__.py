@@ -1,0 +1,1 @@
+"""Hydra config groups contributed to mpmlab (found through the ``mpmlab.configs`` entry point)."""

@@ -1,0 +1,24 @@
+"""JAX compressible Neo-Hookean law: per-particle pure functions, vmapped by mpmlab's JAX stepper."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import jax.numpy as jnp
+
+
+def make(dim: int) -> SimpleNamespace:
+    def kirchhoff(state, prm):
+        F = state["F"]
+        E, nu = prm[0], prm[1]
+        mu = E / (2.0 * (1.0 + nu))
+        lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+        eye = jnp.eye(dim, dtype=F.dtype)
+        # log of |J| keeps the function finite if an element inverts; mpmlab's guard reports J <= 0
+        logJ = jnp.log(jnp.abs(jnp.linalg.det(F)))
+        return mu * (F @ F.T - eye) + lam * logJ * eye
+
+    def update(state, grad_v, dt, prm):
+        F = state["F"]
+        return {"F": (jnp.eye(dim, dtype=F.dtype) + dt * grad_v) @ F}
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update)
