@@ -1,0 +1,111 @@
+"""JAX Hencky + Drucker-Prager (NCLaw Eqs. 14-16); per particle, vmapped by the stepper.
+
+Both the stress and the return map are spectral functions of F: U diag(g(s)) W^T with W = U (stress) or
+W = V (return map). ``spectral`` gives them a custom JVP written with divided differences of g, because
+the JVP of ``jnp.linalg.svd`` divides by s_i^2 - s_j^2 and is NaN at repeated singular values -- at
+F = I, the rest state of every particle. The spectral derivative itself is well defined there.
+"""
+from __future__ import annotations
+
+from functools import partial
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+
+from ...backends.jax.linalg import HENCKY_MIN_STRETCH, lame, svd_rotations
+
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def spectral(g, left, F, p):
+    """U diag(g(s, p)) U^T if ``left`` else U diag(g(s, p)) V^T, for F = U diag(s) V^T (``svd_rotations``).
+
+    ``g(s, p) -> [d]`` must be permutation-equivariant in s (isotropic), ``p`` holds its parameters
+    (differentiable). Derivatives are finite at repeated singular values.
+    """
+    U, s, V = svd_rotations(F)
+    return (U * g(s, p)[None, :]) @ (U if left else V).T
+
+
+@spectral.defjvp
+def _spectral_jvp(g, left, primals, tangents):
+    F, p = primals
+    dF, dp = tangents
+    U, s, V = svd_rotations(F)
+    W = U if left else V
+    gs, dg_p = jax.jvp(lambda q: g(s, q), (p,), (dp,))
+    Jg = jax.jacfwd(g)(s, p)                              # [d, d], d g_i / d s_j
+    dFp = U.T @ dF @ V                                    # dF in the singular bases
+    sym, skw = 0.5 * (dFp + dFp.T), 0.5 * (dFp - dFp.T)
+    si, sj = s[:, None], s[None, :]
+    gi, gj = gs[:, None], gs[None, :]
+    diff = si - sj
+    # closer than eps^(1/3) (relative): the symmetrised limit below (error O(diff^2)) beats the quotient
+    # (round-off error eps / diff); 6e-6 in fp64, 5e-3 in fp32
+    close = jnp.abs(diff) <= jnp.finfo(F.dtype).eps ** (1.0 / 3.0) * jnp.maximum(jnp.abs(si), jnp.abs(sj))
+    Jd = jnp.diag(Jg)
+    limit = 0.5 * (Jd[:, None] - Jg + Jd[None, :] - Jg.T)  # lim (g_i - g_j)/(s_i - s_j) for isotropic g
+    dd = jnp.where(close, limit, (gi - gj) / jnp.where(close, 1.0, diff))
+    ssum = si + sj
+    ok = jnp.abs(ssum) > 0.0
+    num = (gj - gi) if left else (gi + gj)
+    rot = jnp.where(ok, num / jnp.where(ok, ssum, 1.0), 0.0)
+    eye = jnp.eye(s.shape[0], dtype=F.dtype)
+    dGp = (1.0 - eye) * (sym * dd + skw * rot) + jnp.diag(Jg @ jnp.diag(dFp) + dg_p)
+    return (U * gs[None, :]) @ W.T, U @ dGp @ W.T
+
+
+def safe_norm(x):
+    """|x| with a zero (not NaN) gradient at x = 0."""
+    sq = jnp.sum(x * x)
+    pos = sq > 0.0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def hencky_log(s):
+    return jnp.log(jnp.maximum(s, HENCKY_MIN_STRETCH))
+
+
+def hencky_principal_tau(s, prm):
+    """Principal Kirchhoff stresses 2 mu eps + lambda tr(eps) (NCLaw Eq. 14)."""
+    mu, lam = lame(prm[0], prm[1])
+    eps = hencky_log(s)
+    return 2.0 * mu * eps + lam * jnp.sum(eps)
+
+
+def hencky_kirchhoff(state, prm):
+    """tau = U (2 mu eps + lambda tr(eps) I) U^T; NCLaw Eq. 14's "P" is this Kirchhoff stress (P = tau F^-T)."""
+    return spectral(hencky_principal_tau, True, state["F"], prm)
+
+
+def _cone(s, prm):
+    """(eps, tr, eps_hat, |eps_hat|, delta_gamma) of NCLaw Eq. 15 with d = len(s)."""
+    d = s.shape[0]
+    mu, lam = lame(prm[0], prm[1])
+    sp = jnp.sin(jnp.deg2rad(prm[2]))
+    alpha = jnp.sqrt(2.0 / 3.0) * 2.0 * sp / (3.0 - sp)
+    eps = hencky_log(s)
+    tr = jnp.sum(eps)
+    eps_hat = eps - tr / d
+    n = safe_norm(eps_hat)
+    dg = n + (d * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+    return eps, tr, eps_hat, n, dg
+
+
+def _returned_stretch(s, prm):
+    """New singular values on the plastic branches of Eq. 16: 1 (tip) if tr(eps) > 0, else the cone."""
+    eps, tr, eps_hat, n, dg = _cone(s, prm)
+    on_cone = jnp.exp(eps - dg * eps_hat / jnp.where(n > 0.0, n, 1.0))
+    return jnp.where(tr > 0.0, jnp.ones_like(s), on_cone)
+
+
+def make(dim: int) -> SimpleNamespace:
+    def update(state, grad_v, dt, prm):
+        F = (jnp.eye(dim, dtype=grad_v.dtype) + dt * grad_v) @ state["F"]
+        _, s, _ = svd_rotations(jax.lax.stop_gradient(F))
+        _, tr, _, n, dg = _cone(s, jax.lax.stop_gradient(prm))
+        plastic = (tr > 0.0) | ((dg > 0.0) & (n > 0.0))
+        return {"F": jnp.where(plastic, spectral(_returned_stretch, False, F, prm), F)}
+
+    return SimpleNamespace(kirchhoff=hencky_kirchhoff, update=update)

@@ -1,0 +1,36 @@
+"""JAX Hencky + von Mises (NCLaw Eqs. 17-19); per particle, vmapped by the stepper. The stress and the
+safe-derivative spectral map are those of ``hencky_drucker_prager.jax``."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+
+from ...backends.jax.linalg import lame, svd_rotations
+from ..hencky_drucker_prager.jax import hencky_kirchhoff, hencky_log, safe_norm, spectral
+
+
+def _excess(s, prm):
+    """(eps, eps_hat, |eps_hat|, delta_gamma = |eps_hat| - tau_Y / (2 mu)) of NCLaw Eq. 18."""
+    mu, _ = lame(prm[0], prm[1])
+    eps = hencky_log(s)
+    eps_hat = eps - jnp.sum(eps) / s.shape[0]
+    n = safe_norm(eps_hat)
+    return eps, eps_hat, n, n - prm[2] / (2.0 * mu)
+
+
+def _returned_stretch(s, prm):
+    """exp(eps - delta_gamma eps_hat / |eps_hat|) (Eq. 19, plastic case): tr(eps), hence det F, kept."""
+    eps, eps_hat, n, dg = _excess(s, prm)
+    return jnp.exp(eps - dg * eps_hat / jnp.where(n > 0.0, n, 1.0))
+
+
+def make(dim: int) -> SimpleNamespace:
+    def update(state, grad_v, dt, prm):
+        F = (jnp.eye(dim, dtype=grad_v.dtype) + dt * grad_v) @ state["F"]
+        _, s, _ = svd_rotations(jax.lax.stop_gradient(F))
+        dg = _excess(s, jax.lax.stop_gradient(prm))[3]
+        return {"F": jnp.where(dg > 0.0, spectral(_returned_stretch, False, F, prm), F)}
+
+    return SimpleNamespace(kirchhoff=hencky_kirchhoff, update=update)

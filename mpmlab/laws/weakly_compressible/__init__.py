@@ -1,0 +1,35 @@
+"""Weakly compressible fluid (Stomakhin et al. 2014; Tampubolon et al. 2017; NCLaw App. B, Eqs. 20-21): WATER."""
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
+from . import reference as _reference
+
+
+class Law(AbstractConstitutiveLaw):
+    """Fixed corotated with mu = 0, P = lambda J (J - 1) F^-T (Eq. 20), i.e. tau = lambda J (J - 1) I, and
+    the return map F <- J^(1/d) I (Eq. 21).
+
+    The stress depends on F only through J = det F, and Eq. 21 keeps only J, so the state is J alone
+    (DESIGN "J instead of F"): J <- J det(I + dt grad_v) is exactly F-tracking followed by Eq. 21.
+    ``bulk_modulus`` is the lambda of Eq. 20 (the bulk modulus at J = 1: d(-p)/dJ = lambda); the sound
+    speed is sqrt(lambda / rho). Weak compressibility needs c >= 10 |v|_max (density error ~ 1 %).
+    """
+
+    name: ClassVar[str] = "weakly_compressible"
+    params = (
+        ParamSpec("bulk_modulus", "Pa", 1.0e5, low=0.0, low_open=True, doc="bulk modulus lambda"),
+    )
+    state_fields = ("J",)
+    plastic = True   # Eq. 21 is a return map; on the J state it is folded into the update
+    reference = _reference
+    implementations: ClassVar[dict] = {
+        "jax": "mpmlab.laws.weakly_compressible.jax:make",
+        "warp": "mpmlab.laws.weakly_compressible.warp:make",
+    }
+
+    @classmethod
+    def wave_speed(cls, params, density):
+        return math.sqrt(params["bulk_modulus"] / density)
