@@ -9,6 +9,8 @@ already exists is refused unless ``output.overwrite=true``.
 from __future__ import annotations
 
 import logging
+import os
+import platform
 import time
 from pathlib import Path
 
@@ -169,6 +171,8 @@ def run(cfg, ctx) -> dict:
         **timing,
         **(drift(metrics, traj.time, scene.gravity) if metrics else {}),
         "seed": int(cfg.seed),
+        "host": platform.node(),
+        "pid": os.getpid(),
         "outputs": outputs,
         "mpmlab_version": __version__,
         "overrides": list(ctx.job.get("overrides", [])),
