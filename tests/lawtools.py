@@ -38,9 +38,16 @@ def default_params(law, density: float = 1000.0) -> np.ndarray:
     return np.array([prm[k] for k in law.param_names()])
 
 
+def ref_kirchhoff(law, state, prm, dim):
+    """reference.kirchhoff; a state without a matrix field (J only) carries no dimension, so pass it."""
+    if {"F", "sigma"} & set(law.state_fields):
+        return law.reference.kirchhoff(state, prm)
+    return law.reference.kirchhoff(state, prm, dim=dim)
+
+
 def reference(law, dim, what, states, prm, grad_v=None, dt=0.0):
     if what == "kirchhoff":
-        return np.array([law.reference.kirchhoff(s, prm) for s in states])
+        return np.array([ref_kirchhoff(law, s, prm, dim) for s in states])
     return [law.reference.update(s, L, dt, prm) for s, L in zip(states, grad_v)]
 
 

@@ -74,7 +74,8 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
     ``J``, so the stepper never stores or updates a full F for it. ``params`` are the user-facing
     parameters (units, ranges); backends receive them as a per-particle array ``[N, len(params)]`` in
     this order and derive moduli inline, so gradients reach E and nu directly.
-    ``reference`` is a NumPy float64 module with the same two functions: the conformance oracle.
+    ``reference`` is a NumPy float64 module with the same two functions: the conformance oracle. A law
+    whose state has no matrix field (J only) takes the dimension as ``kirchhoff(state, params, dim=D)``.
     """
 
     params: ClassVar[tuple[ParamSpec, ...]]

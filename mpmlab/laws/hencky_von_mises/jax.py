@@ -8,7 +8,8 @@ import jax
 import jax.numpy as jnp
 
 from ...backends.jax.linalg import lame, svd_rotations
-from ..hencky_drucker_prager.jax import hencky_kirchhoff, hencky_log, safe_norm, spectral
+from ...backends.jax.linalg import safe_norm, spectral
+from ..hencky_drucker_prager.jax import hencky_kirchhoff, hencky_log
 
 
 def _excess(s, prm):
