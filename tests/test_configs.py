@@ -185,3 +185,13 @@ def test_python_api_compose_helper():
 
     cfg = mp_compose(["scene=dam_break_2d", "scene.resolution=tiny"])
     assert build_scene(cfg).dim == 2
+
+
+@pytest.mark.parametrize("launcher, plugin", [("local", None), ("parallel", "hydra_plugins.hydra_joblib_launcher"),
+                                              ("slurm", "hydra_plugins.hydra_submitit_launcher")])
+def test_launcher_configs_compose(cfg_of, launcher, plugin):
+    if plugin:
+        pytest.importorskip(plugin, reason=f"install the extra for hydra/launcher={launcher}")
+    cfg = cfg_of(f"hydra/launcher={launcher}", return_hydra_config=True)
+    target = cfg.hydra.launcher._target_
+    assert {"local": "BasicLauncher", "parallel": "JoblibLauncher", "slurm": "SlurmLauncher"}[launcher] in target
