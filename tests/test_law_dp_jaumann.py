@@ -217,3 +217,23 @@ def test_parameters_checks_and_wave_speed():
     LAW.resolve_params({"friction_angle": 0.0, "cohesion": 10.0, "tensile_strength": 1e9}, "t")  # q_phi = 0
     with pytest.raises(InvalidParameterError):
         LAW.resolve_params({"friction_angle": 90.0}, "t")
+
+
+@pytest.mark.parametrize("backend", ("reference", "jax", "warp"))
+def test_zone2_return_beyond_apex_goes_to_the_corner(backend):
+    """A trial far in tension beyond the apex (the literal A.12-A.13 flip the deviator there) ends at
+    sigma_m = sigma_t with a non-negative tau on the shear surface, on every backend."""
+    from mpmlab.core import registry
+
+    from .lawtools import EVAL
+
+    law = registry.laws.get("drucker_prager_jaumann")
+    prm = np.array([law.resolve_params({"friction_angle": 30.0, "dilation_angle": 0.0}, "t")[k]
+                    for k in law.param_names()])
+    sig = np.diag([3000.0, -1000.0])
+    state = [{"J": 1.0, "sigma": sig, "eps_p": 0.0}]
+    new = EVAL[backend](law, 2, "update", state, prm, np.zeros((1, 2, 2)), 1e-3)[0]["sigma"]
+    sm = np.trace(new) / 2
+    s = new - sm * np.eye(2)
+    assert sm <= 1e-9                      # sigma_t = 0: no tension survives the return
+    assert np.sqrt(0.5 * np.sum(s * s)) <= 1e-9 + 1e-9 * abs(sig).max()

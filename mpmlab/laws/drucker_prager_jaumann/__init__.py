@@ -27,9 +27,10 @@ class Law(AbstractConstitutiveLaw):
       2x2 identity (the paper's A.3 divides by 3); the out-of-plane stress sigma_zz is not tracked. The
       cone constants q_phi, k_phi are still the 3D (compression-cone) fits of App. A, so 2D strengths are
       an approximation of the 3D material. The elastic increment uses the 3D lambda = K - 2G/3.
-    * The return map follows App. A literally. In Zone II with f_t >= 0 and a trial mean stress beyond the
-      apex (sigma_m > k_phi / q_phi, reachable for small dilation), A.13 gives tau < 0, i.e. the returned
-      deviator flips sign (the paper's scheme does not project to the apex there).
+    * The return map follows App. A except at one corner: in Zone II with f_t >= 0 and a trial mean
+      stress beyond the apex, A.12-A.13 literally return to sigma_m > sigma_t with tau < 0 (the deviator
+      flips sign and one step of spurious tension follows). mpmlab caps the returned sigma_m at sigma_t,
+      i.e. returns to the corner (sigma_t, tau_P) of the shear surface and the tension cutoff.
     * The Jaumann update (A.2, Eq. 21) is first order in dt, as in the paper.
     """
 

@@ -52,7 +52,7 @@ def make(dim: int) -> SimpleNamespace:
 
         # Zone II, A.12-A.16
         dl_s = fs / (G + K * q_phi * q_psi)
-        sm2 = sm - K * q_psi * dl_s
+        sm2 = jnp.minimum(sm - K * q_psi * dl_s, st)   # A.12, capped at sigma_t (corner return, see reference)
         tau2 = k_phi - q_phi * sm2
         tpos = tau > 0.0
         ratio = jnp.where(tpos, tau2 / jnp.where(tpos, tau, 1.0), 0.0)

@@ -68,7 +68,9 @@ def return_map(trial, prm):
     if z == 2:
         fs = tau - k_phi + q_phi * sm
         dl = fs / (G + K * q_phi * q_psi)                           # A.16
-        sm_new = sm - K * q_psi * dl                                # A.12
+        # A.12, capped at the tension cutoff: a shear return past sigma_t (possible from the h > 0, f_t >= 0
+        # branch beyond the apex) goes to the corner (sigma_t, tau_P) instead of flipping the deviator
+        sm_new = min(sm - K * q_psi * dl, st)
         tau_new = k_phi - q_phi * sm_new                            # A.13
         ratio = tau_new / tau if tau > 0.0 else 0.0
         return ratio * s + sm_new * np.eye(d), dl * math.sqrt(1.0 / 3.0 + 2.0 / 9.0 * q_psi * q_psi)  # A.14-15

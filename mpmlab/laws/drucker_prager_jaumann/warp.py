@@ -71,7 +71,7 @@ def make(dim: int, precision: str) -> SimpleNamespace:
             zone2 = h > scalar(0.0)
         if zone2:
             dl = fs / (G + K * q_phi * q_psi)                     # A.16
-            sm2 = sm - K * q_psi * dl                             # A.12
+            sm2 = wp.min(sm - K * q_psi * dl, st)                 # A.12, capped at sigma_t (corner return)
             tau2 = k_phi - q_phi * sm2                            # A.13
             ratio = scalar(0.0)
             if tau > scalar(0.0):
