@@ -21,144 +21,219 @@ WALL_CODES = {"none": WALL_NONE, "sticky": WALL_STICKY, "slip": WALL_SLIP, "sepa
 @lru_cache(maxsize=None)
 def stencil_funcs(dim: int, precision: str):
     T = warp_types(dim, precision)
-    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
+    scalar, vec, ivec = T.scalar, T.vec, T.ivec
+    wmat = wp.types.matrix((3, dim), scalar)
 
     @wp.func
-    def bspline(fx: vec):
-        """Quadratic B-spline weights w[k][d] and derivatives (cell units), fx in [0.5, 1.5)."""
-        w0 = vec(); w1 = vec(); w2 = vec(); d0 = vec(); d1 = vec(); d2 = vec()
-        for d in range(dim):
-            f = fx[d]
-            w0[d] = scalar(0.5) * (scalar(1.5) - f) * (scalar(1.5) - f)
-            w1[d] = scalar(0.75) - (f - scalar(1.0)) * (f - scalar(1.0))
-            w2[d] = scalar(0.5) * (f - scalar(0.5)) * (f - scalar(0.5))
-            d0[d] = f - scalar(1.5)
-            d1[d] = scalar(-2.0) * (f - scalar(1.0))
-            d2[d] = f - scalar(0.5)
-        return w0, w1, w2, d0, d1, d2
-
-    @wp.func
-    def pick(a: vec, b: vec, c: vec, k: int, d: int):
-        r = a[d]
-        if k == 1:
-            r = b[d]
-        elif k == 2:
-            r = c[d]
-        return r
-
-    return SimpleNamespace(bspline=bspline, pick=pick)
-
-
-def _offsets(dim):
-    return [(i, j) for i in range(3) for j in range(3)] if dim == 2 else \
-           [(i, j, k) for i in range(3) for j in range(3) for k in range(3)]
-
-
-@lru_cache(maxsize=None)
-def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_force: bool, has_ext: bool):
-    """P2G: mass, momentum (+ affine), force (gradient or MLS form). ``split_force``: keep momentum and
-    force apart (FLIP needs the old grid velocity); otherwise momentum += dt f as in MLS-MPM."""
-    T = warp_types(dim, precision)
-    S = stencil_funcs(dim, precision)
-    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
-    stencil = 3**dim
-
-    @wp.kernel(module="unique")
-    def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
-            mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
-            origin: vec, dx: scalar, dt: scalar, strides: ivec,
-            grid_m: wp.array(dtype=scalar), grid_mv: wp.array(dtype=vec), grid_f: wp.array(dtype=vec)):
-        p = wp.tid()
-        inv_dx = scalar(1.0) / dx
-        Xp = (x[p] - origin) * inv_dx
+    def locate(x: vec, origin: vec, inv_dx: scalar):
+        """Base node (lower corner of the 3^D stencil) and fx = x/dx - base in [0.5, 1.5) per axis."""
+        Xp = (x - origin) * inv_dx
         base = ivec()
         fx = vec()
         for d in range(dim):
             base[d] = int(wp.floor(Xp[d] - scalar(0.5)))
             fx[d] = Xp[d] - scalar(base[d])
-        w0, w1, w2, d0, d1, d2 = S.bspline(fx)
+        return base, fx
+
+    @wp.func
+    def bspline(fx: vec):
+        """Quadratic B-spline weights W[k, d] and their derivatives DW[k, d] (cell units), fx in [0.5, 1.5)."""
+        W = wmat()
+        DW = wmat()
+        for d in range(dim):
+            f = fx[d]
+            W[0, d] = scalar(0.5) * (scalar(1.5) - f) * (scalar(1.5) - f)
+            W[1, d] = scalar(0.75) - (f - scalar(1.0)) * (f - scalar(1.0))
+            W[2, d] = scalar(0.5) * (f - scalar(0.5)) * (f - scalar(0.5))
+            DW[0, d] = f - scalar(1.5)
+            DW[1, d] = scalar(-2.0) * (f - scalar(1.0))
+            DW[2, d] = f - scalar(0.5)
+        return W, DW
+
+    return SimpleNamespace(locate=locate, bspline=bspline, wmat=wmat)
+
+
+def grid_vec_type(dim: int, precision: str):
+    """P2G accumulator per node: (momentum..., mass) in one vector, so a node's update touches one place."""
+    return wp.types.vector(dim + 1, warp_types(dim, precision).scalar)
+
+
+@lru_cache(maxsize=None)
+def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_force: bool, has_ext: bool):
+    """P2G: mass, momentum (+ affine), force (gradient or MLS form). ``split_force``: keep momentum and
+    force apart (FLIP needs the old grid velocity); otherwise momentum += dt f as in MLS-MPM.
+
+    Launched on a chunk of particles (``start``) into one private grid copy (``goff``), so chunks can run
+    on different CPU threads (Warp's CPU atomics are plain adds); the copies are summed by the grid
+    update. The per-particle affine terms are folded into one matrix before the stencil loop (MLS:
+    ``A = m C - 4 dt V / dx^2 tau``, the mpm3d form), and the loops over the 3^D nodes are unrolled.
+    Also records the chunk's bounding box of base nodes (``bbox[2 slot]``, ``bbox[2 slot + 1]``), so
+    the grid update visits only nodes particles can reach.
+    """
+    T = warp_types(dim, precision)
+    S = stencil_funcs(dim, precision)
+    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
+    gvec = grid_vec_type(dim, precision)
+    vec3s = wp.types.vector(3, scalar)
+    fold_force = (not split_force) and mls_force       # MLS force folds into the affine matrix
+    grad_force = not mls_force                          # f = -V tau grad w, needs weight gradients
+
+    @wp.func
+    def pack(mom: vec, wm: scalar, wgt: scalar):
+        if wp.static(dim == 3):
+            return gvec(wgt * mom[0], wgt * mom[1], wgt * mom[2], wm)
+        else:
+            return gvec(wgt * mom[0], wgt * mom[1], wm)
+
+    @wp.kernel(module="unique")
+    def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
+            mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
+            origin: vec, dx: scalar, dt: scalar, strides: ivec, start: int, goff: int,
+            grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), bbox: wp.array(dtype=ivec), slot: int):
+        p = wp.tid() + start
+        inv_dx = scalar(1.0) / dx
+        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))   # node offsets as scalars
+        base, fx = S.locate(x[p], origin, inv_dx)
+        W, DW = S.bspline(fx)
+        bbox[2 * slot] = wp.min(bbox[2 * slot], base)
+        bbox[2 * slot + 1] = wp.max(bbox[2 * slot + 1], base)
         m = mass[p]
         V = vol[p]
-        stress = tau[p]
-        mv = m * v[p]
-        Cp = mat()
+        q = m * v[p]
+        A = mat()                      # momentum of node o: w_o (q + A (o - fx) dx)
         if wp.static(affine):
-            Cp = C[p]
+            A = m * C[p]
+        if wp.static(fold_force):
+            A = A - (scalar(4.0) * inv_dx * inv_dx * V * dt) * tau[p]       # Hu et al. 2018
+        Fm = mat()                     # split MLS force of node o: w_o Fm (o - fx) dx
+        if wp.static(split_force and mls_force):
+            Fm = -(scalar(4.0) * inv_dx * inv_dx * V) * tau[p]
+        Tg = mat()                     # gradient force of node o: Tg grad w_o (JAX-MPM Eq. 12)
+        if wp.static(grad_force):
+            Tg = -(V * inv_dx) * tau[p]
+            if wp.static(not split_force):
+                Tg = dt * Tg
         fext = vec()
         if wp.static(has_ext):
             fext = ext[p]
-        for s in range(stencil):
-            weight = scalar(1.0)
-            gw = vec()
-            for d in range(dim):
-                gw[d] = scalar(1.0)
-            node = int(0)
-            dpos = vec()
-            rem = s
-            for d in range(dim):
-                k = rem % 3
-                rem = rem // 3
-                wd = S.pick(w0, w1, w2, k, d)
-                weight = weight * wd
-                for e in range(dim):
-                    if e == d:
-                        gw[e] = gw[e] * S.pick(d0, d1, d2, k, d) * inv_dx
-                    else:
-                        gw[e] = gw[e] * wd
-                dpos[d] = (scalar(k) - fx[d]) * dx
-                node = node + (base[d] + k) * strides[d]
-            mom = weight * mv
-            if wp.static(affine):
-                mom = mom + weight * m * (Cp @ dpos)
-            f = vec()
-            if wp.static(mls_force):
-                f = -(scalar(4.0) * inv_dx * inv_dx) * V * weight * (stress @ dpos)   # Hu et al. 2018
-            else:
-                f = -V * (stress @ gw)                                                # JAX-MPM Eq. 12
-            if wp.static(has_ext):
-                f = f + weight * fext
-            wp.atomic_add(grid_m, node, weight * m)
-            if wp.static(split_force):
-                wp.atomic_add(grid_mv, node, mom)
-                wp.atomic_add(grid_f, node, f)
-            else:
-                wp.atomic_add(grid_mv, node, mom + dt * f)
+            if wp.static(not split_force):
+                q = q + dt * fext
+        Ad = wp.transpose(A * dx)      # rows = columns of A dx
+        q0 = q - A @ (fx * dx)
+        Fd = wp.transpose(Fm * dx)
+        f0 = -(Fm @ (fx * dx))
+        nb = goff
+        for d in range(dim):
+            nb = nb + base[d] * strides[d]
+        if wp.static(dim == 3):
+            for i in range(3):
+                for j in range(3):
+                    wxy = W[i, 0] * W[j, 1]
+                    qij = q0 + OFF[i] * Ad[0] + OFF[j] * Ad[1]
+                    fij = f0 + OFF[i] * Fd[0] + OFF[j] * Fd[1]
+                    nij = nb + i * strides[0] + j * strides[1]
+                    for k in range(3):
+                        wgt = wxy * W[k, 2]
+                        val = pack(qij + OFF[k] * Ad[2], wgt * m, wgt)
+                        if wp.static(grad_force):
+                            f = Tg @ vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
+                            if wp.static(split_force):
+                                if wp.static(has_ext):
+                                    f = f + wgt * fext
+                                grid_f[nij + k] = grid_f[nij + k] + f
+                            else:
+                                val = val + pack(f, scalar(0.0), scalar(1.0))
+                        if wp.static(split_force and mls_force):
+                            f = wgt * (fij + OFF[k] * Fd[2])
+                            if wp.static(has_ext):
+                                f = f + wgt * fext
+                            grid_f[nij + k] = grid_f[nij + k] + f
+                        grid_mm[nij + k] = grid_mm[nij + k] + val
+        else:
+            for i in range(3):
+                qi = q0 + OFF[i] * Ad[0]
+                fi = f0 + OFF[i] * Fd[0]
+                ni = nb + i * strides[0]
+                for j in range(3):
+                    wgt = W[i, 0] * W[j, 1]
+                    val = pack(qi + OFF[j] * Ad[1], wgt * m, wgt)
+                    if wp.static(grad_force):
+                        f = Tg @ vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
+                        if wp.static(split_force):
+                            if wp.static(has_ext):
+                                f = f + wgt * fext
+                            grid_f[ni + j] = grid_f[ni + j] + f
+                        else:
+                            val = val + pack(f, scalar(0.0), scalar(1.0))
+                    if wp.static(split_force and mls_force):
+                        f = wgt * (fi + OFF[j] * Fd[1])
+                        if wp.static(has_ext):
+                            f = f + wgt * fext
+                        grid_f[ni + j] = grid_f[ni + j] + f
+                    grid_mm[ni + j] = grid_mm[ni + j] + val
 
     return p2g
 
 
 @lru_cache(maxsize=None)
 def grid_update_kernel(dim: int, precision: str, split_force: bool):
-    """Grid velocity update (JAX-MPM Eqs. 13-14) fused with the domain walls (kinds are arguments)."""
+    """Grid velocity update (JAX-MPM Eqs. 13-14) fused with the domain walls (kinds are arguments).
+
+    Runs over the box ``lo + [0, ext)`` of nodes (the nodes particles reached this step), sums the
+    ``copies`` private P2G grids and clears them for the next step (so no separate zeroing pass).
+    """
     T = warp_types(dim, precision)
     scalar, vec, ivec = T.scalar, T.vec, T.ivec
+    gvec = grid_vec_type(dim, precision)
 
     @wp.kernel(module="unique")
-    def grid_update(grid_m: wp.array(dtype=scalar), grid_mv: wp.array(dtype=vec), grid_f: wp.array(dtype=vec),
-                    dt: scalar, gravity: vec, shape: ivec, strides: ivec, wall_kind: wp.array(dtype=int),
-                    thickness: int, grid_v: wp.array(dtype=vec), grid_v_old: wp.array(dtype=vec)):
-        i = wp.tid()
-        m = grid_m[i]
+    def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), copies: int, G: int, start: int,
+                    lo: ivec, ext: ivec, dt: scalar, gravity: vec, shape: ivec, strides: ivec,
+                    wall_kind: wp.array(dtype=int), thickness: int,
+                    grid_v: wp.array(dtype=vec), grid_v_old: wp.array(dtype=vec)):
+        t = wp.tid() + start
+        I = ivec()
+        i = int(0)
+        rem = t
+        for e in range(dim):
+            d = dim - 1 - e
+            c = rem % ext[d]
+            rem = rem // ext[d]
+            I[d] = lo[d] + c
+            i = i + I[d] * strides[d]
+        acc = grid_mm[i]
+        grid_mm[i] = gvec()
+        fs = vec()
+        if wp.static(split_force):
+            fs = grid_f[i]
+            grid_f[i] = vec()
+        for c in range(1, copies):
+            acc = acc + grid_mm[c * G + i]
+            grid_mm[c * G + i] = gvec()
+            if wp.static(split_force):
+                fs = fs + grid_f[c * G + i]
+                grid_f[c * G + i] = vec()
+        m = acc[dim]
         vn = vec()
         if m > scalar(0.0):
-            vo = grid_mv[i] / m
+            mv = vec()
+            for d in range(dim):
+                mv[d] = acc[d]
+            vo = mv / m
             if wp.static(split_force):
                 grid_v_old[i] = vo
-                vn = vo + dt * (grid_f[i] / m + gravity)
+                vn = vo + dt * (fs / m + gravity)
             else:
                 vn = vo + dt * gravity
-            rem = i
             for d in range(dim):
-                I = rem // strides[d]
-                rem = rem - I * strides[d]
                 cells = shape[d] - 1
                 for side in range(2):
                     kind = wall_kind[2 * d + side]
                     near = False
                     if side == 0:
-                        near = I < thickness
+                        near = I[d] < thickness
                     else:
-                        near = I > cells - thickness
+                        near = I[d] > cells - thickness
                     if near and kind != 0:
                         if kind == 1:
                             vn = vec()
@@ -178,78 +253,152 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool):
 
 
 @lru_cache(maxsize=None)
-def g2p_kernel(dim: int, precision: str, affine: str | None, grad_v_from_affine: bool, flip: bool):
+def g2p_law_kernel(law_cls, dim: int, precision: str, affine: str | None, grad_v_from_affine: bool, flip: bool):
+    """G2P fused with the law update of one material group (a closure over the law's ``@wp.func``s).
+
+    Gathers the 3^D stencil with separable partial sums (z lines first), writes x, v, C, then feeds the
+    velocity gradient straight into the law's ``update`` and stores the new law state and its Kirchhoff
+    stress, so the velocity gradient never goes through memory. Launched on a chunk ``start`` of the
+    group that begins at particle ``goff``.
+    """
     T = warp_types(dim, precision)
     S = stencil_funcs(dim, precision)
-    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
-    stencil = 3**dim
-    need_gradw = (not grad_v_from_affine) or affine == "velocity_gradient"
+    scalar, vec, mat, ivec, LawState = T.scalar, T.vec, T.mat, T.ivec, T.LawState
+    need_grad = (not grad_v_from_affine) or affine == "velocity_gradient"
     apic = affine == "apic"
     tpic = affine == "velocity_gradient"
+    vec3s = wp.types.vector(3, scalar)
+    impl = law_cls.implementation("warp", "law")(dim, precision)
+    fields = set(law_cls.state_fields)
+    hasF, hasJ, hasS, hasE = "F" in fields, "J" in fields, "sigma" in fields, "eps_p" in fields
+
+    @wp.func
+    def cols(a: vec, b: vec, c: vec):
+        if wp.static(dim == 3):
+            return wp.matrix_from_cols(a, b, c)
+        else:
+            return wp.matrix_from_cols(a, b)
 
     @wp.kernel(module="unique")
     def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
             grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
-            flip_ratio: scalar, x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec),
-            C_out: wp.array(dtype=mat), grad_v_out: wp.array(dtype=mat)):
-        p = wp.tid()
+            flip_ratio: scalar, goff: int, start: int,
+            F: wp.array(dtype=mat), J: wp.array(dtype=scalar), sig: wp.array(dtype=mat),
+            eps: wp.array(dtype=scalar), prm: wp.array2d(dtype=scalar),
+            x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
+            F_out: wp.array(dtype=mat), J_out: wp.array(dtype=scalar), sig_out: wp.array(dtype=mat),
+            eps_out: wp.array(dtype=scalar), tau: wp.array(dtype=mat)):
+        q = wp.tid() + start
+        p = goff + q
         inv_dx = scalar(1.0) / dx
-        Xp = (x[p] - origin) * inv_dx
-        base = ivec()
-        fx = vec()
+        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))   # node offsets as scalars
+        xp = x[p]
+        base, fx = S.locate(xp, origin, inv_dx)
+        W, DW = S.bspline(fx)
+        nb = int(0)
         for d in range(dim):
-            base[d] = int(wp.floor(Xp[d] - scalar(0.5)))
-            fx[d] = Xp[d] - scalar(base[d])
-        w0, w1, w2, d0, d1, d2 = S.bspline(fx)
-        v_pic = vec()
-        dv = vec()
-        B = mat()
-        G = mat()
-        for s in range(stencil):
-            weight = scalar(1.0)
-            gw = vec()
-            for d in range(dim):
-                gw[d] = scalar(1.0)
-            node = int(0)
-            dpos = vec()
-            rem = s
-            for d in range(dim):
-                k = rem % 3
-                rem = rem // 3
-                wd = S.pick(w0, w1, w2, k, d)
-                weight = weight * wd
-                if wp.static(need_gradw):
-                    for e in range(dim):
-                        if e == d:
-                            gw[e] = gw[e] * S.pick(d0, d1, d2, k, d) * inv_dx
-                        else:
-                            gw[e] = gw[e] * wd
-                dpos[d] = (scalar(k) - fx[d]) * dx
-                node = node + (base[d] + k) * strides[d]
-            gv = grid_v[node]
-            v_pic = v_pic + weight * gv
-            if wp.static(flip):
-                dv = dv + weight * (gv - grid_v_old[node])
-            if wp.static(apic):
-                B = B + weight * wp.outer(gv, dpos)
-            if wp.static(need_gradw):
-                G = G + wp.outer(gv, gw)                                   # JAX-MPM Eq. 18
-        vp = v_pic
+            nb = nb + base[d] * strides[d]
+        vp = vec()
+        vo = vec()
+        G0 = vec(); G1 = vec(); G2 = vec()     # sum_i v_i (grad w_i)_d, d = 0, 1, 2
+        B0 = vec(); B1 = vec(); B2 = vec()     # sum_i w_i v_i o_d
+        if wp.static(dim == 3):
+            for i in range(3):
+                sy = vec(); sdy = vec(); syd = vec(); jy = vec(); kz = vec(); oy = vec()
+                for j in range(3):
+                    s = vec(); sd = vec(); st = vec(); so = vec()
+                    nij = nb + i * strides[0] + j * strides[1]
+                    for k in range(3):
+                        g = grid_v[nij + k]
+                        s = s + W[k, 2] * g
+                        if wp.static(need_grad):
+                            sd = sd + DW[k, 2] * g
+                        if wp.static(apic):
+                            st = st + (OFF[k] * W[k, 2]) * g
+                        if wp.static(flip):
+                            so = so + W[k, 2] * grid_v_old[nij + k]
+                    wy = W[j, 1]
+                    sy = sy + wy * s
+                    if wp.static(need_grad):
+                        sdy = sdy + DW[j, 1] * s
+                        syd = syd + wy * sd
+                    if wp.static(apic):
+                        jy = jy + (OFF[j] * wy) * s
+                        kz = kz + wy * st
+                    if wp.static(flip):
+                        oy = oy + wy * so
+                wx = W[i, 0]
+                vp = vp + wx * sy
+                if wp.static(need_grad):
+                    G0 = G0 + DW[i, 0] * sy
+                    G1 = G1 + wx * sdy
+                    G2 = G2 + wx * syd
+                if wp.static(apic):
+                    B0 = B0 + (OFF[i] * wx) * sy
+                    B1 = B1 + wx * jy
+                    B2 = B2 + wx * kz
+                if wp.static(flip):
+                    vo = vo + wx * oy
+        else:
+            for i in range(3):
+                s = vec(); sd = vec(); st = vec(); so = vec()
+                ni = nb + i * strides[0]
+                for j in range(3):
+                    g = grid_v[ni + j]
+                    s = s + W[j, 1] * g
+                    if wp.static(need_grad):
+                        sd = sd + DW[j, 1] * g
+                    if wp.static(apic):
+                        st = st + (OFF[j] * W[j, 1]) * g
+                    if wp.static(flip):
+                        so = so + W[j, 1] * grid_v_old[ni + j]
+                wx = W[i, 0]
+                vp = vp + wx * s
+                if wp.static(need_grad):
+                    G0 = G0 + DW[i, 0] * s
+                    G1 = G1 + wx * sd
+                if wp.static(apic):
+                    B0 = B0 + (OFF[i] * wx) * s
+                    B1 = B1 + wx * st
+                if wp.static(flip):
+                    vo = vo + wx * so
+        vnew = vp
         if wp.static(flip):
-            vp = flip_ratio * (v[p] + dv) + (scalar(1.0) - flip_ratio) * v_pic   # JAX-MPM Eq. 15
-        v_out[p] = vp
-        x_out[p] = x[p] + dt * v_pic                                        # JAX-MPM Eq. 17
+            vnew = flip_ratio * (v[p] + vp - vo) + (scalar(1.0) - flip_ratio) * vp   # JAX-MPM Eq. 15
+        v_out[p] = vnew
+        x_out[p] = xp + dt * vp                                                      # JAX-MPM Eq. 17
+        Gm = mat()
+        if wp.static(need_grad):
+            Gm = inv_dx * cols(G0, G1, G2)                                          # JAX-MPM Eq. 18
+        grad_v = Gm
         if wp.static(apic):
-            Cn = scalar(4.0) * inv_dx * inv_dx * B                           # B D^-1, D = dx^2/4 I
+            c4 = scalar(4.0) * inv_dx                                               # B D^-1, D = dx^2/4 I
+            Cn = c4 * cols(B0 - fx[0] * vp, B1 - fx[1] * vp, B2 - fx[dim - 1] * vp)
             C_out[p] = Cn
             if wp.static(grad_v_from_affine):
-                grad_v_out[p] = Cn
-            else:
-                grad_v_out[p] = G
-        else:
-            if wp.static(tpic):
-                C_out[p] = G
-            grad_v_out[p] = G
+                grad_v = Cn
+        if wp.static(tpic):
+            C_out[p] = Gm
+        # law update of this particle's material
+        ls = LawState()
+        if wp.static(hasF):
+            ls.F = F[q]
+        if wp.static(hasJ):
+            ls.J = J[q]
+        if wp.static(hasS):
+            ls.sigma = sig[q]
+        if wp.static(hasE):
+            ls.eps_p = eps[q]
+        n = impl.update(ls, grad_v, dt, prm, q)
+        if wp.static(hasF):
+            F_out[q] = n.F
+        if wp.static(hasJ):
+            J_out[q] = n.J
+        if wp.static(hasS):
+            sig_out[q] = n.sigma
+        if wp.static(hasE):
+            eps_out[q] = n.eps_p
+        tau[p] = impl.kirchhoff(n, prm, q)
 
     return g2p
 

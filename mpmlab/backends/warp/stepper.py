@@ -7,7 +7,9 @@ loads. ``_advance`` never writes into its input state, so a saved state stays va
 divergence; tape-based gradients in issue #4).
 """
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import numpy as np
@@ -27,7 +29,8 @@ class WarpState(SimpleNamespace):
 class WarpStepper(BaseStepper):
     backend_name = "warp"
 
-    def __init__(self, scene, transfer, precision="fp32", check_every=None, device: str | None = None):
+    def __init__(self, scene, transfer, precision="fp32", check_every=None, device: str | None = None,
+                 threads: int | None = None):
         super().__init__(scene, transfer, precision, check_every)
         wp.init()
         self.device = device or "cpu"
@@ -59,30 +62,53 @@ class WarpStepper(BaseStepper):
                 self.force_bcs.append(impl)
         dev = self.device
         self.wall_kind = wp.array(np.asarray(self.wall_codes, np.int32), dtype=int, device=dev)
+        P = self.particles
+        G, N = self.node_count, P.count
+        # CPU threads: Warp runs a CPU launch serially, so chunks of particles/nodes are launched from a
+        # small thread pool (the launch releases the GIL); P2G chunks write private grid copies.
+        if threads is None:
+            threads = int(os.environ.get("MPMLAB_WARP_THREADS", 0))
+        if not threads:
+            threads = min(len(os.sched_getaffinity(0)), 8, max(1, N // 2048))   # small scenes: one thread
+        self.threads = max(1, int(threads)) if self.device == "cpu" else 1
+        self._pool = ThreadPoolExecutor(self.threads - 1) if self.threads > 1 else None
+        self.copies = self.threads
+        #: launch the grid update only over the nodes particles reached (False: the whole grid, for
+        #: measuring what this skip saves)
+        self.limit_grid = True
         # kernels (cached per specialisation)
         self.k_p2g = K.p2g_kernel(D, precision, tr.needs_affine, tr.force == "mls", self.split_force, bool(self.force_bcs))
         self.k_grid = K.grid_update_kernel(D, precision, self.split_force)
-        self.k_g2p = K.g2p_kernel(D, precision, tr.affine, tr.grad_v == "affine", self.split_force)
+        self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, tr.affine, tr.grad_v == "affine", self.split_force)
+                      for g in self.groups]
         self.k_laws = [K.law_kernels(g.law, D, precision) for g in self.groups]
         self.k_guard = K.guard_kernel(D, precision)
         # static per-particle data and scratch
-        P = self.particles
         self.mass = wp.array(P.mass, dtype=T.scalar, device=dev)
         self.vol = wp.array(P.volume, dtype=T.scalar, device=dev)
         self.law_params = [wp.array(g.params, dtype=T.scalar, device=dev) for g in self.groups]
-        G, N = self.node_count, P.count
-        self.grid_m = wp.zeros(G, dtype=T.scalar, device=dev)
-        self.grid_mv = wp.zeros(G, dtype=T.vec, device=dev)
-        self.grid_f = wp.zeros(G if self.split_force else 1, dtype=T.vec, device=dev)
+        gvec = K.grid_vec_type(D, precision)
+        # P2G accumulators (one private copy per thread), all zero between steps: the grid update
+        # clears what it reads
+        self.grid_mm = wp.zeros(G * self.copies, dtype=gvec, device=dev)
+        self.grid_f = wp.zeros(G * self.copies if self.split_force else 1, dtype=T.vec, device=dev)
         self.grid_v = wp.zeros(G, dtype=T.vec, device=dev)
         self.grid_v_old = wp.zeros(G if self.split_force else 1, dtype=T.vec, device=dev)
-        self.grad_v = wp.zeros(N, dtype=T.mat, device=dev)
+        self._grid_dirty = False
+        self.bbox = wp.zeros(2 * self.copies, dtype=T.ivec, device=dev)
+        self._bbox_np = self.bbox.numpy() if dev == "cpu" else None
         self.ext = wp.zeros(N if self.force_bcs else 1, dtype=T.vec, device=dev)
         self._empty_mat = wp.zeros(1, dtype=T.mat, device=dev)
         self._empty_scalar = wp.zeros(1, dtype=T.scalar, device=dev)
         self.flag = wp.zeros(1, dtype=int, device=dev)
         lo, hi = scene.inner_bounds
         self.lo, self.hi = T.vec(*lo), T.vec(*hi)
+        self._ratio = T.scalar(self.transfer.flip_ratio if self.split_force else 0.0)
+
+    def __del__(self):
+        pool = getattr(self, "_pool", None)
+        if pool is not None:
+            pool.shutdown(wait=False)
 
     # ---- state ----------------------------------------------------------------------------------
     def _alloc(self) -> WarpState:
@@ -111,33 +137,82 @@ class WarpStepper(BaseStepper):
         return s
 
     # ---- one step --------------------------------------------------------------------------------
+    def _chunks(self, n: int):
+        """Split [0, n) into ``threads`` contiguous (start, count) chunks (fewer if n is small)."""
+        k = max(1, min(self.threads, n))
+        cuts = [n * i // k for i in range(k + 1)]
+        return [(cuts[i], cuts[i + 1] - cuts[i]) for i in range(k) if cuts[i + 1] > cuts[i]]
+
+    def _run(self, jobs):
+        """Run launch closures on ``threads`` threads (this one and the pool): thread t runs jobs[t::threads]."""
+        if len(jobs) == 1 or self._pool is None:
+            for j in jobs:
+                j()
+            return
+        lanes = [jobs[t::self.threads] for t in range(min(self.threads, len(jobs)))]
+        run_lane = lambda lane: [j() for j in lane]
+        futs = [self._pool.submit(run_lane, lane) for lane in lanes[1:]]
+        run_lane(lanes[0])
+        for f in futs:
+            f.result()
+
+    def _launcher(self, kernel, dim, inputs):
+        dev = self.device
+        return lambda: wp.launch(kernel, dim=dim, inputs=inputs, device=dev)
+
     def _step_into(self, s: WarpState, o: WarpState) -> None:
-        dev, N, G = self.device, self.particles.count, self.node_count
-        self.grid_m.zero_(); self.grid_mv.zero_()
-        if self.split_force:
-            self.grid_f.zero_()
+        D, dev, N, G = self.dim, self.device, self.particles.count, self.node_count
+        if self._grid_dirty:          # a previous step stopped between P2G and the grid update
+            self.grid_mm.zero_()
+            if self.split_force:
+                self.grid_f.zero_()
         if self.force_bcs:
             self.ext.zero_()
             for bc in self.force_bcs:
                 bc.add_force(self.ext, s.t)
-        wp.launch(self.k_p2g, dim=N, device=dev,
-                  inputs=[s.x, s.v, s.C, s.tau, self.mass, self.vol, self.ext, self.origin, self.dx_s, self.dt_s,
-                          self.strides, self.grid_m, self.grid_mv, self.grid_f])
-        wp.launch(self.k_grid, dim=G, device=dev,
-                  inputs=[self.grid_m, self.grid_mv, self.grid_f, self.dt_s, self.gravity, self.shape_iv, self.strides,
-                          self.wall_kind, self.thickness, self.grid_v, self.grid_v_old])
+        # P2G, one private grid copy per chunk ------------------------------------------------------
+        chunks = self._chunks(N)
+        bb = self._bbox_np
+        big = np.iinfo(np.int32).max
+        if bb is not None:
+            bb[0::2] = big
+            bb[1::2] = -big
+        self._grid_dirty = True
+        self._run([self._launcher(self.k_p2g, cnt, [s.x, s.v, s.C, s.tau, self.mass, self.vol, self.ext, self.origin,
+                                                    self.dx_s, self.dt_s, self.strides, start, c * G, self.grid_mm,
+                                                    self.grid_f, self.bbox, c])
+                   for c, (start, cnt) in enumerate(chunks)])
+        # grid update over the reached nodes ------------------------------------------------------------
+        if self.limit_grid and bb is not None:
+            used = bb[: 2 * len(chunks)]
+            lo = used[0::2].min(axis=0)
+            hi = used[1::2].max(axis=0) + 3                   # stencil of the largest base node
+            lo = np.maximum(lo, 0)
+            hi = np.minimum(hi, self.grid_shape)
+        else:
+            lo, hi = np.zeros(D, int), np.asarray(self.grid_shape)
+        ext = hi - lo
+        count = int(np.prod(ext))
+        lo_v, ext_v = self.T.ivec(*[int(a) for a in lo]), self.T.ivec(*[int(a) for a in ext])
+        self._run([self._launcher(self.k_grid, cnt, [self.grid_mm, self.grid_f, len(chunks), G, start, lo_v, ext_v,
+                                                     self.dt_s, self.gravity, self.shape_iv, self.strides,
+                                                     self.wall_kind, self.thickness, self.grid_v, self.grid_v_old])
+                   for start, cnt in self._chunks(count)])
+        self._grid_dirty = False
         for bc in self.grid_bcs:
             bc.apply(self.grid_v, s.t)
-        ratio = self.T.scalar(self.transfer.flip_ratio if self.split_force else 0.0)
-        wp.launch(self.k_g2p, dim=N, device=dev,
-                  inputs=[s.x, s.v, self.grid_v, self.grid_v_old, self.origin, self.dx_s, self.dt_s, self.strides, ratio,
-                          o.x, o.v, o.C, self.grad_v])
+        # G2P fused with each group's law update ------------------------------------------------------
+        jobs = []
+        for g, k, st, ot, prm in zip(self.groups, self.k_g2p, s.law, o.law, self.law_params):
+            for start, cnt in self._chunks(g.count):
+                jobs.append(self._launcher(k, cnt, [s.x, s.v, self.grid_v, self.grid_v_old, self.origin, self.dx_s,
+                                                    self.dt_s, self.strides, self._ratio, g.start, start,
+                                                    *self._law_args(st), prm, o.x, o.v, o.C, *self._law_args(ot),
+                                                    o.tau]))
+        self._run(jobs)
         o.t = s.t + self.dt
         for bc in self.particle_bcs:
-            bc.apply_particles(o.v, o.t)
-        for g, k, st, ot, prm in zip(self.groups, self.k_laws, s.law, o.law, self.law_params):
-            wp.launch(k.update, dim=g.count, device=dev,
-                      inputs=[*self._law_args(st), self.grad_v, prm, self.dt_s, g.start, *self._law_args(ot), o.tau])
+            bc.apply_particles(o.v, s.x, o.x, o.t)
 
     def _advance(self, state: WarpState, steps: int) -> WarpState:
         if steps <= 0:

@@ -1,0 +1,1 @@
+"""Ready-made scenes (benchmarks, validation cases): plain functions returning a ``Scene``."""
