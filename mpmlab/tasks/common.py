@@ -46,8 +46,8 @@ def write_json(path: Path, obj: Any, overwrite: bool = False) -> Path:
 
 
 def write_config(output_dir: Path, cfg, overwrite: bool = False) -> Path:
-    """The composed config (values resolved) as ``config.yaml``; rerun it with
-    ``mpmlab --config-dir DIR --config-name config`` or read it back with OmegaConf."""
+    """The composed config (values resolved) as ``config.yaml`` (``OmegaConf.load`` reads it back; the
+    overrides that produced it are in ``summary.json``, so ``mpmlab <overrides>`` repeats the run)."""
     from omegaconf import OmegaConf
 
     return write_text(Path(output_dir) / CONFIG, OmegaConf.to_yaml(cfg, resolve=True), overwrite)

@@ -185,6 +185,8 @@ def run(cfg, ctx) -> dict:
     if diverged is not None:
         raise diverged
     print(f"mpmlab: {scene.name} {backend}/{transfer.name}/{precision}: {P.count} particles x {steps} steps in "
-          f"{timing['rollout_time_s']:.2f} s (compile {timing['compile_time_s'] or 0:.2f} s), "
+          f"{timing['rollout_time_s']:.2f} s ("
+          + (f"compile {timing['compile_time_s']:.2f} s" if timing["compile_time_s"] is not None else "incl. compile")
+          + "), "
           f"{fmt_rate(timing['particle_steps_per_second'])} particle-steps/s -> {out}", flush=True)
     return summary
