@@ -65,6 +65,9 @@ def run(cfg, ctx) -> dict:
     names += [RECORDING] if cfg.output.recording else []
     names += [ENERGY_PLOT] if cfg.output.plots else []
     check_outputs(out, names, ctx.overwrite)
+    if 0 < steps < every:  # e.g. steps=20 on a scene that keeps every 100th step: keep the last state
+        log.info("frame_every = %d exceeds steps = %d; keeping frames 0 and %d.", every, steps, steps)
+        every = steps
     if steps % every:
         log.warning("steps = %d is not a multiple of frame_every = %d: the last %d steps run but are not saved.",
                     steps, every, steps % every)
