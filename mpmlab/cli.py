@@ -200,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     if debug:
         os.environ["MPMLAB_DEBUG"] = "1"  # sweep workers inherit it
     # mpmlab reports errors itself: Hydra re-raises instead of printing its own multi-line report
+    saved_env = os.environ.get("HYDRA_FULL_ERROR")
     os.environ["HYDRA_FULL_ERROR"] = "1"
     from .config import register_configs, register_search_path_plugin
 
@@ -236,6 +237,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mpmlab: error: {message}", file=sys.stderr)
     finally:
         sys.argv = saved
+        if saved_env is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = saved_env
     return code
 
 
