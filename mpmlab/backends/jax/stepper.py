@@ -32,6 +32,19 @@ def bspline_weights(fx):
     return w, dw
 
 
+def _materialize(tree, pred):
+    """Compute the per-particle arrays of ``tree`` once, into memory, before a big fused consumer.
+
+    XLA CPU fuses cheap elementwise producers into their consumers and then recomputes them for every
+    element of the consumer -- here 3^D x K times per particle for the P2G block -- and it drops
+    ``optimization_barrier`` before fusion. Operands and results of a conditional are never fused
+    across, so the leaves pass through ``lax.cond`` on a runtime predicate whose branches both return
+    them (the ``False`` branch via a negation pair, so that the branches are not merged).
+    Differentiable, exact.
+    """
+    return jax.lax.cond(pred, lambda t: t, lambda t: jax.tree.map(lambda a: -(-a), t), tree)
+
+
 class JaxStepper(BaseStepper):
     backend_name = "jax"
 
@@ -121,6 +134,7 @@ class JaxStepper(BaseStepper):
         base = jnp.floor(Xp - 0.5).astype(jnp.int32)
         fx = Xp - base
         w1, dw1 = bspline_weights(fx)                                         # [N, 3, D]
+        dw1 = dw1 * inv_dx                                                  # d w / d x (not cell units)
 
         def outer(factors):                                                 # [N, 3] per axis -> [N, 3, .., 3]
             out = None
@@ -129,52 +143,60 @@ class JaxStepper(BaseStepper):
                 out = f if out is None else out * f
             return out
 
-        W = outer([w1[:, :, d] for d in range(D)])                           # [N, 3^D]
-        need_gw = T.force != "mls" or T.grad_v == "gradient" or T.affine == "velocity_gradient"
-        if need_gw:   # grad w per axis e (cell units): derivative on axis e, weights elsewhere
-            GW = [outer([dw1[:, :, d] if d == e else w1[:, :, d] for d in range(D)]) * inv_dx for e in range(D)]
-
         # stress (Kirchhoff) from each law present ----------------------------------------------------
         tau = jnp.concatenate([jax.vmap(law.kirchhoff)(st, prm) for law, st, prm in
                                zip(self._laws, state["law"], params["law"])], axis=0).astype(dtype)  # [N, D, D]
 
-        # P2G: momentum of node o = w_o (q + A (o - fx) dx) [+ dt f_o] --------------------------------------
+        # P2G ---------------------------------------------------------------------------------------------
+        # Node o of a particle gets, per lane (momentum D, mass 1 [, force D when split]):
+        #   w_o (lin + sum_d o_d Acol_d) + sum_e (grad w_o)_e Gcol_e
+        # with per-particle columns: momentum lin = q - A fx dx, Acol_d = A[:, d] dx where
+        # A = m C [- 4 dt V / dx^2 tau] (APIC / MLS, Hu et al. 2018), Gcol_e = -dt V tau[:, e] (JAX-MPM
+        # Eq. 12, gradient force); mass lin = m. They are computed once per particle and materialised
+        # (optimization_barrier) so the [N, 3^D, K] block is a cheap elementwise expression of them.
+        zero = jnp.zeros((N, D), dtype)
+        mv = lambda M, c: jnp.stack([sum(M[:, a, j] * c[:, j] for j in range(D)) for a in range(D)], -1)  # M c
         q = mass[:, None] * v
-        A = jnp.zeros((N, D, D), dtype)
+        A = None
         if T.affine is not None:
             A = mass[:, None, None] * state["C"]
         if T.force == "mls" and not split:
-            A = A - (4.0 * inv_dx * inv_dx * dt) * vol[:, None, None] * tau      # Hu et al. 2018
+            S = -(4.0 * inv_dx * inv_dx * dt) * vol[:, None, None] * tau      # Hu et al. 2018
+            A = S if A is None else A + S
+        Fm = -(4.0 * inv_dx * inv_dx) * vol[:, None, None] * tau if (split and T.force == "mls") else None
+        Tg = -vol[:, None, None] * tau if T.force != "mls" else None            # JAX-MPM Eq. 12
         ext = None
         for bc, bp in zip(self._force_bcs, bc_params[nb + len(self._particle_bcs):]):
             f = bc.particle_force(x, mass, state["t"], bp)
             ext = f if ext is None else ext + f
         if ext is not None and not split:
             q = q + dt * ext
-
-        def affine_field(q0, M):    # [N, 3^D, D]: q0 + M (o - fx) dx per node
-            lin = q0 - jnp.einsum("nij,nj->ni", M, fx) * dx
-            out = lin[win + (slice(None),)]
-            for d in range(D):
-                out = out + (O[d] * dx)[None, ..., None] * M[(slice(None),) + (None,) * D + (slice(None), d)]
-            return out
-
-        mom = W[..., None] * affine_field(q, A)                               # [N, 3^D, D]
-        force = None
-        if T.force != "mls":
-            # JAX-MPM Eq. 12: f_o = -V tau grad w_o (tau = J sigma, V the reference volume)
-            Tg = -vol[:, None, None] * tau
-            force = sum(GW[e][..., None] * Tg[(slice(None),) + (None,) * D + (slice(None), e)] for e in range(D))
-        elif split:
-            force = W[..., None] * affine_field(jnp.zeros_like(q), -(4.0 * inv_dx * inv_dx) * vol[:, None, None] * tau)
+        m1 = mass[:, None]
+        lin = [q - mv(A, fx) * dx if A is not None else q, m1]
+        acol = [[A[:, :, d] * dx if A is not None else zero, jnp.zeros_like(m1)] for d in range(D)]
+        gcol = [[dt * Tg[:, :, e] if (Tg is not None and not split) else zero, jnp.zeros_like(m1)] for e in range(D)]
         if split:
-            if ext is not None:
-                force = force + W[..., None] * ext[win + (slice(None),)]
-            vals = jnp.concatenate([mom, (W * mass[win])[..., None], force], axis=-1)
-        else:
-            if force is not None:
-                mom = mom + dt * force
-            vals = jnp.concatenate([mom, (W * mass[win])[..., None]], axis=-1)
+            f0 = zero if Fm is None else -mv(Fm, fx) * dx
+            lin.append(f0 if ext is None else f0 + ext)
+            for d in range(D):
+                acol[d].append(Fm[:, :, d] * dx if Fm is not None else zero)
+                gcol[d].append(Tg[:, :, d] if Tg is not None else zero)
+        cat = lambda parts: jnp.concatenate(parts, axis=-1)                      # [N, K]
+        lin = cat(lin)
+        acol = [cat(c) for c in acol] if (A is not None or Fm is not None) else None
+        gcol = [cat(c) for c in gcol] if Tg is not None else None
+        w1, dw1, lin, acol, gcol = _materialize((w1, dw1, lin, acol, gcol), state["t"] >= 0)
+        W = outer([w1[:, :, d] for d in range(D)])                           # [N, 3^D]
+        lanes = (slice(None),) + (None,) * D + (slice(None),)                # [N, K] -> [N, 1.., K]
+        field = lin[lanes]
+        if acol is not None:
+            for d in range(D):
+                field = field + O[d][None, ..., None] * acol[d][lanes]
+        vals = W[..., None] * field
+        if gcol is not None:
+            for e in range(D):
+                GWe = outer([dw1[:, :, d] if d == e else w1[:, :, d] for d in range(D)])
+                vals = vals + GWe[..., None] * gcol[e][lanes]
         K = vals.shape[-1]
         dn = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, D + 2)), inserted_window_dims=(),
                                              scatter_dims_to_operand_dims=tuple(range(D)))
@@ -200,22 +222,49 @@ class JaxStepper(BaseStepper):
                                             start_index_map=tuple(range(D)))
         vi_all = jax.lax.gather(gfield.reshape(gshape + (Kg,)), base, dn, slice_sizes=(3,) * D + (Kg,),
                                 mode=jax.lax.GatherScatterMode.CLIP)
-        vi = vi_all[..., :D]                                                   # [N, 3^D, D]
-        axes = tuple(range(1, D + 1))
-        v_pic = jnp.sum(W[..., None] * vi, axis=axes)
+        # Separable contractions of the gathered block, one stencil axis at a time (z, then y, then x):
+        # each level is one stacked elementwise pass of explicit 3-term slice sums, materialised before
+        # the next (XLA CPU would otherwise fuse the levels into every consumer and redo the 3^D sums
+        # per output; jnp.sum over small middle axes is also slow there). Weight kinds per axis:
+        # "w" (weights), "o" (o_d w, first moment, APIC), "d" (d w / d x_d, velocity gradient).
+        kinds = {"w": [[w1[:, k, d] for k in range(3)] for d in range(D)],
+                 "o": [[None, w1[:, 1, d], 2.0 * w1[:, 2, d]] for d in range(D)],
+                 "d": [[dw1[:, k, d] for k in range(3)] for d in range(D)]}
+        specs = {"v": ("w",) * D}
+        if T.affine == "apic":
+            specs.update({f"o{d}": tuple("o" if e == d else "w" for e in range(D)) for d in range(D)})
+        if T.grad_v == "gradient" or T.affine == "velocity_gradient":
+            specs.update({f"d{d}": tuple("d" if e == d else "w" for e in range(D)) for d in range(D)})
+        pred = state["t"] >= 0
+        cur = {(): vi_all}                                                      # key: kinds of the contracted axes
+        for d in reversed(range(D)):
+            keys = sorted({sp[d:] for sp in specs.values()})
+            level = {}
+            for key in keys:
+                src, wk = cur[key[1:]], kinds[key[0]][d]
+                terms = [src[(slice(None),) * (d + 1) + (k,)] * wk[k][(slice(None),) + (None,) * (d + 1)]
+                         for k in range(3) if wk[k] is not None]
+                acc = terms[0]
+                for t in terms[1:]:
+                    acc = acc + t
+                level[key] = acc
+            cur = _materialize(level, pred) if d > 0 else level
+        out = {name: cur[sp] for name, sp in specs.items()}                    # [N, Kg] each
+
+        v_pic = out["v"][:, :D]
         new = {"t": state["t"] + dt}
         if split:
-            dv = v_pic - jnp.sum(W[..., None] * vi_all[..., D:], axis=axes)
+            dv = v_pic - out["v"][:, D:]
             r = T.flip_ratio
             v_p = r * (v + dv) + (1.0 - r) * v_pic                             # JAX-MPM Eq. 15
         else:
             v_p = v_pic
         grad_from_w = None
         if T.grad_v == "gradient" or T.affine == "velocity_gradient":
-            grad_from_w = jnp.stack([jnp.sum(GW[e][..., None] * vi, axis=axes) for e in range(D)], axis=-1)  # Eq. 18
+            grad_from_w = jnp.stack([out[f"d{e}"][:, :D] for e in range(D)], axis=-1)   # JAX-MPM Eq. 18
         if T.affine == "apic":
             # B D^-1 with D = dx^2/4 I: C = 4/dx (sum_o w_o v_o o^T - v_pic fx^T)
-            Bo = jnp.stack([jnp.sum((W * O[d][None])[..., None] * vi, axis=axes) for d in range(D)], axis=-1)
+            Bo = jnp.stack([out[f"o{d}"][:, :D] for d in range(D)], axis=-1)
             new["C"] = (4.0 * inv_dx) * (Bo - v_pic[:, :, None] * fx[:, None, :])
         elif T.affine == "velocity_gradient":
             new["C"] = grad_from_w
