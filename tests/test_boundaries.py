@@ -87,21 +87,26 @@ def test_coulomb_friction_decelerates_at_mu_g(backend):
                                      FrictionWalls(face="y-", mu=[mu], thickness=4)],
                          dt=2e-4)
     t_end = 0.2
-    traj = mpmlab.simulate(scene, int(t_end / 2e-4), 100, backend, "apic", "fp64")
+    traj = mpmlab.simulate(scene, int(t_end / 2e-4), 50, backend, "apic", "fp64")
     vx = np.einsum("n,tn->t", traj.mass, traj.v[..., 0]) / traj.mass.sum()
-    expected = v0 - mu * g * traj.time
-    # after the first contact transient, within 10% of the analytic speed loss
-    late = traj.time > 0.05
-    assert np.all(np.abs(vx[late] - expected[late]) <= 0.1 * (v0 - expected[late]))
+    # the elastic block rocks on the floor, so contact (and friction) flickers: compare the mean
+    # deceleration (least-squares slope of the centre-of-mass speed) with mu g, within 10%
+    slope = np.polyfit(traj.time, vx, 1)[0]
+    assert abs(-slope - mu * g) <= 0.1 * mu * g
+    assert np.all(np.diff(vx) <= 1e-9)  # friction never accelerates
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_sticky_wall_stops_particles(backend):
-    scene = scene_for("walls", 2)
-    traj = mpmlab.simulate(scene, 300, 300, backend, "pic", "fp64")
-    near_sticky = traj.x[-1, :, 0] < 2 * scene.dx
-    assert near_sticky.any()
-    assert np.max(np.abs(traj.v[-1, near_sticky, 0])) < 0.05
+def test_sticky_floor_holds_sliding_block_slip_floor_does_not(backend):
+    speeds = {}
+    for kind in ("sticky", "slip"):
+        body = block(2, [0.1, 0.1], [0.3, 0.2], velocity=[1.0, 0.0], E=1e5)
+        scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
+                             boundaries=[Walls(default="slip", faces={"y-": kind}, thickness=2)], dt=5e-4)
+        traj = mpmlab.simulate(scene, 100, 100, backend, "pic", "fp64")
+        bottom = traj.x[0, :, 1] < 0.1 + scene.dx / 2
+        speeds[kind] = np.mean(np.abs(traj.v[-1, bottom, 0]))
+    assert speeds["sticky"] < 0.2 and speeds["slip"] > 0.8
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
