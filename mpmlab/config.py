@@ -131,8 +131,8 @@ class BoundaryConfig:
     ``particle_velocity``, ``particle_load``, or a plugin's) and the options it takes.
 
     Only the options a boundary declares may be set (the others stay null); ``condition`` is the
-    ``plane`` boundary's own ``kind`` (sticky / slip / separate); ``extra`` passes options of plugin
-    boundaries that this schema does not name.
+    ``plane`` boundary's sticky / slip / separate; ``extra`` passes options of plugin boundaries that
+    this schema does not name.
     """
 
     kind: str = MISSING
@@ -415,11 +415,8 @@ def make_boundary_from_config(name: str, bc: DictConfig):
     kind = spec.pop("kind")
     spec.pop("enabled", None)
     extra = spec.pop("extra", None) or {}
-    condition = spec.pop("condition", None)
     cls = registry.boundaries.get(kind)
     opts = {k: v for k, v in spec.items() if v is not None}
-    if condition is not None:
-        opts["kind"] = condition  # the plane's sticky / slip / separate
     if isinstance(opts.get("region"), dict):
         opts["region"] = {k: v for k, v in opts["region"].items() if v is not None}
     opts.update(extra)
@@ -427,10 +424,9 @@ def make_boundary_from_config(name: str, bc: DictConfig):
     if accepted is not None:
         wrong = sorted(set(opts) - set(accepted))
         if wrong:
-            shown = ["condition" if a == "kind" else a for a in accepted]
             raise ConfigError(
                 f"boundary '{name}' ({kind}) does not take option(s) {', '.join(wrong)}; it takes "
-                f"{', '.join(shown) or 'none'}. Remove them from scene.boundaries.{name}."
+                f"{', '.join(accepted) or 'none'}. Remove them from scene.boundaries.{name}."
             )
     opts = {k: (v if k in ("faces", "region") else _tuples(v)) for k, v in opts.items()}
     try:

@@ -35,7 +35,7 @@ def scene_for(kind, dim):
         bodies = [block(dim, [0.1, 0.1] + zlo, [0.3, 0.2] + zhi, velocity=[1.5, 0.0] + [0.0] * (dim - 2))]
     elif kind == "plane":
         n = [0.5, 1.0] + [0.0] * (dim - 2)
-        bcs = [walls, Plane(point=[0.5, 0.3] + z, normal=n, kind="separate", friction=0.2)]
+        bcs = [walls, Plane(point=[0.5, 0.3] + z, normal=n, condition="separate", friction=0.2)]
         bodies = [block(dim, [0.45, 0.4] + zlo, [0.6, 0.5] + zhi)]
     elif kind == "box_obstacle":
         bcs = [walls, BoxObstacle(lo=[0.4, 0.1] + zlo, hi=[0.6, 0.3] + zhi)]

@@ -103,7 +103,7 @@ class FrictionWalls(AbstractBoundary):
 class Plane(AbstractBoundary):
     """A half-space boundary (inclined plane): nodes with (x - point) . normal < 0 are constrained.
 
-    ``normal`` points into the free side. ``kind``: sticky / slip / separate, with optional Coulomb
+    ``normal`` points into the free side. ``condition``: sticky / slip / separate, with optional Coulomb
     ``friction`` for ``separate`` (as ``FrictionWalls``).
     """
 
@@ -111,7 +111,7 @@ class Plane(AbstractBoundary):
     implementations: ClassVar[dict] = _impl("plane")
     point: Sequence[float] = (0.0, 0.0, 0.0)
     normal: Sequence[float] = (0.0, 1.0, 0.0)
-    kind: str = "separate"
+    condition: str = "separate"
     friction: float = 0.0
 
     def unit_normal(self) -> np.ndarray:
@@ -123,8 +123,8 @@ class Plane(AbstractBoundary):
             raise ConfigError(f"boundary 'plane': point and normal need {scene.dim} components.")
         if not np.linalg.norm(self.normal) > 0:
             raise ConfigError("boundary 'plane': normal must be nonzero.")
-        if self.kind not in ("sticky", "slip", "separate"):
-            raise ConfigError(f"boundary 'plane': kind '{self.kind}' must be sticky, slip or separate.")
+        if self.condition not in ("sticky", "slip", "separate"):
+            raise ConfigError(f"boundary 'plane': condition '{self.condition}' must be sticky, slip or separate.")
         if self.friction < 0:
             raise ConfigError("boundary 'plane': friction must be non-negative.")
 

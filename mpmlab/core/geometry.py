@@ -8,6 +8,7 @@ a box body gets exactly its volume. ``jittered`` moves each point uniformly insi
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -104,24 +105,7 @@ class Mesh(Shape):
     translate: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def _mesh(self):
-        import trimesh
-
-        p = Path(self.path)
-        if not p.is_file():
-            packaged = Path(__file__).resolve().parents[1] / "assets" / self.path
-            if packaged.is_file():
-                p = packaged
-            else:
-                raise ConfigError(f"mesh file '{self.path}' does not exist; give a path to an OBJ, STL or PLY file.")
-        try:
-            mesh = trimesh.load(str(p), force="mesh")
-        except Exception as exc:  # trimesh raises many types for unreadable files
-            raise ConfigError(f"mesh file '{p}' could not be read as a triangle mesh ({exc}).") from None
-        if not mesh.is_watertight:
-            raise ConfigError(f"mesh file '{p}' is not watertight, so its inside is undefined; close the mesh first.")
-        mesh.apply_scale(self.scale)
-        mesh.apply_translation(self.translate)
-        return mesh
+        return _load_mesh(self.path, self.scale, tuple(self.translate))
 
     def bounds(self, dim):
         if dim != 3:
@@ -134,6 +118,29 @@ class Mesh(Shape):
 
     def volume(self, dim):
         return float(self._mesh().volume)
+
+
+@lru_cache(maxsize=16)
+def _load_mesh(path: str, scale: float, translate: tuple):
+    """Load, check and place a mesh once per (path, scale, translation); bodies reuse it."""
+    import trimesh
+
+    p = Path(path)
+    if not p.is_file():
+        packaged = Path(__file__).resolve().parents[1] / "assets" / path
+        if packaged.is_file():
+            p = packaged
+        else:
+            raise ConfigError(f"mesh file '{path}' does not exist; give a path to an OBJ, STL or PLY file.")
+    try:
+        mesh = trimesh.load(str(p), force="mesh")
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise ConfigError(f"mesh file '{p}' could not be read as a triangle mesh ({exc}).") from None
+    if not mesh.is_watertight:
+        raise ConfigError(f"mesh file '{p}' is not watertight, so its inside is undefined; close the mesh first.")
+    mesh.apply_scale(scale)
+    mesh.apply_translation(translate)
+    return mesh
 
 
 SHAPES = {"box": Box, "sphere": Sphere, "cylinder": Cylinder, "mesh": Mesh}

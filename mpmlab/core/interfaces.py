@@ -3,7 +3,7 @@
 Concrete classes are final (diffrax pattern): subclass an ``Abstract*`` class, never a concrete one.
 Each plugin declares its ``implementations``: backend name -> ``"module:attr"`` of the backend-side
 factory, imported only when a stepper for that backend is built. A missing entry is a visible gap in
-the capability table (``mpmlab.capabilities()``), never a silent fallback.
+the capability table (``mpmlab.capabilities.capabilities()``), never a silent fallback.
 """
 from __future__ import annotations
 

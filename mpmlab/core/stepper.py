@@ -120,7 +120,7 @@ class BaseStepper(AbstractStepper):
 
     def rollout(self, state=None, steps: int = 100, every: int | None = None, fields: tuple[str, ...] = (),
                 progress: bool | None = None, on_frame: Callable | None = None) -> Trajectory:
-        """Run ``steps`` steps keeping every ``every``-th frame (frame 0 = the initial state).
+        """Run ``steps`` steps keeping every ``every``-th frame (frame 0 = the initial state) and the last.
 
         ``every`` defaults to the scene's ``substeps`` (time steps per output frame).
 
@@ -174,7 +174,7 @@ class BaseStepper(AbstractStepper):
                 if done % check == 0 or done == steps:
                     if self._is_bad(state):
                         self._diverged(start_state, start_step, n, partial)
-                if done % every == 0:
+                if done % every == 0 or done == steps:   # the final state is always kept
                     keep(self.to_numpy(state), done)
                 bar.update(n)
         finally:

@@ -80,13 +80,10 @@ def run(cfg, ctx) -> dict:
             raise ConfigError(f"backend.device = '{cfg.backend.device}' applies to backend=warp only; "
                               f"JAX picks its device itself (JAX_PLATFORMS=cpu|cuda).")
         options["device"] = cfg.backend.device
-    if backend == "warp" and not cfg.debug:
+    if backend == "warp" and cfg.debug:
         import warp
 
-        # no per-module "load on device" lines on the console (warp 1.19: log_level; older: quiet)
-        if hasattr(warp, "LOG_WARNING"):
-            warp.config.log_level = warp.LOG_WARNING
-        warp.config.quiet = True
+        warp.config.log_level = warp.LOG_INFO  # show Warp's module compile/load lines (quiet by default)
 
     write_config(out, cfg, ctx.overwrite)
     P = scene.particles()

@@ -75,10 +75,10 @@ def plane(b, scene, dtype):
 
     def apply(v, node_x, m, t, params):
         behind = jnp.sum((node_x - p0) * n_in, axis=-1) < 0
-        if b.kind == "sticky":
+        if b.condition == "sticky":
             return jnp.where(behind[:, None], 0.0, v)
         vn = jnp.sum(v * n_in, axis=-1)
-        if b.kind == "slip":
+        if b.condition == "slip":
             out = v - vn[:, None] * n_in
         else:
             out = coulomb(v, -n_in, params["friction"])

@@ -136,7 +136,7 @@ def plane(b, scene, stepper):
     behind = (node_positions(scene) - np.asarray(b.point, float)) @ n_in < 0
     nodes = np.nonzero(behind)[0]
     bc = _GridBC(stepper, nodes)
-    kind = {"sticky": 1, "slip": 2, "separate": 3}[b.kind]
+    kind = {"sticky": 1, "slip": 2, "separate": 3}[b.condition]
     bc.params = {"friction": wp.array([b.friction], dtype=T.scalar, device=stepper.device)}
 
     def apply(grid_v, t):

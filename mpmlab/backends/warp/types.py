@@ -9,6 +9,9 @@ from types import SimpleNamespace
 
 import warp as wp
 
+# Warp 1.19 prints a line per module compile/load at INFO; mpmlab keeps the console for its own output
+# (``debug=true`` on the CLI turns them back on).
+wp.config.log_level = wp.LOG_WARNING
 wp.config.quiet = True
 
 SCALARS = {"fp32": wp.float32, "fp64": wp.float64}
