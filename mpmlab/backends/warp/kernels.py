@@ -79,11 +79,12 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
     grad_force = not mls_force                          # f = -V tau grad w, needs weight gradients
 
     @wp.func
-    def pack(mom: vec, wm: scalar, wgt: scalar):
+    def ext4(a: vec, last: scalar):
+        """(a, last) as a (dim+1)-vector: node updates then run as whole-vector (SIMD) operations."""
         if wp.static(dim == 3):
-            return gvec(wgt * mom[0], wgt * mom[1], wgt * mom[2], wm)
+            return gvec(a[0], a[1], a[2], last)
         else:
-            return gvec(wgt * mom[0], wgt * mom[1], wm)
+            return gvec(a[0], a[1], last)
 
     @wp.kernel(module="unique")
     def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
@@ -118,58 +119,69 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
             fext = ext[p]
             if wp.static(not split_force):
                 q = q + dt * fext
+        # per node o, as (dim+1)-vectors: w_o (q4 + sum_d o_d a4[d]) [+ sum_e (grad w_o)_e t4[e]], where
+        # q4 = (q - A fx dx, m), a4[d] = (A[:, d] dx, 0), t4[e] = (Tg[:, e], 0)
         Ad = wp.transpose(A * dx)      # rows = columns of A dx
-        q0 = q - A @ (fx * dx)
+        Tt = wp.transpose(Tg)
+        q4 = ext4(q - A @ (fx * dx), m)
+        a40 = ext4(Ad[0], scalar(0.0))
+        a41 = ext4(Ad[1], scalar(0.0))
+        a42 = ext4(Ad[dim - 1], scalar(0.0))
+        t40 = ext4(Tt[0], scalar(0.0))
+        t41 = ext4(Tt[1], scalar(0.0))
+        t42 = ext4(Tt[dim - 1], scalar(0.0))
         Fd = wp.transpose(Fm * dx)
         f0 = -(Fm @ (fx * dx))
+        if wp.static(split_force and has_ext):
+            f0 = f0 + fext
         nb = goff
         for d in range(dim):
             nb = nb + base[d] * strides[d]
         if wp.static(dim == 3):
             for i in range(3):
+                qi = q4 + OFF[i] * a40
                 for j in range(3):
                     wxy = W[i, 0] * W[j, 1]
-                    qij = q0 + OFF[i] * Ad[0] + OFF[j] * Ad[1]
+                    qij = qi + OFF[j] * a41
                     fij = f0 + OFF[i] * Fd[0] + OFF[j] * Fd[1]
                     nij = nb + i * strides[0] + j * strides[1]
                     for k in range(3):
                         wgt = wxy * W[k, 2]
-                        val = pack(qij + OFF[k] * Ad[2], wgt * m, wgt)
+                        val = wgt * (qij + OFF[k] * a42)
                         if wp.static(grad_force):
-                            f = Tg @ vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
+                            g0 = DW[i, 0] * W[j, 1] * W[k, 2]
+                            g1 = W[i, 0] * DW[j, 1] * W[k, 2]
+                            g2 = wxy * DW[k, 2]
                             if wp.static(split_force):
+                                f = Tg @ vec(g0, g1, g2)
                                 if wp.static(has_ext):
                                     f = f + wgt * fext
                                 grid_f[nij + k] = grid_f[nij + k] + f
                             else:
-                                val = val + pack(f, scalar(0.0), scalar(1.0))
+                                val = val + g0 * t40 + g1 * t41 + g2 * t42
                         if wp.static(split_force and mls_force):
-                            f = wgt * (fij + OFF[k] * Fd[2])
-                            if wp.static(has_ext):
-                                f = f + wgt * fext
-                            grid_f[nij + k] = grid_f[nij + k] + f
+                            grid_f[nij + k] = grid_f[nij + k] + wgt * (fij + OFF[k] * Fd[2])
                         grid_mm[nij + k] = grid_mm[nij + k] + val
         else:
             for i in range(3):
-                qi = q0 + OFF[i] * Ad[0]
+                qi = q4 + OFF[i] * a40
                 fi = f0 + OFF[i] * Fd[0]
                 ni = nb + i * strides[0]
                 for j in range(3):
                     wgt = W[i, 0] * W[j, 1]
-                    val = pack(qi + OFF[j] * Ad[1], wgt * m, wgt)
+                    val = wgt * (qi + OFF[j] * a41)
                     if wp.static(grad_force):
-                        f = Tg @ vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
+                        g0 = DW[i, 0] * W[j, 1]
+                        g1 = W[i, 0] * DW[j, 1]
                         if wp.static(split_force):
+                            f = Tg @ vec(g0, g1)
                             if wp.static(has_ext):
                                 f = f + wgt * fext
                             grid_f[ni + j] = grid_f[ni + j] + f
                         else:
-                            val = val + pack(f, scalar(0.0), scalar(1.0))
+                            val = val + g0 * t40 + g1 * t41
                     if wp.static(split_force and mls_force):
-                        f = wgt * (fi + OFF[j] * Fd[1])
-                        if wp.static(has_ext):
-                            f = f + wgt * fext
-                        grid_f[ni + j] = grid_f[ni + j] + f
+                        grid_f[ni + j] = grid_f[ni + j] + wgt * (fi + OFF[j] * Fd[1])
                     grid_mm[ni + j] = grid_mm[ni + j] + val
 
     return p2g

@@ -7,6 +7,7 @@ loads. ``_advance`` never writes into its input state, so a saved state stays va
 divergence; tape-based gradients in issue #4).
 """
 
+import itertools
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -23,7 +24,13 @@ from .types import warp_types
 
 class WarpState(SimpleNamespace):
     """x, v [N] vec; C [N] mat (affine transfers only); law: per group dict of state arrays; tau [N] mat
-    (stress of the current law state, computed when the state is produced); t: float seconds."""
+    (stress of the current law state, computed when the state is produced); t: float seconds.
+
+    On the CPU the particles are kept sorted by grid cell for cache locality (re-sorted every
+    ``sort_every`` steps, within each material group): ``order`` holds the permutation (``perm[i]`` =
+    scene index of stored particle i, None = scene order) and the static per-particle data in that
+    order; ``age`` counts the steps since the last sort. ``to_numpy`` always returns scene order.
+    """
 
 
 class WarpStepper(BaseStepper):
@@ -66,12 +73,21 @@ class WarpStepper(BaseStepper):
         G, N = self.node_count, P.count
         # CPU threads: Warp runs a CPU launch serially, so chunks of particles/nodes are launched from a
         # small thread pool (the launch releases the GIL); P2G chunks write private grid copies.
+        # Default: the idle cores (cores minus the 1-minute load average: on a busy machine a second
+        # thread mostly waits for a core and the per-phase hand-offs cost more than they save), at
+        # most 8, and one thread per 4096 particles. ``threads=`` or $MPMLAB_WARP_THREADS override.
         if threads is None:
             threads = int(os.environ.get("MPMLAB_WARP_THREADS", 0))
         if not threads:
-            threads = min(len(os.sched_getaffinity(0)), 8, max(1, N // 2048))   # small scenes: one thread
+            cores = len(os.sched_getaffinity(0))
+            threads = max(1, min(cores, 8, N // 4096, cores - int(os.getloadavg()[0])))
         self.threads = max(1, int(threads)) if self.device == "cpu" else 1
         self._pool = ThreadPoolExecutor(self.threads - 1) if self.threads > 1 else None
+        # chunks per phase for the dynamically scheduled kernels: G2P; the grid update (small: the
+        # reached nodes only) runs on this thread unless the grid is large, saving a hand-off
+        self._dyn_chunks = 1 if self.threads == 1 else 2 * self.threads
+        self._grid_chunks = self._dyn_chunks if G >= 2_000_000 else 1
+        self._cmd_cache = {}
         self.copies = self.threads
         #: launch the grid update only over the nodes particles reached (False: the whole grid, for
         #: measuring what this skip saves)
@@ -104,6 +120,10 @@ class WarpStepper(BaseStepper):
         lo, hi = scene.inner_bounds
         self.lo, self.hi = T.vec(*lo), T.vec(*hi)
         self._ratio = T.scalar(self.transfer.flip_ratio if self.split_force else 0.0)
+        #: re-sort particles by cell every this many steps (CPU only; None: never). Particle boundaries
+        #: and loads address particles by scene index, so scenes with them are not sorted.
+        self.sort_every = 100 if (self.device == "cpu" and not self.particle_bcs and not self.force_bcs) else None
+        self._base_order = SimpleNamespace(perm=None, mass=self.mass, vol=self.vol, params=self.law_params)
 
     def __del__(self):
         pool = getattr(self, "_pool", None)
@@ -134,34 +154,100 @@ class WarpStepper(BaseStepper):
             for name, a in g.law.initial_state(g.count, self.dim).items():
                 st[name].assign(wp.array(a, dtype=st[name].dtype, device=dev))
             wp.launch(k.stress, dim=g.count, inputs=[*self._law_args(st), prm, g.start, s.tau], device=dev)
+        s.order, s.age = self._base_order, (self.sort_every or 0)     # sorted at the first step
         return s
 
+    def _sort_into(self, s: WarpState, d: WarpState) -> None:
+        """d <- s with particles sorted by base node within each group (NumPy views of CPU arrays)."""
+        x = s.x.numpy()
+        base = np.floor((x - np.asarray(self.scene.origin)) / self.scene.dx - 0.5).astype(np.int64)
+        key = base @ np.asarray(list(self.strides), dtype=np.int64)
+        p = np.concatenate([g.start + np.argsort(key[g.start:g.stop], kind="stable") for g in self.groups])
+        take = lambda src, dst, idx: np.take(src.numpy(), idx, axis=0, out=dst.numpy())
+        take(s.x, d.x, p)
+        take(s.v, d.v, p)
+        take(s.tau, d.tau, p)
+        if self.transfer.needs_affine:
+            take(s.C, d.C, p)
+        for g, st, dt_ in zip(self.groups, s.law, d.law):
+            for name, a in st.items():
+                take(a, dt_[name], p[g.start:g.stop] - g.start)
+        o = s.order
+        T, dev = self.T, self.device
+        perm = p if o.perm is None else o.perm[p]
+        d.order = SimpleNamespace(
+            perm=perm, mass=wp.array(o.mass.numpy()[p], dtype=T.scalar, device=dev),
+            vol=wp.array(o.vol.numpy()[p], dtype=T.scalar, device=dev),
+            params=[wp.array(a.numpy()[p[g.start:g.stop] - g.start], dtype=T.scalar, device=dev)
+                    for g, a in zip(self.groups, o.params)])
+        d.t, d.age = s.t, 0
+
     # ---- one step --------------------------------------------------------------------------------
-    def _chunks(self, n: int):
-        """Split [0, n) into ``threads`` contiguous (start, count) chunks (fewer if n is small)."""
-        k = max(1, min(self.threads, n))
+    # Launches are recorded once per (input, output) state pair of an ``_advance`` call (Warp
+    # ``Launch`` objects: replaying one skips argument packing) and run on ``threads`` CPU threads.
+    # P2G chunks are assigned statically (chunk c -> thread c -> grid copy c), so the summation order
+    # and hence the result are the same in every run; G2P and grid-update chunks write disjoint
+    # outputs and are handed out dynamically (finer chunks balance a core that is busy elsewhere).
+
+    def _chunks(self, n: int, k: int):
+        """Split [0, n) into at most k contiguous non-empty (start, count) chunks."""
+        k = max(1, min(k, n))
         cuts = [n * i // k for i in range(k + 1)]
         return [(cuts[i], cuts[i + 1] - cuts[i]) for i in range(k) if cuts[i + 1] > cuts[i]]
 
-    def _run(self, jobs):
-        """Run launch closures on ``threads`` threads (this one and the pool): thread t runs jobs[t::threads]."""
-        if len(jobs) == 1 or self._pool is None:
-            for j in jobs:
-                j()
+    def _run_static(self, cmds):
+        """cmds[t] runs on thread t (this thread runs cmds[0]); wait for all."""
+        if len(cmds) == 1 or self._pool is None:
+            for c in cmds:
+                c.launch()
             return
-        lanes = [jobs[t::self.threads] for t in range(min(self.threads, len(jobs)))]
-        run_lane = lambda lane: [j() for j in lane]
-        futs = [self._pool.submit(run_lane, lane) for lane in lanes[1:]]
-        run_lane(lanes[0])
+        futs = [self._pool.submit(c.launch) for c in cmds[1:]]
+        cmds[0].launch()
         for f in futs:
             f.result()
 
-    def _launcher(self, kernel, dim, inputs):
-        dev = self.device
-        return lambda: wp.launch(kernel, dim=dim, inputs=inputs, device=dev)
+    def _run_dynamic(self, cmds):
+        """Run cmds on all threads, each thread taking the next unstarted one; wait for all."""
+        if len(cmds) == 1 or self._pool is None:
+            for c in cmds:
+                c.launch()
+            return
+        order = itertools.count()          # next() on a count is atomic under the GIL
+
+        def lane():
+            while (i := next(order)) < len(cmds):
+                cmds[i].launch()
+
+        futs = [self._pool.submit(lane) for _ in range(self.threads - 1)]
+        lane()
+        for f in futs:
+            f.result()
+
+    def _record(self, s: WarpState, o: WarpState) -> SimpleNamespace:
+        dev, N, G = self.device, self.particles.count, self.node_count
+        rec = lambda kernel, n, inputs: wp.launch(kernel, dim=n, inputs=inputs, device=dev, record_cmd=True)
+        p2g = [rec(self.k_p2g, cnt, [s.x, s.v, s.C, s.tau, s.order.mass, s.order.vol, self.ext, self.origin, self.dx_s,
+                                     self.dt_s, self.strides, start, c * G, self.grid_mm, self.grid_f, self.bbox, c])
+               for c, (start, cnt) in enumerate(self._chunks(N, self.threads))]
+        zero = self.T.ivec()
+        grid = [rec(self.k_grid, 1, [self.grid_mm, self.grid_f, len(p2g), G, 0, zero, zero, self.dt_s, self.gravity,
+                                     self.shape_iv, self.strides, self.wall_kind, self.thickness, self.grid_v,
+                                     self.grid_v_old])
+                for _ in range(self._grid_chunks)]
+        g2p = []
+        for g, k, st, ot, prm in zip(self.groups, self.k_g2p, s.law, o.law, s.order.params):
+            for start, cnt in self._chunks(g.count, self._dyn_chunks):
+                g2p.append(rec(k, cnt, [s.x, s.v, self.grid_v, self.grid_v_old, self.origin, self.dx_s, self.dt_s,
+                                        self.strides, self._ratio, g.start, start, *self._law_args(st), prm, o.x, o.v,
+                                        o.C, *self._law_args(ot), o.tau]))
+        return SimpleNamespace(p2g=p2g, grid=grid, g2p=g2p)
 
     def _step_into(self, s: WarpState, o: WarpState) -> None:
-        D, dev, N, G = self.dim, self.device, self.particles.count, self.node_count
+        D = self.dim
+        key = (id(s), id(o), id(s.order))
+        cmds = self._cmd_cache.get(key)
+        if cmds is None:
+            cmds = self._cmd_cache[key] = self._record(s, o)
         if self._grid_dirty:          # a previous step stopped between P2G and the grid update
             self.grid_mm.zero_()
             if self.split_force:
@@ -170,62 +256,66 @@ class WarpStepper(BaseStepper):
             self.ext.zero_()
             for bc in self.force_bcs:
                 bc.add_force(self.ext, s.t)
-        # P2G, one private grid copy per chunk ------------------------------------------------------
-        chunks = self._chunks(N)
+        # P2G, one private grid copy per thread ----------------------------------------------------------
         bb = self._bbox_np
-        big = np.iinfo(np.int32).max
         if bb is not None:
-            bb[0::2] = big
-            bb[1::2] = -big
+            bb[0::2] = np.iinfo(np.int32).max
+            bb[1::2] = np.iinfo(np.int32).min
         self._grid_dirty = True
-        self._run([self._launcher(self.k_p2g, cnt, [s.x, s.v, s.C, s.tau, self.mass, self.vol, self.ext, self.origin,
-                                                    self.dx_s, self.dt_s, self.strides, start, c * G, self.grid_mm,
-                                                    self.grid_f, self.bbox, c])
-                   for c, (start, cnt) in enumerate(chunks)])
-        # grid update over the reached nodes ------------------------------------------------------------
+        self._run_static(cmds.p2g)
+        # grid update over the reached nodes (their bounding box) ----------------------------------------------
         if self.limit_grid and bb is not None:
-            used = bb[: 2 * len(chunks)]
-            lo = used[0::2].min(axis=0)
-            hi = used[1::2].max(axis=0) + 3                   # stencil of the largest base node
-            lo = np.maximum(lo, 0)
-            hi = np.minimum(hi, self.grid_shape)
+            used = bb[: 2 * len(cmds.p2g)]
+            lo = np.maximum(used[0::2].min(axis=0), 0)
+            hi = np.minimum(used[1::2].max(axis=0) + 3, self.grid_shape)   # + the stencil of the last base node
         else:
             lo, hi = np.zeros(D, int), np.asarray(self.grid_shape)
         ext = hi - lo
-        count = int(np.prod(ext))
-        lo_v, ext_v = self.T.ivec(*[int(a) for a in lo]), self.T.ivec(*[int(a) for a in ext])
-        self._run([self._launcher(self.k_grid, cnt, [self.grid_mm, self.grid_f, len(chunks), G, start, lo_v, ext_v,
-                                                     self.dt_s, self.gravity, self.shape_iv, self.strides,
-                                                     self.wall_kind, self.thickness, self.grid_v, self.grid_v_old])
-                   for start, cnt in self._chunks(count)])
+        lo_v, ext_v = self.T.ivec(*lo.tolist()), self.T.ivec(*ext.tolist())
+        chunks = self._chunks(int(np.prod(ext)), len(cmds.grid))
+        for c, (start, cnt) in zip(cmds.grid, chunks):
+            c.set_param_by_name("start", start)
+            c.set_param_by_name("lo", lo_v)
+            c.set_param_by_name("ext", ext_v)
+            c.set_dim(cnt)
+        self._run_dynamic(cmds.grid[:len(chunks)])
         self._grid_dirty = False
         for bc in self.grid_bcs:
             bc.apply(self.grid_v, s.t)
-        # G2P fused with each group's law update ------------------------------------------------------
-        jobs = []
-        for g, k, st, ot, prm in zip(self.groups, self.k_g2p, s.law, o.law, self.law_params):
-            for start, cnt in self._chunks(g.count):
-                jobs.append(self._launcher(k, cnt, [s.x, s.v, self.grid_v, self.grid_v_old, self.origin, self.dx_s,
-                                                    self.dt_s, self.strides, self._ratio, g.start, start,
-                                                    *self._law_args(st), prm, o.x, o.v, o.C, *self._law_args(ot),
-                                                    o.tau]))
-        self._run(jobs)
+        # G2P fused with each group's law update ---------------------------------------------------------
+        self._run_dynamic(cmds.g2p)
         o.t = s.t + self.dt
+        o.order, o.age = s.order, s.age + 1
         for bc in self.particle_bcs:
             bc.apply_particles(o.v, s.x, o.x, o.t)
 
     def _advance(self, state: WarpState, steps: int) -> WarpState:
         if steps <= 0:
             return state
-        out = self._alloc()
-        scratch = self._alloc() if steps > 1 else None
-        # alternate so that the last step lands in `out`; the input is never written
-        bufs = [out, scratch] if steps % 2 == 1 else [scratch, out]
+        # own buffers only (the input state is never written); a step or a sort writes into one that
+        # does not hold the current state
+        bufs = [self._alloc()]
         cur = state
-        for k in range(steps):
-            nxt = bufs[k % 2]
-            self._step_into(cur, nxt)
-            cur = nxt
+
+        def free():
+            for b in bufs:
+                if b is not cur:
+                    return b
+            bufs.append(self._alloc())
+            return bufs[-1]
+
+        self._cmd_cache = {}
+        try:
+            for _ in range(steps):
+                if self.sort_every and cur.age >= self.sort_every:
+                    nxt = free()
+                    self._sort_into(cur, nxt)
+                    cur = nxt
+                nxt = free()
+                self._step_into(cur, nxt)
+                cur = nxt
+        finally:
+            self._cmd_cache = {}       # recorded launches hold the state arrays
         return cur
 
     def _block(self, state):
@@ -244,12 +334,22 @@ class WarpStepper(BaseStepper):
 
     # ---- numpy views ------------------------------------------------------------------------------
     def to_numpy(self, state):
-        out = {"x": state.x.numpy().astype(np.float64), "v": state.v.numpy().astype(np.float64), "t": state.t}
+        perm = getattr(getattr(state, "order", None), "perm", None)
+
+        def scene_order(a, lo=0, hi=None):
+            a = a.numpy().astype(np.float64)
+            if perm is None:
+                return a
+            out = np.empty_like(a)
+            out[perm[lo:hi] - lo] = a
+            return out
+
+        out = {"x": scene_order(state.x), "v": scene_order(state.v), "t": state.t}
         if self.transfer.needs_affine:
-            out["C"] = state.C.numpy().astype(np.float64)
+            out["C"] = scene_order(state.C)
         for name in ("F", "J", "sigma", "eps_p"):
             parts = [(g, st[name]) for g, st in zip(self.groups, state.law) if name in st]
             if parts:
-                out[name] = np.concatenate([a.numpy().astype(np.float64) for _, a in parts])
+                out[name] = np.concatenate([scene_order(a, g.start, g.stop) for g, a in parts])
                 out[name + "_particles"] = np.concatenate([np.arange(g.start, g.stop) for g, _ in parts])
         return out

@@ -1,0 +1,376 @@
+#!/usr/bin/env python
+"""Throughput of mpmlab's steppers in particle-steps per second, against Taichi's mpm3d in the same run.
+
+What is measured
+----------------
+* ``throughput``: steady-state particle-steps/s of one compiled step loop (``stepper._advance`` of
+  ``--steps`` steps, best of ``--reps`` timed runs after a warm-up) for every backend (jax, warp) x
+  precision (fp32, fp64) x dimension (2D, 3D) on
+
+  - ``mpm3d``: Taichi mpm3d's scene (``mpmlab.scenes.mpm3d.mpm3d_fluid``): J-fluid, MLS/APIC,
+    n_grid^3/4 particles at the peer's own random positions, E = 400, 3-cell separate walls. 2D uses
+    the same recipe with n_grid chosen for the same particle count (181 / 512 / 1448 for 8k / 65k / 524k);
+  - ``cube``: a fixed-corotated elastic cube (``mpmlab.scenes.mpm3d.elastic_cube``), MLS.
+
+  The first call (trace/compile/kernel load + the first steps) is reported separately.
+* ``taichi``: ``peers/mpm_taichi.py N_GRID STEPS`` run as a subprocess with the Python of a separate
+  virtual environment (``--taichi-python`` or ``$MPMLAB_TAICHI_PYTHON``; Taichi is never imported
+  here). It is run before and after mpmlab's measurements of that size, and the better of the two is
+  kept, as for mpmlab (best of runs): on a shared machine the best run is the least disturbed one.
+  Ratios mpmlab/Taichi are printed and stored for the 3D fp32 mpm3d rows.
+* ``skips``: the measured effect of what mpmlab leaves out of a compiled step when a scene does not
+  need it (elastic vs plastic law, PIC vs APIC, J-only vs F law, no extra boundaries vs some, rollout
+  keeping every frame vs every 100th, Warp's grid update limited to reached nodes vs the whole grid).
+
+Results go to ``benchmarks/out/throughput.json`` and the "Throughput" / "Skips" sections of
+``benchmarks/README.md`` (regenerated between markers; the rest of the README is kept).
+
+Usage::
+
+    MPMLAB_TAICHI_PYTHON=/path/to/taichi-venv/bin/python python benchmarks/throughput.py
+    python benchmarks/throughput.py --quick          # 8k particles only, no skips
+    python benchmarks/throughput.py --big            # adds the 524k-particle case
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+N_GRID_3D = {"8k": 32, "65k": 64, "524k": 128}
+N_GRID_2D = {"8k": 181, "65k": 512, "524k": 1448}
+CUBE_N_GRID = {3: 64, 2: 512}
+
+
+# ---- measurement -----------------------------------------------------------------------------------
+def steps_for(n: int, scale: float = 1.0) -> int:
+    """Steps per timed run: about 2e6 particle-steps (>= 10, <= 200)."""
+    return int(max(10, min(200, round(2e6 * scale / n))))
+
+
+def measure(scene, backend, precision, transfer="mls", steps=None, reps=3, configure=None, **options) -> dict:
+    import mpmlab
+
+    t0 = time.perf_counter()
+    st = mpmlab.build_stepper(scene, backend, transfer, precision, **options)
+    if configure is not None:
+        configure(st)
+    build_s = time.perf_counter() - t0
+    n = st.particles.count
+    steps = steps or steps_for(n)
+    s = st.init()
+    t0 = time.perf_counter()
+    s = st._advance(s, steps)                 # compiles (JAX) / loads kernels (Warp), then runs
+    st._block(s)
+    first_s = time.perf_counter() - t0
+    s = st._advance(s, steps)                 # warm-up
+    st._block(s)
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        s = st._advance(s, steps)
+        st._block(s)
+        times.append(time.perf_counter() - t0)
+    best = min(times)
+    bad = st._is_bad(s)
+    out = {"backend": backend, "precision": precision, "transfer": transfer, "dim": st.dim, "particles": n,
+           "grid": list(st.scene.grid_shape), "laws": [g.law.name for g in st.groups], "steps": steps,
+           "build_s": build_s, "first_call_s": first_s,
+           "ms_per_step": best / steps * 1e3, "ms_per_step_all": [t / steps * 1e3 for t in times],
+           "particle_steps_per_s": n * steps / best, "diverged": bool(bad)}
+    if backend == "warp":
+        out["threads"] = st.threads
+    del st
+    return out
+
+
+def measure_rollout(scene, backend, precision, steps, every, reps=2, **options) -> dict:
+    import mpmlab
+
+    st = mpmlab.build_stepper(scene, backend, "mls", precision, **options)
+    st.rollout(steps=every, every=every, progress=False)           # compile the chunk size used
+    if every != 1:
+        st.rollout(steps=1, every=1, progress=False)
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        st.rollout(steps=steps, every=every, progress=False)
+        times.append(time.perf_counter() - t0)
+    n = st.particles.count
+    return {"backend": backend, "precision": precision, "particles": n, "steps": steps, "every": every,
+            "s": min(times), "particle_steps_per_s": n * steps / min(times)}
+
+
+def run_taichi(python: str, peer_dir: Path, n_grid: int, steps: int, threads: int) -> dict:
+    env = dict(os.environ, TI_THREADS=str(threads))
+    with tempfile.TemporaryDirectory() as tmp:
+        r = subprocess.run([python, str(peer_dir / "mpm_taichi.py"), str(n_grid), str(steps)], cwd=tmp, env=env,
+                           capture_output=True, text=True, timeout=1800)
+    line = next((l for l in r.stdout.splitlines() if l.startswith("taichi ")), None)
+    if r.returncode != 0 or line is None:
+        raise RuntimeError(f"mpm_taichi.py failed (exit {r.returncode}): {r.stderr.strip()[-800:]}")
+    m = re.search(r"n=(\d+) first_call=([\d.]+)s steady=([\d.]+) ms/step\s+([\d.e+-]+) particle-steps/s", line)
+    return {"n_grid": n_grid, "particles": int(m.group(1)), "first_call_s": float(m.group(2)),
+            "ms_per_step": float(m.group(3)), "particle_steps_per_s": float(m.group(4)), "steps": steps,
+            "threads": threads, "line": line}
+
+
+# ---- scenes ------------------------------------------------------------------------------------------
+def fluid(size: str, dim: int, law="weakly_compressible", boundaries=None):
+    from mpmlab.scenes.mpm3d import mpm3d_fluid
+
+    n_grid = (N_GRID_3D if dim == 3 else N_GRID_2D)[size]
+    return mpm3d_fluid(n_grid, dim, law=law, boundaries=boundaries), n_grid
+
+
+def cube(dim: int, law="fixed_corotated", **kw):
+    from mpmlab.scenes.mpm3d import elastic_cube
+
+    return elastic_cube(CUBE_N_GRID[dim], dim, law=law, **kw)
+
+
+def extra_boundaries(dim):
+    """Grid boundaries that the fluid never reaches in the timed steps: cost only, same physics."""
+    from mpmlab.boundaries import BoxObstacle, FrictionWalls, Plane
+
+    lo, hi = [0.8] * dim, [0.9] * dim
+    p = [0.0] * dim
+    n = [0.0] * dim
+    n[1] = 1.0
+    return [FrictionWalls(face="x+", mu=(0.3,), along="y", thickness=2), Plane(point=p, normal=n, kind="slip"),
+            BoxObstacle(lo=lo, hi=hi)]
+
+
+# ---- report --------------------------------------------------------------------------------------------
+def fmt(x):
+    return f"{x:.2e}"
+
+
+def tables(res: dict) -> tuple[str, str]:
+    lines = []
+    mach = res["machine"]
+    lines.append(f"Measured {res['date']} on {mach['cpu']} ({mach['cores']} cores; load average "
+                 f"{mach['load_before']} before the run), Python {mach['python']}, JAX {mach['jax']}, "
+                 f"Warp {mach['warp']}, Taichi {mach.get('taichi', 'not run')}. Particle-steps/s of the "
+                 f"steady state (best of {res['reps']} runs); `first` = first call in seconds (JAX: trace + XLA "
+                 "compile; Warp: kernel load, from Warp's disk cache when warm) including its steps. "
+                 "Regenerate with `python benchmarks/throughput.py` (see its docstring).\n")
+    lines.append("| scene | dim | particles | backend | precision | particle-steps/s | ms/step | first (s) | vs Taichi |")
+    lines.append("|---|---|---|---|---|---|---|---|---|")
+    tai = {t["n_grid"]: t for t in res["taichi"]}
+    for r in res["throughput"]:
+        ratio = ""
+        if r["scene"] == "mpm3d" and r["dim"] == 3 and r["precision"] == "fp32" and r["n_grid"] in tai:
+            ratio = f"{r['particle_steps_per_s'] / tai[r['n_grid']]['particle_steps_per_s']:.2f}x"
+        lines.append(f"| {r['scene']} | {r['dim']}D | {r['particles']} | {r['backend']}"
+                     f"{' (' + str(r['threads']) + ' thr)' if 'threads' in r else ''} | {r['precision']} | "
+                     f"{fmt(r['particle_steps_per_s'])} | {r['ms_per_step']:.2f} | {r['first_call_s']:.1f} | {ratio} |")
+    for t in res["taichi"]:
+        lines.append(f"| mpm3d | 3D | {t['particles']} | taichi 1.7.4 ({t['threads']} thr, peer) | fp32 | "
+                     f"{fmt(t['particle_steps_per_s'])} | {t['ms_per_step']:.2f} | {t['first_call_s']:.1f} | 1.00x |")
+    if res.get("taichi_note"):
+        lines.append(f"\n{res['taichi_note']}")
+    thr = "\n".join(lines) + "\n"
+    sk = ["Each row: the same scene and backend with and without one thing the compiled step can leave out; "
+          "fp32, 3D, 65k particles (cube: 55k), Warp on one thread. `gain` = throughput without / with.\n",
+          "| skip | backend | without (particle-steps/s) | with (particle-steps/s) | gain | note |",
+          "|---|---|---|---|---|---|"]
+    for s in res["skips"]:
+        sk.append(f"| {s['skip']} | {s['backend']} | {fmt(s['without'])} | {fmt(s['with'])} | "
+                  f"{s['without'] / s['with']:.2f}x | {s.get('note', '')} |")
+    return thr, "\n".join(sk) + "\n"
+
+
+def write_readme(path: Path, throughput_md: str, skips_md: str) -> None:
+    text = path.read_text() if path.exists() else "# Benchmarks\n"
+    for name, body, title in (("throughput", throughput_md, "Throughput"), ("skips", skips_md, "Skips")):
+        start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+        block = f"{start}\n{body}{end}"
+        if start in text and end in text:
+            text = text[: text.index(start)] + block + text[text.index(end) + len(end):]
+        else:
+            text = text.rstrip("\n") + f"\n\n## {title}\n\n{block}\n"
+    path.write_text(text)
+
+
+# ---- main -------------------------------------------------------------------------------------------------
+def machine_info() -> dict:
+    import jax
+    import warp
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "python": platform.python_version(),
+            "jax": jax.__version__, "warp": warp.config.version, "numpy": np.__version__,
+            "load_before": " ".join(f"{x:.1f}" for x in os.getloadavg())}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="8k particles only, no skips (a smoke run)")
+    ap.add_argument("--big", action="store_true", help="also the 524k-particle mpm3d case (3D fp32 + 2D fp32)")
+    ap.add_argument("--backends", default="jax,warp")
+    ap.add_argument("--precisions", default="fp32,fp64")
+    ap.add_argument("--dims", default="3,2")
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--no-skips", action="store_true")
+    ap.add_argument("--no-taichi", action="store_true")
+    ap.add_argument("--taichi-python", default=os.environ.get("MPMLAB_TAICHI_PYTHON"),
+                    help="python of a venv with taichi==1.7.4 (default $MPMLAB_TAICHI_PYTHON)")
+    ap.add_argument("--taichi-threads", type=int, default=2)
+    ap.add_argument("--peer-dir", default=os.environ.get("MPMLAB_PEERS_DIR", "/work/shared/peers"))
+    ap.add_argument("--out", default=str(HERE / "out" / "throughput.json"))
+    ap.add_argument("--readme", default=str(HERE / "README.md"), help="'' to leave the README alone")
+    args = ap.parse_args(argv)
+
+    backends = args.backends.split(",")
+    precisions = args.precisions.split(",")
+    dims = [int(d) for d in args.dims.split(",")]
+    sizes = ["8k"] if args.quick else ["8k", "65k"] + (["524k"] if args.big else [])
+    res = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_info(), "reps": args.reps,
+           "throughput": [], "taichi": [], "skips": [], "rollout": []}
+    log = lambda *a: print(*a, file=sys.stderr, flush=True)
+
+    # Warp runs on 1 thread and on all cores (its default picks the idle cores; on a busy shared
+    # machine one thread can be the faster), JAX with XLA's own threading
+    cores = len(os.sched_getaffinity(0))
+    variants = []
+    for b in backends:
+        if b == "warp":
+            variants += [("warp", {"threads": t}) for t in sorted({1, cores})]
+        else:
+            variants.append((b, {}))
+    taichi_ok = False
+    if args.no_taichi:
+        res["taichi_note"] = "Taichi peer not run (--no-taichi)."
+    elif not args.taichi_python or not Path(args.taichi_python).exists():
+        res["taichi_note"] = ("Taichi peer skipped: no Taichi venv python given (set MPMLAB_TAICHI_PYTHON or pass "
+                              "--taichi-python; create it with `python -m venv V && V/bin/pip install taichi==1.7.4 "
+                              "numpy`).")
+        log(res["taichi_note"])
+    elif not (Path(args.peer_dir) / "mpm_taichi.py").exists():
+        res["taichi_note"] = f"Taichi peer skipped: {args.peer_dir}/mpm_taichi.py not found (--peer-dir)."
+        log(res["taichi_note"])
+    else:
+        taichi_ok = True
+        v = subprocess.run([args.taichi_python, "-c", "import taichi; print(taichi.__version__)"],
+                           capture_output=True, text=True)
+        res["machine"]["taichi"] = v.stdout.strip().splitlines()[-1] if v.returncode == 0 else "?"
+
+    def taichi(n_grid, n):
+        try:
+            return run_taichi(args.taichi_python, Path(args.peer_dir), n_grid, steps_for(n, 0.5), args.taichi_threads)
+        except Exception as e:  # the peer is optional: report, keep going
+            log(f"taichi n_grid={n_grid} failed: {e}")
+            return None
+
+    for size in sizes:
+        n_grid3 = N_GRID_3D[size]
+        n = n_grid3**3 // 4
+        t_before = taichi(n_grid3, n) if taichi_ok and 3 in dims else None
+        for dim in dims:
+            sc, n_grid = fluid(size, dim)
+            for backend, opts in variants:
+                for prec in precisions:
+                    if size == "524k" and prec == "fp64":
+                        continue
+                    r = measure(sc, backend, prec, reps=args.reps, **opts)
+                    r.update(scene="mpm3d", n_grid=n_grid)
+                    res["throughput"].append(r)
+                    log(f"mpm3d {dim}D n={r['particles']} {backend} {opts} {prec}: {fmt(r['particle_steps_per_s'])} "
+                        f"particle-steps/s ({r['ms_per_step']:.2f} ms/step, first call {r['first_call_s']:.1f} s)")
+        t_after = taichi(n_grid3, n) if taichi_ok and 3 in dims else None
+        got = [t for t in (t_before, t_after) if t]
+        if got:
+            best = max(got, key=lambda t: t["particle_steps_per_s"])
+            best["runs_particle_steps_per_s"] = [t["particle_steps_per_s"] for t in got]
+            res["taichi"].append(best)
+            log(f"taichi n_grid={n_grid3}: {fmt(best['particle_steps_per_s'])} particle-steps/s "
+                f"(runs: {[fmt(t['particle_steps_per_s']) for t in got]})")
+            for r in res["throughput"]:
+                if r["scene"] == "mpm3d" and r["dim"] == 3 and r["n_grid"] == n_grid3 and r["precision"] == "fp32":
+                    log(f"  ratio {r['backend']}/taichi = {r['particle_steps_per_s'] / best['particle_steps_per_s']:.2f}")
+    if not args.quick:
+        for dim in dims:
+            sc = cube(dim)
+            for backend, opts in variants:
+                for prec in precisions:
+                    r = measure(sc, backend, prec, reps=args.reps, **opts)
+                    r.update(scene="cube", n_grid=CUBE_N_GRID[dim])
+                    res["throughput"].append(r)
+                    log(f"cube {dim}D n={r['particles']} {backend} {prec}: {fmt(r['particle_steps_per_s'])}")
+
+    if not args.quick and not args.no_skips:
+        run_skips(res, backends, args.reps, log)
+
+    res["ratios"] = [{"n_grid": t["n_grid"], "backend": r["backend"], "threads": r.get("threads"),
+                      "ratio": r["particle_steps_per_s"] / t["particle_steps_per_s"]}
+                     for t in res["taichi"] for r in res["throughput"]
+                     if r["scene"] == "mpm3d" and r["dim"] == 3 and r["precision"] == "fp32" and r["n_grid"] == t["n_grid"]]
+    res["machine"]["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1))
+    thr, sk = tables(res)
+    print(thr)
+    print(sk)
+    if args.readme:
+        write_readme(Path(args.readme), thr, sk)
+    return res
+
+
+def run_skips(res, backends, reps, log):
+    """Each skip: same backend, fp32, 65k particles (3D) with and without the thing left out."""
+
+    def pair(name, backend, without, with_, note=""):
+        a, b = without(), with_()
+        row = {"skip": name, "backend": backend, "without": a["particle_steps_per_s"], "with": b["particle_steps_per_s"],
+               "note": note, "without_run": a, "with_run": b}
+        res["skips"].append(row)
+        log(f"skip {name} [{backend}]: {fmt(row['without'])} vs {fmt(row['with'])} ({row['without'] / row['with']:.2f}x)")
+
+    fl, _ = fluid("65k", 3)
+    fl_fc, _ = fluid("65k", 3, law="fixed_corotated")
+    fl_bc, _ = fluid("65k", 3, boundaries=extra_boundaries(3))
+    el, pl = cube(3), cube(3, law="hencky_von_mises", yield_stress=1e9)
+    for be in backends:
+        one = {"threads": 1} if be == "warp" else {}    # Warp on one thread: steadier on a shared machine
+        m = lambda sc, **kw: (lambda: measure(sc, be, "fp32", reps=reps, **one, **kw))
+        pair("plasticity (elastic law vs plastic law)", be, m(el), m(pl),
+             "cube: fixed_corotated vs hencky_von_mises (never yields here): the return map + Hencky log/exp")
+        pair("affine C (PIC vs APIC)", be, m(fl, transfer="pic"), m(fl, transfer="apic"),
+             "mpm3d fluid: no C stored, no affine terms in P2G/G2P")
+        pair("J-only law vs F law", be, m(fl), m(fl_fc),
+             "mpm3d scene: weakly_compressible (J) vs fixed_corotated (F, SVD per particle)")
+        pair("extra boundaries (none vs friction wall + plane + box)", be, m(fl), m(fl_bc),
+             "mpm3d fluid: three extra grid boundaries, none reached")
+        if be == "warp":
+            def full_grid(st):
+                st.limit_grid = False
+            pair("grid update only where particles reach (vs whole grid)", be, m(fl), m(fl, configure=full_grid),
+                 "Warp: grid update + clearing over the reached nodes' box")
+        steps = 200
+        a = measure_rollout(fl, be, "fp32", steps, 100, **one)
+        b = measure_rollout(fl, be, "fp32", steps, 1, **one)
+        res["rollout"] += [a, b]
+        res["skips"].append({"skip": "frames kept (every 100th vs every frame)", "backend": be,
+                             "without": a["particle_steps_per_s"], "with": b["particle_steps_per_s"],
+                             "note": f"rollout of {steps} steps (frames to NumPy + guard per kept frame)"})
+        log(f"skip frames [{be}]: {fmt(a['particle_steps_per_s'])} vs {fmt(b['particle_steps_per_s'])}")
+
+
+if __name__ == "__main__":
+    main()
