@@ -148,3 +148,11 @@ def test_bad_boundary_input_is_clear():
         make_boundary({"kind": "trampoline"})
     with pytest.raises(mpmlab.ConfigError, match="per_node mu needs"):
         FrictionWalls(face="y-", mu=[0.1, 0.2], per_node=True).validate(scene_for("walls", 2))
+
+
+def test_two_walls_boundaries_are_refused():
+    scene = scene_for("walls", 2)
+    scene.boundaries = [Walls(default="slip"), Walls(faces={"y-": "sticky"})]
+    for backend in BACKENDS:
+        with pytest.raises(mpmlab.ConfigError, match="give one, with a kind per face"):
+            mpmlab.build_stepper(scene, backend, "pic", "fp64")

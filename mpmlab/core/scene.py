@@ -6,7 +6,6 @@ present and launches each law's kernel on its own block -- no per-particle switc
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Mapping, Sequence
@@ -15,7 +14,7 @@ import numpy as np
 
 from . import registry
 from .errors import ConfigError, TimeStepError
-from .geometry import Shape, make_shape, sample
+from .geometry import make_shape, sample
 
 
 @dataclass

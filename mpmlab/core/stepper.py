@@ -32,6 +32,12 @@ class BaseStepper(AbstractStepper):
             raise ConfigError(f"precision '{precision}' unknown; use 'fp32' or 'fp64'.")
         for b in scene.boundaries:
             b.validate(scene)
+        walls = [b for b in scene.boundaries if b.name == "walls"]
+        if len(walls) > 1:
+            raise ConfigError(
+                f"scene '{scene.name}' has {len(walls)} 'walls' boundaries; give one, with a kind per face "
+                f"(faces: {{x-: sticky, y-: slip, ...}})."
+            )
         self.scene = scene
         self.transfer = transfer
         self.precision = precision

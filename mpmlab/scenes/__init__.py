@@ -1,1 +1,1 @@
-"""Ready-made scenes (benchmarks, validation cases): plain functions returning a ``Scene``."""
+"""Library scene builders (validation cases with analytic references, peer throughput scenes)."""

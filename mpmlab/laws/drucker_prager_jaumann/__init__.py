@@ -7,6 +7,7 @@ from typing import ClassVar
 
 from ...core.errors import InvalidParameterError
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
+from .._common import builtin_implementations
 from . import reference as _reference
 
 
@@ -47,10 +48,7 @@ class Law(AbstractConstitutiveLaw):
     state_fields = ("J", "sigma", "eps_p")
     plastic = True
     reference = _reference
-    implementations: ClassVar[dict] = {
-        "jax": "mpmlab.laws.drucker_prager_jaumann.jax:make",
-        "warp": "mpmlab.laws.drucker_prager_jaumann.warp:make",
-    }
+    implementations: ClassVar[dict] = builtin_implementations("drucker_prager_jaumann")
 
     @classmethod
     def check_consistency(cls, params, where):

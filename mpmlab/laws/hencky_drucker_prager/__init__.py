@@ -1,11 +1,10 @@
 """Hencky elasticity with Drucker-Prager plasticity (Klar et al. 2016; NCLaw App. B, Eqs. 14-16): SAND."""
 from __future__ import annotations
 
-import math
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .. import _linalg_np
+from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed
 from . import reference as _reference
 
 
@@ -22,20 +21,16 @@ class Law(AbstractConstitutiveLaw):
 
     name: ClassVar[str] = "hencky_drucker_prager"
     params = (
-        ParamSpec("E", "Pa", 1.0e5, low=0.0, low_open=True, doc="Young's modulus"),
-        ParamSpec("nu", "-", 0.3, low=-1.0, high=0.5, low_open=True, high_open=True, doc="Poisson ratio"),
+        YOUNGS_MODULUS,
+        POISSON_RATIO,
         ParamSpec("friction_angle", "deg", 30.0, low=0.0, high=90.0, low_open=True, high_open=True,
                   doc="friction angle phi"),
     )
     state_fields = ("F",)
     plastic = True
     reference = _reference
-    implementations: ClassVar[dict] = {
-        "jax": "mpmlab.laws.hencky_drucker_prager.jax:make",
-        "warp": "mpmlab.laws.hencky_drucker_prager.warp:make",
-    }
+    implementations: ClassVar[dict] = builtin_implementations("hencky_drucker_prager")
 
     @classmethod
     def wave_speed(cls, params, density):
-        mu, lam = _linalg_np.lame(params["E"], params["nu"])
-        return math.sqrt((lam + 2.0 * mu) / density)
+        return p_wave_speed(params, density)

@@ -7,7 +7,6 @@ F = I, the rest state of every particle. The spectral derivative itself is well 
 """
 from __future__ import annotations
 
-from functools import partial
 from types import SimpleNamespace
 
 import jax

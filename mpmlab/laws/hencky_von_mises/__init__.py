@@ -1,11 +1,10 @@
 """Hencky elasticity with von Mises plasticity (NCLaw App. B, Eqs. 17-19; Hu et al. 2018): PLASTICINE."""
 from __future__ import annotations
 
-import math
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .. import _linalg_np
+from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed
 from . import reference as _reference
 
 
@@ -20,20 +19,16 @@ class Law(AbstractConstitutiveLaw):
 
     name: ClassVar[str] = "hencky_von_mises"
     params = (
-        ParamSpec("E", "Pa", 1.0e5, low=0.0, low_open=True, doc="Young's modulus"),
-        ParamSpec("nu", "-", 0.3, low=-1.0, high=0.5, low_open=True, high_open=True, doc="Poisson ratio"),
+        YOUNGS_MODULUS,
+        POISSON_RATIO,
         ParamSpec("yield_stress", "Pa", 3.0e3, low=0.0, low_open=True,
                   doc="yield stress tau_Y (Frobenius norm of the deviatoric Kirchhoff stress, = sqrt(2/3) sigma_y)"),
     )
     state_fields = ("F",)
     plastic = True
     reference = _reference
-    implementations: ClassVar[dict] = {
-        "jax": "mpmlab.laws.hencky_von_mises.jax:make",
-        "warp": "mpmlab.laws.hencky_von_mises.warp:make",
-    }
+    implementations: ClassVar[dict] = builtin_implementations("hencky_von_mises")
 
     @classmethod
     def wave_speed(cls, params, density):
-        mu, lam = _linalg_np.lame(params["E"], params["nu"])
-        return math.sqrt((lam + 2.0 * mu) / density)
+        return p_wave_speed(params, density)

@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
+from .._common import builtin_implementations
 from . import reference as _reference
 
 
@@ -33,10 +34,7 @@ class Law(AbstractConstitutiveLaw):
     state_fields = ("J", "sigma")
     plastic = False
     reference = _reference
-    implementations: ClassVar[dict] = {
-        "jax": "mpmlab.laws.newtonian_fluid.jax:make",
-        "warp": "mpmlab.laws.newtonian_fluid.warp:make",
-    }
+    implementations: ClassVar[dict] = builtin_implementations("newtonian_fluid")
 
     @classmethod
     def default_from_density(cls, name, density):

@@ -5,6 +5,7 @@ import math
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
+from .._common import builtin_implementations
 from . import reference as _reference
 
 
@@ -25,10 +26,7 @@ class Law(AbstractConstitutiveLaw):
     state_fields = ("J",)
     plastic = True   # Eq. 21 is a return map; on the J state it is folded into the update
     reference = _reference
-    implementations: ClassVar[dict] = {
-        "jax": "mpmlab.laws.weakly_compressible.jax:make",
-        "warp": "mpmlab.laws.weakly_compressible.warp:make",
-    }
+    implementations: ClassVar[dict] = builtin_implementations("weakly_compressible")
 
     @classmethod
     def wave_speed(cls, params, density):
