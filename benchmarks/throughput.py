@@ -89,7 +89,7 @@ def measure(scene, backend, precision, transfer="mls", steps=None, reps=3, confi
            "ms_per_step": best / steps * 1e3, "ms_per_step_all": [t / steps * 1e3 for t in times],
            "particle_steps_per_s": n * steps / best, "diverged": bool(bad)}
     if backend == "warp":
-        out["threads"] = st.threads
+        out["threads"] = getattr(st, "threads", 1)
     del st
     return out
 
@@ -362,6 +362,11 @@ def run_skips(res, backends, reps, log):
                 st.limit_grid = False
             pair("grid update only where particles reach (vs whole grid)", be, m(fl), m(fl, configure=full_grid),
                  "Warp: grid update + clearing over the reached nodes' box")
+
+            def unsorted(st):
+                st.sort_every = None
+            pair("scattered memory access (particles sorted by cell vs scene order)", be, m(fl), m(fl, configure=unsorted),
+                 "Warp CPU: re-sort every 100 steps vs never (the peer's random order); an option, not a skip")
         steps = 200
         a = measure_rollout(fl, be, "fp32", steps, 100, **one)
         b = measure_rollout(fl, be, "fp32", steps, 1, **one)

@@ -1,10 +1,15 @@
-"""Warp stepper: P2G -> grid update (+ walls) -> grid boundaries -> G2P -> one law kernel per material.
+"""Warp stepper: P2G -> grid update (+ walls) -> grid boundaries -> G2P fused with each material's law.
 
 What the scene does not need is not compiled and not launched: no ``C`` array or affine terms for
-PIC/FLIP, no old grid velocity except for FLIP, one law kernel per law present (built from a closure
-over its ``@wp.func``s), no boundary kernels for absent boundaries, no external-force array without
-loads. ``_advance`` never writes into its input state, so a saved state stays valid (replay on
-divergence; tape-based gradients in issue #4).
+PIC/FLIP, no old grid velocity except for FLIP, one G2P+law kernel per law present (built from a
+closure over its ``@wp.func``s), no boundary kernels for absent boundaries, no external-force array
+without loads, no grid work outside the nodes particles reach. ``_advance`` never writes into its
+input state, so a saved state stays valid (replay on divergence; tape-based gradients in issue #4).
+
+CPU execution: particles are kept sorted by cell (cache locality; invisible to users, see
+``WarpState``), and each phase is split into chunks launched from a small thread pool (a Warp CPU
+launch runs on one thread and releases the GIL). Results do not depend on the thread count's
+scheduling: P2G chunk c always goes to grid copy c and the copies are summed in order.
 """
 
 import itertools
