@@ -11,7 +11,8 @@ LAW = registry.laws.get("newtonian_fluid")
 BACKENDS = ("reference", "jax", "warp")
 DIMS = (2, 3)
 C, MU, RHO0 = 20.0, 0.5, 997.0
-PRM = np.array([C, MU, RHO0])
+NO_CUTOFF = -1e30        # min_pressure: Eq. 20 unclamped (the closed forms below include tension, J > 1)
+PRM = np.array([C, MU, RHO0, NO_CUTOFF])
 
 
 def update(backend, dim, states, L, dt, prm=PRM):
@@ -92,10 +93,54 @@ def test_matches_reference_on_random_states():
 
 def test_parameters_density_default_and_wave_speed():
     prm = LAW.resolve_params({}, "t", density=1234.0)
-    assert prm == {"sound_speed": 35.0, "viscosity": 1.01e-3, "rest_density": 1234.0}
+    assert prm == {"sound_speed": 35.0, "viscosity": 1.01e-3, "rest_density": 1234.0, "min_pressure": 0.0}
     assert LAW.resolve_params({"rest_density": 1000.0}, "t", density=1234.0)["rest_density"] == 1000.0
     assert LAW.wave_speed(prm, 1234.0) == 35.0
     with pytest.raises(InvalidParameterError):
         LAW.resolve_params({"sound_speed": 0.0}, "t", density=1000.0)
     with pytest.raises(InvalidParameterError):
         LAW.resolve_params({"viscosity": -1.0}, "t", density=1000.0)
+    with pytest.raises(InvalidParameterError):   # a cut-off above 0 would push a liquid apart at rest
+        LAW.resolve_params({"min_pressure": 1.0}, "t", density=1000.0)
+
+
+@pytest.mark.parametrize("dim", DIMS)
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("pmin", (0.0, -500.0))
+def test_tension_cutoff(backend, dim, pmin):
+    """p = max(c^2 rho0 (1/J - 1), min_pressure): compression unchanged, tension clamped at min_pressure."""
+    prm = np.array([C, MU, RHO0, pmin])
+    J0 = np.array([0.95, 1.0, 1.0001, 1.01, 1.3])
+    eye = np.eye(dim)
+    states = [{"J": j, "sigma": np.zeros((dim, dim))} for j in J0]
+    L = np.zeros((len(J0), dim, dim))
+    new = update(backend, dim, states, L, 1e-3, prm)
+    for j, n in zip(J0, new):
+        p = max(C * C * RHO0 * (1.0 / j - 1.0), pmin)
+        assert abs(n["J"] - j) <= 1e-14
+        assert np.max(np.abs(n["sigma"] + p * eye)) <= 1e-10 * scale()
+    # J = 1.0001 is a small tension (-39.9 Pa): clamped by 0, kept by -500 Pa
+    assert new[2]["sigma"][0, 0] == (0.0 if pmin == 0.0 else pytest.approx(C * C * RHO0 * (1 - 1 / 1.0001), rel=1e-9))
+    tau = kirchhoff(backend, dim, new, prm)
+    for n, t in zip(new, tau):
+        assert np.max(np.abs(t - n["J"] * n["sigma"])) <= 1e-12 * scale()
+
+
+def test_tension_cutoff_jax_gradient():
+    """JAX stays differentiable through the cut-off: d sigma_xx / d J is c^2 rho0 / J^2 in compression and
+    at rest (p == min_pressure == 0 keeps the unclamped branch), 0 where the tension is clamped."""
+    import jax
+    import jax.numpy as jnp
+
+    from mpmlab.laws.newtonian_fluid.jax import make
+
+    jax.config.update("jax_enable_x64", True)
+    f = make(2)
+
+    def sxx(J):
+        st = {"J": J, "sigma": jnp.zeros((2, 2))}
+        return f.update(st, jnp.zeros((2, 2)), 1e-3, jnp.array([C, MU, RHO0, 0.0]))["sigma"][0, 0]
+
+    g = jax.grad(sxx)
+    for J, want in ((0.9, C * C * RHO0 / 0.81), (1.0, C * C * RHO0), (1.1, 0.0)):
+        assert float(g(J)) == pytest.approx(want, rel=1e-12)

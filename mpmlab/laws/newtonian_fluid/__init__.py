@@ -9,7 +9,7 @@ from . import reference as _reference
 
 
 class Law(AbstractConstitutiveLaw):
-    """sigma = -p I + 2 mu (D - tr(D)/3 I), p = c^2 (rho0 / J - rho0); a hypo-elastic, J-based fluid.
+    """sigma = -p I + 2 mu (D - tr(D)/3 I), p = max(c^2 (rho0 / J - rho0), min_pressure); a hypo-elastic, J-based fluid.
 
     State: ``J`` (volume ratio, J <- J det(I + dt grad_v)) and ``sigma`` (Cauchy stress, kept for
     output; it is recomputed from J and grad_v every step). Kirchhoff stress tau = J sigma.
@@ -22,6 +22,16 @@ class Law(AbstractConstitutiveLaw):
       isotropic expansion carries a small viscous stress; this is the paper's convention.
     * Eq. 20's density update rho^{n+1} = rho^n / (1 + det(Delta d)) is read as the exact volume update
       rho = rho0 / J with J <- J det(I + dt grad_v).
+    * **Tension cut-off** ``min_pressure`` (not in the paper): p <- max(p, min_pressure). Eq. 20 alone
+      gives p < 0 (tension) whenever J > 1; a free-surface liquid cannot carry tension (it cavitates
+      or separates), and weakly compressible SPH/MPM practice clamps p >= 0. The default is
+      therefore 0 (no tension). For the paper's Eq. 20 as written pass a large negative value, e.g.
+      ``min_pressure=-1e30``. Why it matters: in the Ritter dam break (benchmarks/validation.md, 3a)
+      the unclamped law reaches J = 1.027, p = -33 kPa (30x the largest hydrostatic pressure) and
+      the tension holds the thin front back by 30-80 %.
+      At p == min_pressure exactly (e.g. a fluid at rest with min_pressure = 0) the JAX gradient is
+      that of the unclamped branch (jnp.where(p >= min_pressure, ...)), so d p / d J = -c^2 rho0 / J^2
+      is kept for a fluid at rest.
     """
 
     name: ClassVar[str] = "newtonian_fluid"
@@ -30,6 +40,8 @@ class Law(AbstractConstitutiveLaw):
         ParamSpec("viscosity", "Pa s", 1.01e-3, low=0.0, doc="dynamic viscosity mu"),
         ParamSpec("rest_density", "kg/m^3", None, low=0.0, low_open=True,
                   doc="reference density rho0 (defaults to the body density)"),
+        ParamSpec("min_pressure", "Pa", 0.0, high=0.0,
+                  doc="tension cut-off: p = max(p, min_pressure); 0 = no tension, -1e30 = Eq. 20 unclamped"),
     )
     state_fields = ("J", "sigma")
     plastic = False

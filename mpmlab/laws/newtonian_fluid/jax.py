@@ -13,9 +13,11 @@ def make(dim: int) -> SimpleNamespace:
         return state["J"] * state["sigma"]
 
     def update(state, grad_v, dt, prm):
-        c, mu, rho0 = prm[0], prm[1], prm[2]
+        c, mu, rho0, pmin = prm[0], prm[1], prm[2], prm[3]
         J = state["J"] * jnp.linalg.det(eye + dt * grad_v)
         p = c * c * (rho0 / J - rho0)                          # Eq. 20, rho = rho0 / J
+        # tension cut-off p = max(p, pmin); where(>=) keeps the unclamped gradient at p == pmin (rest)
+        p = jnp.where(p >= pmin, p, pmin)
         D = 0.5 * (grad_v + grad_v.T)                          # strain rate (Eq. 19 uses D dt: see Law)
         sigma = -p * eye + 2.0 * mu * (D - jnp.trace(D) / 3.0 * eye)   # 1/3 also in 2D (paper's deviator)
         return {"J": J, "sigma": sigma}

@@ -5,9 +5,9 @@ import numpy as np
 
 
 def pressure(J, prm):
-    """Eq. 20: p = c^2 (rho - rho0), rho = rho0 / J."""
-    c, rho0 = prm[0], prm[2]
-    return c * c * (rho0 / J - rho0)
+    """Eq. 20: p = c^2 (rho - rho0), rho = rho0 / J, with the tension cut-off p >= min_pressure (prm[3])."""
+    c, rho0, pmin = prm[0], prm[2], prm[3]
+    return np.maximum(c * c * (rho0 / J - rho0), pmin)
 
 
 def cauchy(J, grad_v, prm):

@@ -22,10 +22,11 @@ def make(dim: int, precision: str) -> SimpleNamespace:
         c = prm[p, 0]
         mu = prm[p, 1]
         rho0 = prm[p, 2]
+        pmin = prm[p, 3]
         eye = wp.identity(dim, scalar)
         out = s
         J = s.J * wp.determinant(eye + dt * grad_v)
-        pres = c * c * (rho0 / J - rho0)                        # Eq. 20, rho = rho0 / J
+        pres = wp.max(c * c * (rho0 / J - rho0), pmin)          # Eq. 20, rho = rho0 / J; tension cut-off
         D = scalar(0.5) * (grad_v + wp.transpose(grad_v))       # strain rate (Eq. 19 uses D dt: see Law)
         out.J = J
         # 1/3 also in 2D (the paper's deviator)
