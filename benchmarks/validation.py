@@ -65,12 +65,15 @@ def bar_runs(quick):
 
 
 def dam_runs(quick, backend):
+    """(transfer, scene kwargs, t_end). The library default min_pressure = 0 (no tension) unless given;
+    min_pressure = -1e30 is JAX-MPM's Eq. 20 as written (the fluid carries tension)."""
     if quick:
         return [("apic", dict(dx=0.0125), 0.25)]
     runs = [("apic", dict(dx=0.008), 0.45), ("apic", dict(dx=0.004), 0.45)]
-    if backend == "warp":  # investigation runs (transfer, time step): Warp is the faster CPU backend
-        runs += [("flip", dict(dx=0.008), 0.45), ("tpic", dict(dx=0.008), 0.45),
-                 ("apic", dict(dx=0.004, dt=1e-5), 0.45)]
+    if backend == "warp":  # investigation runs (EOS, transfer, walls): Warp is the faster CPU backend
+        runs += [("apic", dict(dx=0.004, min_pressure=-1e30), 0.45), ("apic", dict(dx=0.008, min_pressure=-1e30), 0.45),
+                 ("flip", dict(dx=0.008), 0.45), ("tpic", dict(dx=0.008), 0.45),
+                 ("apic", dict(dx=0.008, wall="separate"), 0.45)]
     return runs
 
 
@@ -150,32 +153,38 @@ def run_dam(backends, quick, rows, raw):
                     xr = float(V.ritter_front(0.02, r["traj"].time[f], r["H0"], r["L0"], r["g"]))
                     cps.append((tc, xs, xr))
             dt_label = f"dt={r['dt']:.3g} s" + (" (paper)" if "dt" in kw else " (CFL 0.3)")
-            mx = r["max_abs_error"]
-            mx_low = float(np.nanmax(np.abs(err[:, low]))) if low.any() else float("nan")
+            mx, mx_low, mx_wave = r["max_abs_error"], r["max_abs_error_low"], r["max_abs_error_wave"]
+            eos = ("Eq. 20 unclamped (min_pressure=-1e30, tension)" if kw.get("min_pressure", 0.0) < 0
+                   else "p >= 0 (library default)")
+            walls = f", {kw['wall']} walls" if "wall" in kw else ", slip walls"
             row = {
-                "case": "3a Ritter dam break", "variant": f"front at y in [2dx, 0.4 H0], t in [{window[0]}, {window[1]}] s",
+                "case": "3a Ritter dam break",
+                "variant": f"{eos}{walls}; y in [2dx, 0.4 H0], t in [{window[0]}, {window[1]}] s",
                 "backend": backend, "transfer": tr, "precision": "fp32",
                 "resolution": f"dx={dx * 1000:g} mm, 2x2 ppc, {r['particles']} particles, {dt_label}",
                 "measured": "; ".join(f"x(0.02 m, {tc} s) = {xs:.4f} m" for tc, xs, xr in cps),
                 "reference": "; ".join(f"{xr:.4f} m" for tc, xs, xr in cps) + " (Ritter)",
-                "error": f"max|e| = {100 * mx:.1f} % (y <= 0.2 H0: {100 * mx_low:.1f} %)",
-                "bar": "|e| <= 5 % of (x_R - L0)", "pass": bool(mx <= 0.05),
+                "error": f"(A) {100 * mx:.1f} %; (B) {100 * mx_low:.1f} %; (C) {100 * mx_wave:.1f} %",
+                "bar": "A <= 5 % (note); B, C: 5 %",
+                "pass": bool(mx <= 0.05),
                 "extra": f"tip x at t={t_end}: {r['tip'][-1]:.3f} m (Ritter {r['L0'] + 2 * math.sqrt(r['g'] * r['H0']) * t_end:.3f} m); "
                          "per-level max|e|: " + ", ".join(f"{1000 * y:.0f}mm:{100 * np.nanmax(np.abs(err[:, i])):.0f}%"
                                                           for i, y in enumerate(lv)),
                 "wall_s": r["build_s"] + r["run_s"], "run_s": r["run_s"], "key": "dam",
             }
+            row["extra"] = (f"B: {'pass' if mx_low <= 0.05 else 'fail'}, C: {'pass' if mx_wave <= 0.05 else 'fail'}; "
+                            + row["extra"])
             rows.append(row)
             raw.append(dict(row) | {"levels": lv.tolist(), "times": r["times"].tolist(), "x_sim": r["x_sim"].tolist(),
                                     "x_ref": r["x_ref"].tolist(), "max_abs_error": mx, "max_abs_error_low": mx_low,
-                                    "checkpoints": cps, "dx": dx})
-            log(f"[dam] {backend:5s} {tr:5s} dx={dx * 1000:g}mm dt={r['dt']:.3g} max|e|={100 * mx:.1f}% "
-                f"(y<=0.2H0: {100 * mx_low:.1f}%) checkpoints={[(tc, round(xs, 4), round(xr, 4)) for tc, xs, xr in cps]} "
+                                    "max_abs_error_wave": mx_wave, "checkpoints": cps, "dx": dx, "kw": kw})
+            log(f"[dam] {backend:5s} {tr:5s} {kw} dt={r['dt']:.3g} A={100 * mx:.1f}% "
+                f"B={100 * mx_low:.1f}% C={100 * mx_wave:.1f}% checkpoints={[(tc, round(xs, 4), round(xr, 4)) for tc, xs, xr in cps]} "
                 f"tip={r['tip'][-1]:.3f} wall={row['wall_s']:.1f}s")
             results.append((backend, tr, kw, r))
     # plot: profiles of the finest APIC run per backend + error history per level
     fig, axs = plt.subplots(3, 1, figsize=(12, 10))
-    first = [x for x in results if x[1] == "apic"]
+    first = [x for x in results if x[1] == "apic" and "min_pressure" not in x[2] and "wall" not in x[2]]
     pick = min(first, key=lambda x: (x[3]["scene"].dx, x[0] != "warp", "dt" in x[2]))
     backend, tr, kw, r = pick
     T = r["traj"]
@@ -194,106 +203,14 @@ def run_dam(backends, quick, rows, raw):
     axs[1].set_title("Front error per height (same run)")
     for backend, tr, kw, r in results:
         axs[2].plot(r["traj"].time, r["tip"], label=f"{backend} {tr} dx={r['scene'].dx * 1000:g}mm"
-                    + (f" dt={r['dt']:.0e}" if "dt" in kw else ""))
+                    + (f" dt={r['dt']:.0e}" if "dt" in kw else "") + (" unclamped" if "min_pressure" in kw else "")
+                    + (f" {kw['wall']}" if "wall" in kw else ""))
     t = np.linspace(0, max(x[3]["traj"].time[-1] for x in results), 50)
     axs[2].plot(t, 1.0 + 2 * np.sqrt(9.8 * 0.1) * t, "k--", label="Ritter tip L0 + 2 sqrt(g H0) t")
     axs[2].plot(t, V.ritter_front(0.02, t), "k:", label="Ritter x(y = 20 mm)")
     axs[2].set_xlabel("t [s]"); axs[2].set_ylabel("x [m]"); axs[2].legend(fontsize=7, ncol=2)
     axs[2].set_title("Foremost particle (the one-cell tip, excluded from the bar)")
     fig.tight_layout(); fig.savefig(OUT / "dam_break.png", dpi=110); plt.close(fig)
-
-
-# ------------------------------------------------------------------------------------------------
-# investigation: the dam break with a tension cut-off in the equation of state
-# ------------------------------------------------------------------------------------------------
-def _nf_cutoff_make(dim):
-    """JAX law functions: newtonian_fluid (JAX-MPM Eqs. 19-20) with the pressure clamped to p >= 0."""
-    from types import SimpleNamespace
-
-    import jax.numpy as jnp
-
-    eye = jnp.eye(dim)
-
-    def kirchhoff(state, prm):
-        return state["J"] * state["sigma"]
-
-    def update(state, grad_v, dt, prm):
-        c, mu, rho0 = prm[0], prm[1], prm[2]
-        J = state["J"] * jnp.linalg.det(eye + dt * grad_v)
-        p = jnp.maximum(c * c * (rho0 / J - rho0), 0.0)          # the only change: no tension
-        D = 0.5 * (grad_v + grad_v.T)
-        return {"J": J, "sigma": -p * eye + 2.0 * mu * (D - jnp.trace(D) / 3.0 * eye)}
-
-    return SimpleNamespace(kirchhoff=kirchhoff, update=update)
-
-
-def register_tension_cutoff_law(name="newtonian_fluid_no_tension"):
-    """Register, for this process only, ``newtonian_fluid`` with p >= 0 (JAX only). Not a library law:
-    it exists to test whether the tension the library EOS allows (p < 0 for J > 1) is what holds the
-    dam-break front back."""
-    from mpmlab.core import registry
-    from mpmlab.core.interfaces import AbstractConstitutiveLaw
-
-    base = registry.laws.get("newtonian_fluid")
-    attrs = {k: getattr(base, k) for k in ("params", "state_fields", "plastic", "reference")}
-    attrs.update(name=name, implementations={"jax": f"{__name__}:_nf_cutoff_make"},
-                 wave_speed=base.wave_speed, default_from_density=base.default_from_density,
-                 __doc__="newtonian_fluid with a tension cut-off p >= 0 (benchmarks/validation.py investigation)")
-    for k in ("initial_state",):
-        if k in base.__dict__:
-            attrs[k] = base.__dict__[k]
-    law = type("NewtonianNoTension", (AbstractConstitutiveLaw,), attrs)
-    registry.laws.register(name, law, provenance="benchmarks/validation.py")
-    return name
-
-
-def run_dam_tension(backends, quick, rows, raw):
-    if "jax" not in backends:
-        return
-    name = register_tension_cutoff_law()
-    results = []
-    for dx in ((0.0125,) if quick else (0.008, 0.004)):
-        t_end = 0.25 if quick else 0.45
-        window = (0.2, t_end)
-        r = V.run_dam_break(backend="jax", transfer="apic", precision="fp32", t_end=t_end, window=window, dx=dx,
-                            law=name)
-        lv, err = r["levels"], r["error"]
-        low = lv <= 0.2 * r["H0"] + 1e-12
-        mx = r["max_abs_error"]
-        mx_low = float(np.nanmax(np.abs(err[:, low]))) if low.any() else float("nan")
-        row = {
-            "case": "3a Ritter dam break -- investigation: EOS with tension cut-off p >= 0 (not a library law)",
-            "variant": f"front at y in [2dx, 0.4 H0], t in [{window[0]}, {window[1]}] s", "backend": "jax",
-            "transfer": "apic", "precision": "fp32",
-            "resolution": f"dx={dx * 1000:g} mm, 2x2 ppc, {r['particles']} particles, dt={r['dt']:.3g} s (CFL 0.3)",
-            "measured": "", "reference": "Ritter",
-            "error": f"max|e| = {100 * mx:.1f} % (y <= 0.2 H0: {100 * mx_low:.1f} %)",
-            "bar": "|e| <= 5 % of (x_R - L0)", "pass": bool(mx <= 0.05),
-            "extra": f"tip x at t={t_end}: {r['tip'][-1]:.3f} m; per-level max|e|: "
-                     + ", ".join(f"{1000 * y:.0f}mm:{100 * np.nanmax(np.abs(err[:, i])):.0f}%" for i, y in enumerate(lv)),
-            "wall_s": r["build_s"] + r["run_s"], "run_s": r["run_s"], "key": "dam_tension",
-        }
-        rows.append(row)
-        raw.append(dict(row) | {"levels": lv.tolist(), "times": r["times"].tolist(), "x_sim": r["x_sim"].tolist(),
-                                "x_ref": r["x_ref"].tolist(), "max_abs_error": mx, "max_abs_error_low": mx_low, "dx": dx})
-        log(f"[dam p>=0] jax apic dx={dx * 1000:g}mm max|e|={100 * mx:.1f}% (y<=0.2H0: {100 * mx_low:.1f}%) "
-            f"tip={r['tip'][-1]:.3f} wall={row['wall_s']:.1f}s")
-        results.append(r)
-    fig, axs = plt.subplots(2, 1, figsize=(12, 7))
-    r = results[-1]
-    T = r["traj"]
-    for k, tt in enumerate((0.2, 0.3, min(0.45, T.time[-1]))):
-        f = int(np.argmin(np.abs(T.time - tt)))
-        axs[0].scatter(T.x[f, :, 0], T.x[f, :, 1] + 0.12 * k, s=0.1, color=f"C{k}")
-        yy = np.linspace(0, r["H0"], 100)
-        axs[0].plot(V.ritter_front(yy, T.time[f], r["H0"], r["L0"], r["g"]), yy + 0.12 * k, "k", lw=1)
-    axs[0].set_xlim(0, 2.0); axs[0].set_yticks([])
-    axs[0].set_title(f"Investigation: p >= 0 cut-off (jax, apic, dx={r['scene'].dx * 1000:g} mm), t = 0.2/0.3/0.45 s vs Ritter")
-    for i, y in enumerate(r["levels"]):
-        axs[1].plot(r["times"], 100 * r["error"][:, i], label=f"y = {1000 * y:.0f} mm")
-    axs[1].axhspan(-5, 5, color="g", alpha=0.15, label="+-5 % bar")
-    axs[1].set_xlabel("t [s]"); axs[1].set_ylabel("(x_sim - x_R)/(x_R - L0) [%]"); axs[1].legend(fontsize=7, ncol=4)
-    fig.tight_layout(); fig.savefig(OUT / "dam_break_tension_cutoff.png", dpi=110); plt.close(fig)
 
 
 def run_column(backends, quick, rows, raw):
@@ -370,10 +287,13 @@ NOTES = """
   centre-of-mass velocity (linear interpolation between 200 frames per period).
 * **Dam break (3a).** `ritter_dam_break(dx)`: water 1.0 x 0.1 m at the back wall of a 2.0 x 0.12 m tank,
   `newtonian_fluid` with c = 35 m/s, viscosity 0, rest density 1000, g = 9.8, slip walls (paper Sec.
-  4.1.1), 2x2 particles per cell, fp32. The surface position at height y is where the water depth
+  4.1.1), 2x2 particles per cell, fp32; `min_pressure` = 0 (no tension, the library default) unless the
+  row says "Eq. 20 unclamped" (min_pressure = -1e30, the paper's EOS). The surface position at height y is where the water depth
   h(x) = sum_p V0_p J_p N(x - x_p) / dx' (quadratic B-spline, dx' = 2 dx) last reaches y; this is
   compared at every 0.01 s frame in the window and at heights y = 2dx, 3dx, ..., 0.4 H0 with Ritter
-  x_R = L0 + (2 sqrt(g H0) - 3 sqrt(g y)) t; e = (x_sim - x_R)/(x_R - L0). The depth-based front
+  x_R = L0 + (2 sqrt(g H0) - 3 sqrt(g y)) t. Error column: (A) max |x_sim - x_R|/(x_R - L0) over all
+  heights (the note's metric, pass column); (B) the same over y <= 0.2 H0; (C) max |x_sim - x_R| /
+  (2 sqrt(g H0) t) over all heights (relative to the wave length); see Findings 4. The depth-based front
   ignores the one-cell-thick tip by construction; the tip itself is plotted, not scored.
 * **Hydrostatic column (3c).** `hydrostatic_column(dx)`: 0.2 x 0.1 m, rho = 1800, K = 1e6 Pa
   (`newtonian_fluid`, c = sqrt(K/rho) = 23.6 m/s, viscosity 0), 25 particles per cell, slip base and
@@ -394,8 +314,9 @@ FINDINGS = """
 **Verdict.** Vibrating bar: passes the 1 % bar on both backends with every transfer from 50 cells
 along the bar. Hydrostatic column: passes -- more accurate than CB-Geo at all three dx on both
 backends (+3.78 / +2.00 / +1.02 % vs CB-Geo's 4.85 / 2.33 / 1.08 %). Ritter dam break: **fails** the
-recommended 5 % bar on both backends at every resolution, transfer and time step tried; the
-investigation below finds the main cause (the fluid law carries tension) and what remains.
+recommended 5 % bar on both backends at every resolution, transfer and time step tried; item 4
+explains the metric, the cause fixed (the fluid law carried tension; now `min_pressure`, default
+p >= 0) and what remains.
 
 1. **JAX and Warp agree** to 4+ significant digits in every case: bar periods identical to 1e-12
    (fp64); dam-break front positions within 0.6 mm (fp32, 4 mm); column base stress identical to
@@ -424,35 +345,45 @@ investigation below finds the main cause (the fluid law carries tension) and wha
    swings by +-1.5 % after 40 T1, and one-period means between 12.5 and 40 T1 scatter within
    0.88-1.17 %. So the 2.5 mm number carries about +-0.1 % of uncertainty: it beats CB-Geo's
    1.08 % only narrowly.
-4. **Dam break: why it misses 5 %.** Measured per height (4 mm, APIC): the surface at
-   y = 12-20 mm lags Ritter by 13-18 % on average, and it leads at y >= 32 mm, up to +84 % at
-   y = 40 mm = 0.4 H0, where x_R - L0 is only 0.05 m at t = 0.45 s. The foremost particle reaches
-   1.64 m at t = 0.45 s; Ritter's tip is at 1.89 m.
-   * *Resolution* -- 8 to 4 mm does not converge to Ritter (y <= 0.2 H0: max |e| 12 % to 20 %).
-   * *Time step* -- the paper's dt = 1e-5 s (4 mm) gives 19 % / 97 %, like the CFL-0.3 step.
-   * *Transfer* -- APIC and TPIC are the same. FLIP (ratio 0.99) is worse: its tip is the slowest,
-     1.33 m at 0.45 s.
-   * *Boundaries* -- slip walls, as in the paper. The floor, the only wall the water touches in the
-     scored window, is frictionless.
-   * *Measurement* -- the depth-based front (B-spline depth, 2 dx kernel) and the literal
-     "rightmost particle reaching height y" agree within a few % (4 mm, at y = 8 / 20 / 30 / 40 mm:
-     max |e| 9 / 14 / 10 / 84 % vs 9 / 14 / 11 / 89 %; checked outside this script).
-   * **Main cause: the equation of state carries tension.** `newtonian_fluid` uses
-     p = c^2 rho0 (1/J - 1) (JAX-MPM Eq. 20; JAX-MPM's code does the same). For J > 1 the pressure
-     is negative, and in these runs J reaches 1.02-1.027, i.e. p = -25 to -33 kPa. The largest
-     hydrostatic pressure is 0.98 kPa. The thin, stretching front is held back by tension. The
-     same runs with p clamped at >= 0 (investigation law defined in this script, JAX only; rows
-     above) move the tip to 1.66 / 1.71 m and cut max |e| from 119 / 84 % to 41 / 32 % (8 / 4 mm).
-     At 4 mm every height is within about +-11 % by t = 0.45 s and still converging towards Ritter
-     (dam_break_tension_cutoff.png).
-   * *What remains* is the early-time, non-hydrostatic flow that Ritter's shallow-water solution
-     leaves out, at t sqrt(g/H0) <= 4.5. The JAX-MPM paper reports the same discrepancy for
-     t < 0.3 s. Near the dam site the relative measure divides by x_R - L0 -> 0, which inflates it.
-     `weakly_compressible` (tau = K J (J - 1)) also allows tension; at 8 mm it gave the same front
-     to 0.1 mm (checked outside this script).
-   The bar itself is left as the verification note recommends. Meeting it would need at least a
-   tension cut-off (a law change, not made here) and probably a later window (t >= 0.3 s) or heights
-   y <= 0.3 H0.
+4. **Dam break (3a): what 5 % can mean, and what is met.** Three measures over heights
+   y = 2dx ... 0.4 H0 (step dx) and every 0.01 s frame in t in [0.2, 0.45] s:
+   (A) the note's |x_sim - x_R| / (x_R - L0); (B) the same for y <= 0.2 H0 only; (C) |x_sim - x_R| /
+   (2 sqrt(g H0) t), the error relative to the Ritter wave length (dam site to tip).
+   * **(A) is ill-posed at the top of its range.** x_R - L0 = (2 - 3 sqrt(y/H0)) sqrt(g H0) t: at
+     y = 0.4 H0 that is 0.103 sqrt(g H0) t = 20 mm at t = 0.2 s, so 5 % is 1 mm = dx/4 at the paper's
+     dx = 4 mm -- sub-cell accuracy of one surface point, at the height where the shallow-water
+     (hydrostatic) assumption is worst (next to the dam site, t sqrt(g/H0) = 2-4.5 in the window). The
+     errors at 0.4 H0 are 6-11 mm (a cell or two) yet read as 24-41 %.
+   * **Cause 1, fixed: the EOS carried tension.** JAX-MPM Eq. 20, p = c^2 rho0 (1/J - 1), gives
+     p = -25 to -33 kPa (J = 1.02-1.027) in the stretching front, 30x the largest hydrostatic pressure,
+     and holds the front back. `newtonian_fluid` now has `min_pressure` (default 0: no tension, the
+     standard weakly compressible practice; `-1e30` = Eq. 20 as written, a documented deviation from
+     the paper). Unclamped vs clamped, APIC: 8 mm A 119 % -> 41 %, B 12 % -> 8 %; 4 mm A 84 % -> 32 %,
+     tip at 0.45 s 1.52/1.64 m -> 1.66/1.71 m (Ritter 1.89 m; the one-cell tip is not scored).
+   * **What remains (p >= 0, 4 mm, APIC):** heights 16-32 mm lag Ritter by 12-18 % of (x_R - L0) at
+     t = 0.2 s, 10-13 % at 0.3 s and 6-8 % at 0.45 s: the error shrinks with time, as the early
+     non-hydrostatic flow relaxes towards the shallow-water solution, but it is not inside 5 % in the
+     window. Going 8 -> 4 mm does not reduce B (8 % -> 15 %): at 8 mm the scored heights are only 16, 24,
+     32, 40 mm and 8 mm's extra numerical smoothing happens to sit closer to Ritter; this is not
+     convergence. C is 3.1 % at 8 mm and 5.2 % at 4 mm.
+   * *Boundaries* -- the floor and back wall are exactly y = 0 and x = 0 (node 1 of the 2-cell wall
+     layer), the body starts on them, Ritter's x uses the same origin with the dam at L0 = 1 m; the
+     back wall is not reached by the rarefaction before t = 1.01 s. The front measure is depth based
+     (h(x) = sum V0 J N / dx'), so it does not depend on where exactly the floor plane is. `separate`
+     instead of `slip` walls (8 mm) changes the numbers by several % either way (A 27 %, B 11 %, C 4.3 %,
+     tip 1.76 m): the wall treatment at the 1-2-cell-thick front matters at this resolution.
+   * *Transfer* (8 mm, p >= 0): APIC A/B/C = 41/8/3.1 %, TPIC 43/10/4.0 %, FLIP 0.99 74/12/4.6 %.
+     *Time step*: the paper's dt = 1e-5 s gave the same picture as CFL 0.3 in the unclamped runs
+     (4 mm: 97 % vs 84 %; earlier run, not repeated here).
+   * *Measurement* -- the depth-based front and the literal "rightmost particle reaching y" agree
+     within a few % (checked earlier, unclamped); the one-cell tip is excluded by construction.
+   **Verdict:** the note's bar (A <= 5 %) is not met and, at y near 0.4 H0, cannot defensibly be
+   demanded of a dx = 4 mm simulation (it asks for dx/4). The honest alternatives: (B) y <= 0.2 H0 --
+   8 % at 8 mm, 15 % at 4 mm: not met; (C) error relative to the wave length -- met at 8 mm (3.1 %),
+   missed at 4 mm (5.2 %). mpmlab does not meet a 5 % front-position bar at the paper's resolution in
+   [0.2, 0.45] s under any of these metrics; it meets ~10 % (B at t >= 0.3 s, 4 mm) and 5 % on (C) at
+   8 mm. Meeting 5 % would need a later window (Ritter is a long-time solution) or a finer grid study
+   this CPU machine cannot run in reasonable time.
 5. **Speed (CPU).** Warp's CPU backend is about 2x faster than JAX's here (current code): dam break
    4 mm 30 s vs 61 s, column 2.5 mm 149 s vs 305 s. Wall times come from 2 cores shared with other
    jobs and vary 2-3x between runs. "+dirty" in the code line above means colleagues' uncommitted
@@ -468,7 +399,7 @@ def write_markdown(rows, meta, path):
              f"Generated by `python benchmarks/validation.py` on {meta['date']} ({meta['machine']}; "
              f"{meta['cpus']} CPU cores shared, no GPU; Warp runs on its CPU device). "
              "Plots: `benchmarks/out/vibrating_bar.png`, `benchmarks/out/dam_break.png`, "
-             "`benchmarks/out/hydrostatic_column.png`, `benchmarks/out/dam_break_tension_cutoff.png` (investigation); "
+             "`benchmarks/out/hydrostatic_column.png`; "
              "raw numbers: `benchmarks/out/validation.json`. Rerun one case into the table with "
              "`--cases <case> --merge`; `--render` rewrites this file from the JSON.", "",
              "Wall time = stepper build (incl. JIT / kernel compile, cached Warp kernels load in ms) + rollout.", ""]
@@ -492,7 +423,7 @@ def write_markdown(rows, meta, path):
 
 
 CASE_KEYS = {"1a/1c vibrating bar": "bar", "3a Ritter dam break": "dam", "3c hydrostatic column": "column"}
-ORDER = ("bar", "dam", "dam_tension", "column")
+ORDER = ("bar", "dam", "column")
 
 
 def _git_version():
@@ -516,8 +447,7 @@ def _key(row):
 def main(argv=None):
     global OUT
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", default="bar,dam,dam_tension,column",
-                    help="comma list of bar, dam, dam_tension (investigation, JAX only), column")
+    ap.add_argument("--cases", default="bar,dam,column", help="comma list of bar, dam, column")
     ap.add_argument("--backends", default="jax,warp")
     ap.add_argument("--quick", action="store_true", help="coarse smoke run (not the reported numbers)")
     ap.add_argument("--out", default=str(HERE / "out"))
@@ -533,9 +463,9 @@ def main(argv=None):
     stem = "validation_quick" if a.quick else "validation"
     jpath = OUT / f"{stem}.json"
     old = json.loads(jpath.read_text()) if (a.merge or a.render) and jpath.exists() else None
-    rows, raw = [], {"bar": [], "dam": [], "dam_tension": [], "column": []}
+    rows, raw = [], {"bar": [], "dam": [], "column": []}
     t0 = time.time()
-    runners = {"bar": run_bar, "dam": run_dam, "dam_tension": run_dam_tension, "column": run_column}
+    runners = {"bar": run_bar, "dam": run_dam, "column": run_column}
     for key in ORDER:
         if key in cases:
             runners[key](backends, a.quick, rows, raw[key])
@@ -546,6 +476,7 @@ def main(argv=None):
             "python": sys.version.split()[0], "quick": a.quick, "total_s": time.time() - t0}
     code = _git_version()
     runs = dict(old["meta"].get("runs", {})) if old is not None else {}
+    runs = {k: v for k, v in runs.items() if k in ORDER}
     runs.update({k: {"date": time.strftime("%Y-%m-%d %H:%M"), "code": code} for k in cases})
     if old is not None:
         meta = old["meta"] | ({"rerun": {"date": meta["date"], "cases": cases}} if cases else {})
