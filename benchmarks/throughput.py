@@ -15,9 +15,9 @@ What is measured
   The first call (trace/compile/kernel load + the first steps) is reported separately.
 * ``taichi``: ``peers/mpm_taichi.py N_GRID STEPS`` run as a subprocess with the Python of a separate
   virtual environment (``--taichi-python`` or ``$MPMLAB_TAICHI_PYTHON``; Taichi is never imported
-  here). It is run before and after mpmlab's measurements of that size, and the better of the two is
-  kept, as for mpmlab (best of runs): on a shared machine the best run is the least disturbed one.
-  Ratios mpmlab/Taichi are printed and stored for the 3D fp32 mpm3d rows.
+  here). The 3D fp32 mpm3d comparison runs in ``--rounds`` interleaved rounds (Taichi, then each
+  mpmlab variant) and keeps each one's best round: on a shared machine the best round is the least
+  disturbed one, for both sides. Ratios mpmlab/Taichi are printed and stored for those rows.
 * ``skips``: the measured effect of what mpmlab leaves out of a compiled step when a scene does not
   need it (elastic vs plastic law, PIC vs APIC, J-only vs F law, no extra boundaries vs some, rollout
   keeping every frame vs every 100th, Warp's grid update limited to reached nodes vs the whole grid).
@@ -163,7 +163,8 @@ def tables(res: dict) -> tuple[str, str]:
                  f"{mach['load_before']} before the run), Python {mach['python']}, JAX {mach['jax']}, "
                  f"Warp {mach['warp']}, Taichi {mach.get('taichi', 'not run')}. Particle-steps/s of the "
                  f"steady state (best of {res['reps']} runs); `first` = first call in seconds (JAX: trace + XLA "
-                 "compile; Warp: kernel load, from Warp's disk cache when warm) including its steps. "
+                 "compile; Warp: kernel load, from Warp's disk cache when warm) including its steps; "
+                 f"3D fp32 mpm3d rows and Taichi: best of {res.get('rounds', 1)} interleaved rounds. "
                  "Regenerate with `python benchmarks/throughput.py` (see its docstring).\n")
     lines.append("| scene | dim | particles | backend | precision | particle-steps/s | ms/step | first (s) | vs Taichi |")
     lines.append("|---|---|---|---|---|---|---|---|---|")
@@ -225,7 +226,9 @@ def main(argv=None):
     ap.add_argument("--backends", default="jax,warp")
     ap.add_argument("--precisions", default="fp32,fp64")
     ap.add_argument("--dims", default="3,2")
-    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--reps", type=int, default=3, help="timed runs per measurement (best kept)")
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="interleaved rounds of the 3D fp32 mpm3d comparison and of each skip pair (best kept)")
     ap.add_argument("--no-skips", action="store_true")
     ap.add_argument("--no-taichi", action="store_true")
     ap.add_argument("--taichi-python", default=os.environ.get("MPMLAB_TAICHI_PYTHON"),
@@ -240,7 +243,7 @@ def main(argv=None):
     precisions = args.precisions.split(",")
     dims = [int(d) for d in args.dims.split(",")]
     sizes = ["8k"] if args.quick else ["8k", "65k"] + (["524k"] if args.big else [])
-    res = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_info(), "reps": args.reps,
+    res = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_info(), "reps": args.reps, "rounds": args.rounds,
            "throughput": [], "taichi": [], "skips": [], "rollout": []}
     log = lambda *a: print(*a, file=sys.stderr, flush=True)
 
@@ -277,32 +280,51 @@ def main(argv=None):
             log(f"taichi n_grid={n_grid} failed: {e}")
             return None
 
+    def best_of(runs):
+        top = max(runs, key=lambda r: r["particle_steps_per_s"])
+        top["rounds_particle_steps_per_s"] = [r["particle_steps_per_s"] for r in runs]
+        return top
+
     for size in sizes:
         n_grid3 = N_GRID_3D[size]
         n = n_grid3**3 // 4
-        t_before = taichi(n_grid3, n) if taichi_ok and 3 in dims else None
+        # The headline comparison (3D, fp32, mpm3d) runs in interleaved rounds -- Taichi, then each mpmlab
+        # variant, repeated -- and keeps each one's best round, so a burst of load from other jobs on
+        # the shared machine does not decide the ratio.
+        duel = 3 in dims and "fp32" in precisions
+        sc3, _ = fluid(size, 3)
+        t_runs, m_runs = [], {}
+        for rnd in range(args.rounds if duel else 0):
+            if taichi_ok:
+                t = taichi(n_grid3, n)
+                if t:
+                    t_runs.append(t)
+            for backend, opts in variants:
+                m_runs.setdefault((backend, tuple(opts.items())), []).append(
+                    measure(sc3, backend, "fp32", reps=args.reps, **opts))
         for dim in dims:
             sc, n_grid = fluid(size, dim)
             for backend, opts in variants:
                 for prec in precisions:
                     if size == "524k" and prec == "fp64":
                         continue
-                    r = measure(sc, backend, prec, reps=args.reps, **opts)
+                    if dim == 3 and prec == "fp32" and duel:
+                        r = best_of(m_runs[(backend, tuple(opts.items()))])
+                    else:
+                        r = measure(sc, backend, prec, reps=args.reps, **opts)
                     r.update(scene="mpm3d", n_grid=n_grid)
                     res["throughput"].append(r)
                     log(f"mpm3d {dim}D n={r['particles']} {backend} {opts} {prec}: {fmt(r['particle_steps_per_s'])} "
                         f"particle-steps/s ({r['ms_per_step']:.2f} ms/step, first call {r['first_call_s']:.1f} s)")
-        t_after = taichi(n_grid3, n) if taichi_ok and 3 in dims else None
-        got = [t for t in (t_before, t_after) if t]
-        if got:
-            best = max(got, key=lambda t: t["particle_steps_per_s"])
-            best["runs_particle_steps_per_s"] = [t["particle_steps_per_s"] for t in got]
+        if t_runs:
+            best = best_of(t_runs)
             res["taichi"].append(best)
             log(f"taichi n_grid={n_grid3}: {fmt(best['particle_steps_per_s'])} particle-steps/s "
-                f"(runs: {[fmt(t['particle_steps_per_s']) for t in got]})")
+                f"(rounds: {[fmt(x) for x in best['rounds_particle_steps_per_s']]})")
             for r in res["throughput"]:
                 if r["scene"] == "mpm3d" and r["dim"] == 3 and r["n_grid"] == n_grid3 and r["precision"] == "fp32":
-                    log(f"  ratio {r['backend']}/taichi = {r['particle_steps_per_s'] / best['particle_steps_per_s']:.2f}")
+                    log(f"  ratio {r['backend']} {r.get('threads', '')}/taichi = "
+                        f"{r['particle_steps_per_s'] / best['particle_steps_per_s']:.2f}")
     if not args.quick:
         for dim in dims:
             sc = cube(dim)
@@ -317,7 +339,7 @@ def main(argv=None):
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1))        # partial results, in case the skips fail
     if not args.quick and not args.no_skips:
-        run_skips(res, backends, args.reps, log)
+        run_skips(res, backends, args.reps, log, max(1, args.rounds - 1))
 
     res["ratios"] = [{"n_grid": t["n_grid"], "backend": r["backend"], "threads": r.get("threads"),
                       "ratio": r["particle_steps_per_s"] / t["particle_steps_per_s"]}
@@ -333,15 +355,17 @@ def main(argv=None):
     return res
 
 
-def run_skips(res, backends, reps, log):
+def run_skips(res, backends, reps, log, rounds=2):
     """Each skip: same backend, fp32, 65k particles (3D) with and without the thing left out."""
 
     def pair(name, backend, without, with_, note=""):
         try:
-            a, b = without(), with_()
+            runs = [(without(), with_()) for _ in range(rounds)]     # interleaved, best of each kept
         except Exception as e:   # one broken comparison must not lose the others
             log(f"skip {name} [{backend}] failed: {type(e).__name__}: {e}")
             return
+        a = max((r[0] for r in runs), key=lambda r: r["particle_steps_per_s"])
+        b = max((r[1] for r in runs), key=lambda r: r["particle_steps_per_s"])
         row = {"skip": name, "backend": backend, "without": a["particle_steps_per_s"], "with": b["particle_steps_per_s"],
                "note": note, "without_run": a, "with_run": b}
         res["skips"].append(row)
@@ -373,8 +397,10 @@ def run_skips(res, backends, reps, log):
             pair("scattered memory access (particles sorted by cell vs scene order)", be, m(fl), m(fl, configure=unsorted),
                  "Warp CPU: re-sort every 100 steps vs never (the peer's random order); an option, not a skip")
         steps = 200
-        a = measure_rollout(fl, be, "fp32", steps, 100, **one)
-        b = measure_rollout(fl, be, "fp32", steps, 1, **one)
+        ab = [(measure_rollout(fl, be, "fp32", steps, 100, **one), measure_rollout(fl, be, "fp32", steps, 1, **one))
+              for _ in range(rounds)]
+        a = max((r[0] for r in ab), key=lambda r: r["particle_steps_per_s"])
+        b = max((r[1] for r in ab), key=lambda r: r["particle_steps_per_s"])
         res["rollout"] += [a, b]
         res["skips"].append({"skip": "frames kept (every 100th vs every frame)", "backend": be,
                              "without": a["particle_steps_per_s"], "with": b["particle_steps_per_s"],
