@@ -45,7 +45,8 @@ class ParamSpec:
             lo = "(" if self.low_open else "["
             hi = ")" if self.high_open else "]"
             raise InvalidParameterError(
-                f"{where}: {self.doc or self.name} '{self.name}' = {v:g} {self.unit} is outside its valid range "
+                f"{where}: {self.doc or self.name} '{self.name}' = {v:g}{'' if self.unit == '-' else ' ' + self.unit} "
+                f"is outside its valid range "
                 f"{lo}{self.low:g}, {self.high:g}{hi}; set it inside that range."
             )
         return v
