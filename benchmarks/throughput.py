@@ -94,6 +94,46 @@ def measure(scene, backend, precision, transfer="mls", steps=None, reps=3, confi
     return out
 
 
+def measure_pair(a: dict, b: dict, backend: str, precision: str = "fp32", reps: int = 3, rounds: int = 2):
+    """Both steppers built and warmed first, then their timed runs alternate (a, b, a, b, ...):
+    a burst of outside load hits both sides alike. ``a``/``b``: dict(scene=, transfer=, configure=,
+    options=). Returns the two result dicts (best run each)."""
+    import mpmlab
+
+    sides = []
+    for spec in (a, b):
+        st = mpmlab.build_stepper(spec["scene"], backend, spec.get("transfer", "mls"), precision,
+                                  **spec.get("options", {}))
+        if spec.get("configure"):
+            spec["configure"](st)
+        n = st.particles.count
+        steps = steps_for(n)
+        s = st.init()
+        t0 = time.perf_counter()
+        s = st._advance(s, steps)
+        st._block(s)
+        first = time.perf_counter() - t0
+        s = st._advance(s, steps)
+        st._block(s)
+        sides.append({"st": st, "s": s, "steps": steps, "n": n, "first": first, "times": []})
+    for _ in range(reps * rounds):
+        for side in sides:
+            st = side["st"]
+            t0 = time.perf_counter()
+            side["s"] = st._advance(side["s"], side["steps"])
+            st._block(side["s"])
+            side["times"].append(time.perf_counter() - t0)
+    out = []
+    for side in sides:
+        best = min(side["times"])
+        out.append({"particles": side["n"], "steps": side["steps"], "first_call_s": side["first"],
+                    "ms_per_step": best / side["steps"] * 1e3,
+                    "ms_per_step_all": [t / side["steps"] * 1e3 for t in side["times"]],
+                    "particle_steps_per_s": side["n"] * side["steps"] / best,
+                    "laws": [g.law.name for g in side["st"].groups], "transfer": side["st"].transfer.name})
+    return out
+
+
 def measure_rollout(scene, backend, precision, steps, every, reps=2, **options) -> dict:
     import mpmlab
 
@@ -177,7 +217,7 @@ def tables(res: dict) -> tuple[str, str]:
                      f"{' (' + str(r['threads']) + ' thr)' if 'threads' in r else ''} | {r['precision']} | "
                      f"{fmt(r['particle_steps_per_s'])} | {r['ms_per_step']:.2f} | {r['first_call_s']:.1f} | {ratio} |")
     for t in res["taichi"]:
-        lines.append(f"| mpm3d | 3D | {t['particles']} | taichi 1.7.4 ({t['threads']} thr, peer) | fp32 | "
+        lines.append(f"| mpm3d | 3D | {t['particles']} | taichi {mach.get('taichi', '')} ({t['threads']} thr, peer) | fp32 | "
                      f"{fmt(t['particle_steps_per_s'])} | {t['ms_per_step']:.2f} | {t['first_call_s']:.1f} | 1.00x |")
     if res.get("taichi_note"):
         lines.append(f"\n{res['taichi_note']}")
@@ -230,6 +270,8 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=3,
                     help="interleaved rounds of the 3D fp32 mpm3d comparison and of each skip pair (best kept)")
     ap.add_argument("--no-skips", action="store_true")
+    ap.add_argument("--skips-only", action="store_true",
+                    help="re-run only the skips table, keeping the throughput results already in --out")
     ap.add_argument("--no-taichi", action="store_true")
     ap.add_argument("--taichi-python", default=os.environ.get("MPMLAB_TAICHI_PYTHON"),
                     help="python of a venv with taichi==1.7.4 (default $MPMLAB_TAICHI_PYTHON)")
@@ -240,12 +282,24 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     backends = args.backends.split(",")
+    log = lambda *a: print(*a, file=sys.stderr, flush=True)
+    if args.skips_only:
+        out = Path(args.out)
+        res = json.loads(out.read_text())
+        res["skips"], res["rollout"] = [], []
+        run_skips(res, backends, args.reps, log, max(1, args.rounds - 1))
+        res["skips_date"] = time.strftime("%Y-%m-%d %H:%M")
+        out.write_text(json.dumps(res, indent=1))
+        thr, sk = tables(res)
+        print(sk)
+        if args.readme:
+            write_readme(Path(args.readme), thr, sk)
+        return res
     precisions = args.precisions.split(",")
     dims = [int(d) for d in args.dims.split(",")]
     sizes = ["8k"] if args.quick else ["8k", "65k"] + (["524k"] if args.big else [])
     res = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_info(), "reps": args.reps, "rounds": args.rounds,
            "throughput": [], "taichi": [], "skips": [], "rollout": []}
-    log = lambda *a: print(*a, file=sys.stderr, flush=True)
 
     # Warp runs on 1 thread and on all cores (its default picks the idle cores; on a busy shared
     # machine one thread can be the faster), JAX with XLA's own threading
@@ -269,7 +323,8 @@ def main(argv=None):
         log(res["taichi_note"])
     else:
         taichi_ok = True
-        v = subprocess.run([args.taichi_python, "-c", "import taichi; print(taichi.__version__)"],
+        v = subprocess.run([args.taichi_python, "-c", "import taichi; v = taichi.__version__; "
+                            "print('.'.join(map(str, v)) if isinstance(v, tuple) else v)"],
                            capture_output=True, text=True)
         res["machine"]["taichi"] = v.stdout.strip().splitlines()[-1] if v.returncode == 0 else "?"
 
@@ -360,12 +415,10 @@ def run_skips(res, backends, reps, log, rounds=2):
 
     def pair(name, backend, without, with_, note=""):
         try:
-            runs = [(without(), with_()) for _ in range(rounds)]     # interleaved, best of each kept
+            a, b = measure_pair(without, with_, backend, reps=reps, rounds=rounds)
         except Exception as e:   # one broken comparison must not lose the others
             log(f"skip {name} [{backend}] failed: {type(e).__name__}: {e}")
             return
-        a = max((r[0] for r in runs), key=lambda r: r["particle_steps_per_s"])
-        b = max((r[1] for r in runs), key=lambda r: r["particle_steps_per_s"])
         row = {"skip": name, "backend": backend, "without": a["particle_steps_per_s"], "with": b["particle_steps_per_s"],
                "note": note, "without_run": a, "with_run": b}
         res["skips"].append(row)
@@ -377,7 +430,7 @@ def run_skips(res, backends, reps, log, rounds=2):
     el, pl = cube(3), cube(3, law="hencky_von_mises", yield_stress=1e9)
     for be in backends:
         one = {"threads": 1} if be == "warp" else {}    # Warp on one thread: steadier on a shared machine
-        m = lambda sc, **kw: (lambda: measure(sc, be, "fp32", reps=reps, **one, **kw))
+        m = lambda sc, **kw: dict(scene=sc, options=one, **kw)
         pair("plasticity (elastic law vs plastic law)", be, m(el), m(pl),
              "cube: fixed_corotated vs hencky_von_mises (never yields here): the return map + Hencky log/exp")
         pair("affine C (PIC vs APIC)", be, m(fl, transfer="pic"), m(fl, transfer="apic"),

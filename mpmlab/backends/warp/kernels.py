@@ -3,8 +3,10 @@ precision, the transfer's four choices, the law -- and cached, so a kernel compi
 (and Warp's disk cache keeps it across processes). Scene numbers (dx, dt, gravity, wall kinds) are
 kernel arguments, so scenes that differ only in numbers share compiled kernels.
 
-Laws enter only through the per-law kernel built from a closure over the law's ``@wp.func``s
-(Warp's kernel-factory pattern): P2G/G2P never branch on a law id.
+Laws enter only through kernels built from a closure over the law's ``@wp.func``s (Warp's
+kernel-factory pattern): the stepper's G2P kernel is specialised per law and runs the law update in
+the same pass (``g2p_law_kernel``), so P2G/G2P never branch on a law id. ``law_kernels`` keeps the
+stand-alone update/stress kernels (initial stress, law conformance tests).
 """
 
 from functools import lru_cache
