@@ -78,14 +78,14 @@ class WarpStepper(BaseStepper):
         G, N = self.node_count, P.count
         # CPU threads: Warp runs a CPU launch serially, so chunks of particles/nodes are launched from a
         # small thread pool (the launch releases the GIL); P2G chunks write private grid copies.
-        # Default: the idle cores (cores minus the 1-minute load average: on a busy machine a second
-        # thread mostly waits for a core and the per-phase hand-offs cost more than they save), at
-        # most 8, and one thread per 4096 particles. ``threads=`` or $MPMLAB_WARP_THREADS override.
+        # Default: the cores this process may use, at most 8, and one thread per 4096 particles. It
+        # does not follow the machine's load on purpose: the thread count sets how P2G sums its grid
+        # copies, so a load-dependent count would change results at round-off from run to run. On a
+        # busy machine ``threads=1`` (or $MPMLAB_WARP_THREADS=1) is often faster.
         if threads is None:
             threads = int(os.environ.get("MPMLAB_WARP_THREADS", 0))
         if not threads:
-            cores = len(os.sched_getaffinity(0))
-            threads = max(1, min(cores, 8, N // 4096, cores - int(os.getloadavg()[0])))
+            threads = max(1, min(len(os.sched_getaffinity(0)), 8, N // 4096))
         self.threads = max(1, int(threads)) if self.device == "cpu" else 1
         self._pool = ThreadPoolExecutor(self.threads - 1) if self.threads > 1 else None
         # chunks per phase for the dynamically scheduled kernels: G2P; the grid update (small: the
