@@ -301,8 +301,8 @@ def main(argv=None):
     res = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_info(), "reps": args.reps, "rounds": args.rounds,
            "throughput": [], "taichi": [], "skips": [], "rollout": []}
 
-    # Warp runs on 1 thread and on all cores (its default picks the idle cores; on a busy shared
-    # machine one thread can be the faster), JAX with XLA's own threading
+    # Warp runs on 1 thread and on all cores (on a busy shared machine one thread can be the
+    # faster), JAX with XLA's own threading
     cores = len(os.sched_getaffinity(0))
     variants = []
     for b in backends:
