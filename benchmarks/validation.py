@@ -142,7 +142,6 @@ def run_dam(backends, quick, rows, raw):
             r = V.run_dam_break(backend=backend, transfer=tr, precision="fp32", t_end=t_end, window=window, **kw)
             dx = r["scene"].dx
             lv, err = r["levels"], r["error"]
-            low = lv <= 0.2 * r["H0"] + 1e-12
             # verification-note checkpoints x(0.02 m, 0.3 s), x(0.02 m, 0.4 s)
             cps = []
             for tc in (0.3, 0.4):

@@ -48,7 +48,6 @@ def test_unstable_time_step_diverges_with_named_step_and_particle(backend):
 def test_inverted_element_is_reported(backend):
     """A body squeezed through itself in one step inverts (J <= 0); the guard names field J."""
     scene = cube(dt=2e-3, E=1e-3, walls=False, cfl_limit=1e9)
-    body = scene.bodies[0]
     x = scene.particles().x
     c = x.mean(axis=0)
     st = mpmlab.build_stepper(scene, backend, "pic", "fp64", check_every=1)

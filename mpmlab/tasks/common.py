@@ -2,7 +2,6 @@
 the one-line summary."""
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time

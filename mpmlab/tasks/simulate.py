@@ -14,7 +14,6 @@ import platform
 import time
 from pathlib import Path
 
-import numpy as np
 
 from ..config import build_scene, check_run_options, make_transfer_from_config
 from ..core.errors import ConfigError, SimulationDiverged

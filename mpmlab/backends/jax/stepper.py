@@ -9,8 +9,6 @@ parameters and boundary coefficients alike (issue #4 builds on this).
 from __future__ import annotations
 
 import itertools
-import time
-from functools import partial
 
 import jax
 
@@ -20,7 +18,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...core.stepper import BaseStepper
-from . import boundaries as jbc
 
 DTYPES = {"fp32": jnp.float32, "fp64": jnp.float64}
 
@@ -126,7 +123,6 @@ class JaxStepper(BaseStepper):
         nb = len(self._grid_bcs)
         split = T.flip_ratio is not None
         gshape = tuple(self.grid_shape)
-        win = (slice(None),) + (None,) * D                          # [N] -> [N, 1, .., 1]
         O = [jnp.asarray(o, dtype) for o in np.indices((3,) * D)]    # node offset along each axis, [3]*D
 
         # stencil -------------------------------------------------------------------------------------

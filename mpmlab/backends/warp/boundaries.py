@@ -11,7 +11,6 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from ...boundaries import _faces
 from ..boundary_geometry import box_obstacle_normals, friction_node_mu_index, wall_masks
 from .kernels import WALL_CODES
 from .types import warp_types

@@ -472,8 +472,7 @@ def law_kernels(law_cls, dim: int, precision: str):
 @lru_cache(maxsize=None)
 def guard_kernel(dim: int, precision: str):
     """Sets flag[0] = 1 if any position/velocity is non-finite or outside [lo, hi)."""
-    T = warp_types(dim, precision)
-    scalar, vec = T.scalar, T.vec
+    vec = warp_types(dim, precision).vec
 
     @wp.kernel(module="unique")
     def guard(x: wp.array(dtype=vec), v: wp.array(dtype=vec), lo: vec, hi: vec, flag: wp.array(dtype=int)):

@@ -14,7 +14,6 @@ scheduling: P2G chunk c always goes to grid copy c and the copies are summed in 
 
 import itertools
 import os
-import time
 from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
