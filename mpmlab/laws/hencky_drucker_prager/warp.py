@@ -14,7 +14,7 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
     """Hencky pieces shared with hencky_von_mises: the Kirchhoff stress and the strain split."""
     T = warp_types(dim, precision)
     La = warp_linalg(dim, precision)
-    scalar, vec, LawState = T.scalar, T.vec, T.LawState
+    scalar, vec, mat, LawState = T.scalar, T.vec, T.mat, T.LawState
     fdim = float(dim)   # scalar(dim) on the int closure constant confuses Warp's range(dim) (Warp 1.19)
 
     @wp.func
@@ -39,7 +39,15 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
             t[i] = scalar(2.0) * mu * eps[i] + lam * tr
         return U @ La.diag(t) @ wp.transpose(U)
 
-    return SimpleNamespace(trace_split=trace_split, kirchhoff=kirchhoff)
+    @wp.func
+    def deviatoric_return(U: mat, eps: vec, eps_hat: vec, n: scalar, dg: scalar, V: mat):
+        """F = U exp(eps - dg eps_hat/|eps_hat|) V^T: the volume-keeping return of Eqs. 16 and 19."""
+        e = vec()
+        for i in range(dim):
+            e[i] = wp.exp(eps[i] - dg * eps_hat[i] / n)
+        return U @ La.diag(e) @ wp.transpose(V)
+
+    return SimpleNamespace(trace_split=trace_split, kirchhoff=kirchhoff, deviatoric_return=deviatoric_return)
 
 
 @lru_cache(maxsize=None)
@@ -47,7 +55,7 @@ def make(dim: int, precision: str) -> SimpleNamespace:
     T = warp_types(dim, precision)
     La = warp_linalg(dim, precision)
     H = hencky_funcs(dim, precision)
-    scalar, vec, mat, LawState = T.scalar, T.vec, T.mat, T.LawState
+    scalar, mat, LawState = T.scalar, T.mat, T.LawState
     fdim = float(dim)   # scalar(dim) on the int closure constant confuses Warp's range(dim) (Warp 1.19)
 
     @wp.func
@@ -64,10 +72,7 @@ def make(dim: int, precision: str) -> SimpleNamespace:
         else:
             dg = n + (scalar(fdim) * lam + scalar(2.0) * mu) / (scalar(2.0) * mu) * tr * alpha
             if dg > scalar(0.0) and n > scalar(0.0):   # outside the cone: project onto it (third case)
-                e = vec()
-                for i in range(dim):
-                    e[i] = wp.exp(eps[i] - dg * eps_hat[i] / n)
-                F = U @ La.diag(e) @ wp.transpose(V)
+                F = H.deviatoric_return(U, eps, eps_hat, n, dg, V)
         out.F = F
         return out
 

@@ -16,7 +16,7 @@ def make(dim: int, precision: str) -> SimpleNamespace:
     T = warp_types(dim, precision)
     La = warp_linalg(dim, precision)
     H = hencky_funcs(dim, precision)
-    scalar, vec, mat, LawState = T.scalar, T.vec, T.mat, T.LawState
+    scalar, mat, LawState = T.scalar, T.mat, T.LawState
 
     @wp.func
     def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
@@ -27,10 +27,7 @@ def make(dim: int, precision: str) -> SimpleNamespace:
         tr, eps_hat, n = H.trace_split(eps)
         dg = n - prm[p, 2] / (scalar(2.0) * mu)    # NCLaw Eq. 18
         if dg > scalar(0.0):                       # isochoric return (Eq. 19)
-            e = vec()
-            for i in range(dim):
-                e[i] = wp.exp(eps[i] - dg * eps_hat[i] / n)
-            F = U @ La.diag(e) @ wp.transpose(V)
+            F = H.deviatoric_return(U, eps, eps_hat, n, dg, V)
         out.F = F
         return out
 
