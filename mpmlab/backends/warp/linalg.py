@@ -3,6 +3,7 @@
 from functools import lru_cache
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
 from .types import warp_types
@@ -69,5 +70,123 @@ def warp_linalg(dim: int, precision: str) -> SimpleNamespace:
             eps[i] = wp.log(wp.max(s[i], scalar(HENCKY_MIN_STRETCH)))
         return U, eps, V
 
-    return SimpleNamespace(svd_rotations=svd_rotations, diag=diag, lame=lame, hencky_strain=hencky_strain,
+    @wp.func
+    def svd_const(F: mat):
+        """``svd_rotations`` without a derivative: spectral maps get theirs from ``spectral_func``."""
+        U, s, V = svd_rotations(F)
+        return U, s, V
+
+    @wp.func_grad(svd_const)
+    def adj_svd_const(F: mat, adj_U: mat, adj_s: vec, adj_V: mat):
+        # Nothing flows back through U, s, V themselves (their derivatives blow up at repeated singular
+        # values); values derived from s only choose branches (yield tests) or feed ``spectral_func``.
+        return
+
+    # U V^T, the rotation of F = R S (fixed corotated stress, the Drucker-Prager cone tip); call as
+    # polar(F, U, s, V, no_params()) with U, s, V = svd_const(F)
+    polar = spectral_func(dim, precision, ones_g(dim, precision), left=False, nparams=1, ones=True)
+
+    return SimpleNamespace(svd_rotations=svd_rotations, svd_const=svd_const, diag=diag, lame=lame,
+                           hencky_strain=hencky_strain, polar=polar, no_params=wp.types.vector(1, scalar),
                            identity=lambda: None)
+
+
+@lru_cache(maxsize=None)
+def ones_g(dim: int, precision: str) -> SimpleNamespace:
+    """g(s) = 1 (the polar rotation U V^T): value and Jacobians for ``spectral_func``."""
+    T = warp_types(dim, precision)
+    scalar, vec, mat = T.scalar, T.vec, T.mat
+    pvec = wp.types.vector(1, scalar)
+    pmat = wp.types.matrix((dim, 1), scalar)
+
+    @wp.func
+    def g(s: vec, pv: pvec):
+        out = vec()
+        for i in range(dim):
+            out[i] = scalar(1.0)
+        return out
+
+    @wp.func
+    def jac(s: vec, pv: pvec):
+        return mat(), pmat()
+
+    return SimpleNamespace(g=g, jac=jac)
+
+
+def spectral_func(dim: int, precision: str, gdef, left: bool, nparams: int, ones: bool = False):
+    """A spectral map of F, U diag(g(s, pv)) W^T (W = U if ``left`` else V, F = U diag(s) V^T from
+    ``svd_const``), with a hand-written adjoint that stays finite at repeated singular values.
+
+    ``gdef.g(s, pv) -> vec`` (isotropic in s) and ``gdef.jac(s, pv) -> (dg/ds [D, D], dg/dpv [D, P])``.
+    The adjoint is the transpose of the JAX custom JVP (``backends.jax.linalg.spectral``), so both
+    backends take the same derivative: divided differences (g_i - g_j)/(s_i - s_j) off the diagonal,
+    their symmetrised limit 0.5 (Jg_ii - Jg_ij + Jg_jj - Jg_ji) when s_i, s_j are closer than eps^(1/3)
+    (relative), and rotation terms (g_i +- g_j)/(s_i + s_j). The call passes F (whose adjoint this
+    writes) together with its ``svd_const`` factors, so the forward does one SVD and is bit-identical
+    to writing U diag(g) W^T inline.
+    """
+    T = warp_types(dim, precision)
+    scalar, vec, mat = T.scalar, T.vec, T.mat
+    pvec = wp.types.vector(nparams, scalar)
+    close_tol = float(np.finfo(np.float64 if precision == "fp64" else np.float32).eps ** (1.0 / 3.0))
+    g, jac = gdef.g, gdef.jac
+
+    @wp.func
+    def diag_(s: vec):
+        D = mat()
+        for i in range(dim):
+            D[i, i] = s[i]
+        return D
+
+    @wp.func
+    def spectral(F: mat, U: mat, s: vec, V: mat, pv: pvec):
+        if wp.static(ones):
+            if wp.static(left):
+                return U @ wp.transpose(U)
+            else:
+                return U @ wp.transpose(V)
+        else:
+            if wp.static(left):
+                return U @ diag_(g(s, pv)) @ wp.transpose(U)
+            else:
+                return U @ diag_(g(s, pv)) @ wp.transpose(V)
+
+    @wp.func_grad(spectral)
+    def adj_spectral(F: mat, U: mat, s: vec, V: mat, pv: pvec, adj_ret: mat):
+        gs = g(s, pv)
+        Jg, Jp = jac(s, pv)
+        Gb = mat()
+        if wp.static(left):
+            Gb = wp.transpose(U) @ adj_ret @ U
+        else:
+            Gb = wp.transpose(U) @ adj_ret @ V
+        A = mat()                       # adjoint of dFp = U^T dF V
+        for i in range(dim):
+            for j in range(dim):
+                if i != j:
+                    diff = s[i] - s[j]
+                    dd = scalar(0.0)
+                    if wp.abs(diff) <= scalar(close_tol) * wp.max(wp.abs(s[i]), wp.abs(s[j])):
+                        dd = scalar(0.5) * (Jg[i, i] - Jg[i, j] + Jg[j, j] - Jg[j, i])
+                    else:
+                        dd = (gs[i] - gs[j]) / diff
+                    ssum = s[i] + s[j]
+                    rot = scalar(0.0)
+                    if wp.abs(ssum) > scalar(0.0):
+                        if wp.static(left):
+                            rot = (gs[j] - gs[i]) / ssum
+                        else:
+                            rot = (gs[i] + gs[j]) / ssum
+                    # dGp_ij = 0.5 (dFp_ij + dFp_ji) dd + 0.5 (dFp_ij - dFp_ji) rot
+                    A[i, j] = A[i, j] + scalar(0.5) * Gb[i, j] * (dd + rot)
+                    A[j, i] = A[j, i] + scalar(0.5) * Gb[i, j] * (dd - rot)
+        apv = pvec()
+        for i in range(dim):
+            for j in range(dim):
+                A[j, j] = A[j, j] + Gb[i, i] * Jg[i, j]       # dGp_ii = sum_j Jg_ij dFp_jj + dg_i/dpv dpv
+            for k in range(nparams):
+                apv[k] = apv[k] + Gb[i, i] * Jp[i, k]
+        wp.adjoint[F] += U @ A @ wp.transpose(V)
+        wp.adjoint[pv] += apv
+
+    return spectral

@@ -336,6 +336,19 @@ class WarpStepper(BaseStepper):
                           device=self.device)
         return bool(self.flag.numpy()[0])
 
+    # ---- differentiable entry points (issue #4) -----------------------------------------------------
+    # A separate tape-friendly path (``grad.py``), built on first use: forward-only runs compile nothing
+    # for it. Controls are torch tensors; ``observe`` is a torch.autograd.Function.
+    def controls(self) -> dict:
+        from . import grad
+
+        return grad.controls(self)
+
+    def observe(self, controls, observation, steps, segment=None):
+        from . import grad
+
+        return grad.observe(self, controls, observation, steps, segment)
+
     # ---- numpy views ------------------------------------------------------------------------------
     def to_numpy(self, state):
         perm = getattr(getattr(state, "order", None), "perm", None)

@@ -18,9 +18,10 @@ def make(dim: int, precision: str) -> SimpleNamespace:
     @wp.func
     def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
         mu, lam = La.lame(prm[p, 0], prm[p, 1])
-        U, sig, V = La.svd_rotations(s.F)
+        U, sig, V = La.svd_const(s.F)
+        R = La.polar(s.F, U, sig, V, La.no_params())   # U V^T with a derivative finite at F = I
         J = wp.determinant(s.F)
-        return scalar(2.0) * mu * (s.F - U @ wp.transpose(V)) @ wp.transpose(s.F) + lam * J * (J - scalar(1.0)) * wp.identity(dim, scalar)
+        return scalar(2.0) * mu * (s.F - R) @ wp.transpose(s.F) + lam * J * (J - scalar(1.0)) * wp.identity(dim, scalar)
 
     @wp.func
     def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):

@@ -1,5 +1,5 @@
-"""Warp Hencky + von Mises (NCLaw Eqs. 17-19), built per (dim, precision). The stress is the Hencky
-stress of ``hencky_drucker_prager.warp``."""
+"""Warp Hencky + von Mises (NCLaw Eqs. 17-19), built per (dim, precision). The stress and the
+return map (spectral maps with safe derivatives) are those of ``hencky_drucker_prager.warp``."""
 
 from functools import lru_cache
 from types import SimpleNamespace
@@ -23,11 +23,11 @@ def make(dim: int, precision: str) -> SimpleNamespace:
         out = s
         F = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
         mu, lam = La.lame(prm[p, 0], prm[p, 1])
-        U, eps, V = La.hencky_strain(F)
-        tr, eps_hat, n = H.trace_split(eps)
-        dg = n - prm[p, 2] / (scalar(2.0) * mu)    # NCLaw Eq. 18
-        if dg > scalar(0.0):                       # isochoric return (Eq. 19)
-            F = H.deviatoric_return(U, eps, eps_hat, n, dg, V)
+        U, sv, V = La.svd_const(F)
+        tr, eps_hat, n = H.trace_split(H.logs(sv))
+        k = prm[p, 2] / (scalar(2.0) * mu)
+        if n - k > scalar(0.0):                    # NCLaw Eq. 18: isochoric return (Eq. 19)
+            F = H.vm_return(F, U, sv, V, H.p1(k))
         out.F = F
         return out
 
