@@ -61,3 +61,18 @@ class SimulationDiverged(MpmlabError):
         if hint:
             msg += f"; {hint}"
         super().__init__(msg)
+
+
+class GradientError(MpmlabError):
+    """A gradient through a rollout became NaN/Inf; names where it arose (never silently zeroed).
+
+    Attributes: step (the step whose backward pass first produced a non-finite adjoint), particle
+    (index in scene order, or -1 for a non-particle quantity), field (state field or control name).
+    """
+
+    def __init__(self, step: int, particle: int, field: str, hint: str = ""):
+        self.step, self.particle, self.field, self.hint = step, particle, field, hint
+        where = f"particle {particle}" if particle >= 0 else "a non-particle quantity"
+        msg = f"gradient became non-finite in the backward pass of step {step}, at {where}, field '{field}'"
+        msg += f"; {hint}" if hint else "; check for J near 0, exactly repeated singular values or a diverging rollout there."
+        super().__init__(msg)

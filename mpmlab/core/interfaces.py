@@ -204,6 +204,25 @@ class AbstractStepper(ABC):
     def to_numpy(self, state) -> dict[str, np.ndarray]:
         ...
 
+    # ---- differentiable entry points (issue #4) ------------------------------------------------
+    # Both backends expose the same two calls; arrays are the backend's differentiable arrays (JAX:
+    # jax arrays under jax.grad; Warp: torch tensors through a torch.autograd.Function).
+    #
+    # ``controls()`` -> dict, scene (not storage) order:
+    #   x [N, D], v [N, D]    initial particle positions and velocities
+    #   law                   tuple, one [count, P] array per material group (law.param_names() order)
+    #   boundary              tuple, one dict per scene boundary (e.g. friction_walls {"mu": [S]})
+    #   gravity [D], mass [N], volume [N]
+    # ``observe(controls, observation, steps, segment=...)`` -> [T, L, d]: the observation operator
+    #   applied to the state after each step in ``steps`` (sorted; 0 = initial state), the rollout
+    #   run from ``controls``; gradients are recomputed per segment of ``segment`` steps so memory is
+    #   O(steps / segment + segment) states. A non-finite gradient raises ``GradientError``.
+    def controls(self) -> dict:
+        raise NotImplementedError(f"{type(self).__name__} has no differentiable entry points.")
+
+    def observe(self, controls: dict, observation, steps, segment: int | None = None):
+        raise NotImplementedError(f"{type(self).__name__} has no differentiable entry points.")
+
 
 class AbstractBackend(ABC):
     """A registered backend: builds steppers and converts arrays."""

@@ -115,6 +115,8 @@ def _register_builtins() -> None:
                       ("box_obstacle", "BoxObstacle"), ("particle_velocity", "ParticleVelocity"),
                       ("particle_load", "ParticleLoad")):
         boundaries.register(name, f"mpmlab.boundaries:{cls}")
+    observations.register("lagrangian", "mpmlab.observations:Lagrangian")
+    observations.register("eulerian", "mpmlab.observations:Eulerian")
 
 
 _register_builtins()

@@ -94,6 +94,17 @@ class JaxStepper(BaseStepper):
             "boundary": tuple(b.params for b in self._grid_bcs + self._particle_bcs + self._force_bcs),
         }
 
+    # ---- differentiable entry points (AbstractStepper contract; backends/jax/differentiable.py) ----
+    def controls(self):
+        from . import differentiable
+        return differentiable.controls(self)
+
+    def observe(self, controls, observation, steps, segment=None):
+        """Observations [T, L, d] of the rollout from ``controls`` after each of ``steps``; pure JAX,
+        so ``jax.grad`` of any loss of it reaches every control (checkpointed segments)."""
+        from . import differentiable
+        return differentiable.observe(self, controls, observation, steps, segment)
+
     @property
     def params(self):
         if not hasattr(self, "_params"):

@@ -1,0 +1,233 @@
+"""Gradients through JAX rollouts (issue #4): AD vs central finite differences for every law x transfer,
+segmenting invariance, friction coefficients, observation operators and NaN localisation. fp64."""
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+import jax.numpy as jnp  # noqa: E402
+
+import mpmlab  # noqa: E402
+from mpmlab.backends.jax import differentiable as D  # noqa: E402
+from mpmlab.boundaries import FrictionWalls, Walls  # noqa: E402
+from mpmlab.core.errors import ConfigError, GradientError  # noqa: E402
+from mpmlab.observations import Eulerian, Lagrangian, apply_numpy  # noqa: E402
+from mpmlab.simulator import build_stepper  # noqa: E402
+
+from .scenes import LAW_PARAMS  # noqa: E402
+
+TRANSFERS = ("pic", "flip", "apic", "mls", "tpic")
+LAWS = tuple(LAW_PARAMS)
+STEPS = [4, 8]
+
+
+def grad_scene(dim, laws=LAWS):
+    """One small block per law, apart from each other and from the domain faces for the whole horizon."""
+    bodies = []
+    for k, name in enumerate(laws):
+        c = np.full(dim, 0.5)
+        c[0] = 0.1 + 0.16 * k
+        h = 0.05
+        bodies.append(mpmlab.Body(shape={"kind": "box", "lo": (c - h).tolist(), "hi": (c + h).tolist()},
+                                  material=name, params=LAW_PARAMS[name], density=1000.0,
+                                  particles_per_cell=2 ** dim, name=name))
+    g = np.zeros(dim)
+    g[1] = -9.8
+    return mpmlab.Scene(dim=dim, dx=0.05, domain=([-0.1] * dim, [1.1] * dim), bodies=bodies, gravity=g.tolist(),
+                        dt=1e-3, name=f"grad_{dim}d")
+
+
+def smooth_controls(stepper, rate=3.0):
+    """Controls with a non-rigid initial velocity per body (compression + shear + spin): every law is
+    loaded away from its rest state, so the dynamics are smooth in the controls (a rigid motion would
+    sit at the apex of the Drucker-Prager cones, a non-smooth point, tested separately)."""
+    c = stepper.controls()
+    x = np.asarray(c["x"])
+    v = np.zeros_like(x)
+    A = rate * np.array([[-0.6, 0.9, 0.2], [0.2, -0.4, 0.1], [0.1, -0.3, -0.5]])[: x.shape[1], : x.shape[1]]
+    for g in stepper.groups:
+        sl = slice(g.start, g.stop)
+        xc = x[sl].mean(axis=0)
+        v[sl] = (x[sl] - xc) @ A.T + 0.2
+    c["v"] = jnp.asarray(v)
+    return c
+
+
+_GRADS = {}
+
+
+def grad_of(loss, c):
+    """The AD gradient of ``loss`` at ``c``, computed once per (loss, controls) of a fixture."""
+    k = (id(loss), id(c))
+    if k not in _GRADS:
+        _GRADS[k] = (loss, c, jax.jit(jax.grad(loss))(c))   # keeps loss and c alive: ids stay unique
+    return _GRADS[k][2]
+
+
+def fd_check(loss, c, key, direction, hs=(1e-5, 1e-6, 1e-7)):
+    """Relative error of the AD directional derivative against central differences, best over h (the
+    V-shaped error curve: truncation for large h, round-off for small h)."""
+    g = grad_of(loss, c)
+
+    def along(tree, d):
+        if key == "law":
+            gi, arr = d
+            return jnp.sum(tree["law"][gi] * arr)
+        return jnp.sum(tree[key] * d)
+
+    def shift(s):
+        cp = dict(c)
+        if key == "law":
+            gi, arr = direction
+            law = list(c["law"])
+            law[gi] = law[gi] + s * arr
+            cp["law"] = tuple(law)
+        else:
+            cp[key] = c[key] + s * direction
+        return cp
+
+    ad = float(along(g, direction))
+    errs = []
+    for h in hs:
+        fd = float(loss(shift(h)) - loss(shift(-h))) / (2 * h)
+        errs.append(abs(ad - fd) / max(abs(ad), abs(fd), 1e-300))
+    return ad, min(errs)
+
+
+@pytest.fixture(scope="module", params=TRANSFERS)
+def setup_2d(request):
+    scene = grad_scene(2)
+    st = build_stepper(scene, "jax", request.param, "fp64")
+    c = smooth_controls(st)
+    obs = Lagrangian(quantity="v")
+    w = jnp.asarray(np.random.default_rng(0).standard_normal((len(STEPS), st.particles.count, 2)))
+    loss = jax.jit(lambda c: jnp.sum(w * st.observe(c, obs, STEPS, segment=3)))
+    return st, c, loss
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_fd_initial_velocity_and_position(setup_2d, law):
+    st, c, loss = setup_2d
+    g = next(g for g in st.groups if g.law.name == law)
+    rng = np.random.default_rng(1)
+    for key in ("v", "x"):
+        d = np.zeros(np.shape(c[key]))
+        d[g.start:g.stop] = rng.standard_normal((g.count, st.dim))
+        ad, err = fd_check(loss, c, key, jnp.asarray(d))
+        assert ad != 0.0
+        assert err <= 1e-6, f"{law} {st.transfer.name}: d loss / d {key} AD {ad:.6e}, relative error {err:.2e}"
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_fd_law_parameters(setup_2d, law):
+    st, c, loss = setup_2d
+    gi = next(i for i, g in enumerate(st.groups) if g.law.name == law)
+    prm = np.asarray(c["law"][gi])
+    g = grad_of(loss, c)["law"][gi]
+    scale = float(jnp.max(jnp.abs(g * prm)))
+    assert scale > 0
+    for j, name in enumerate(st.groups[gi].law.param_names()):
+        d = np.zeros_like(prm)
+        d[:, j] = prm[:, j] if prm[0, j] != 0 else 1.0   # relative perturbation of the parameter
+        ad, err = fd_check(loss, c, "law", (gi, jnp.asarray(d)), hs=(1e-3, 1e-4, 1e-5, 1e-6))
+        if abs(ad) < 1e-9 * scale:                       # parameter inactive in this regime (e.g. cohesion)
+            continue
+        assert err <= 1e-6, f"{law} {st.transfer.name}: d loss / d {name} AD {ad:.6e}, relative error {err:.2e}"
+
+
+def test_fd_3d_fixed_corotated_and_sand():
+    scene = grad_scene(3, laws=("fixed_corotated", "hencky_drucker_prager"))
+    st = build_stepper(scene, "jax", "apic", "fp64")
+    c = smooth_controls(st)
+    obs = Lagrangian(quantity="x")
+    w = jnp.asarray(np.random.default_rng(0).standard_normal((len(STEPS), st.particles.count, 3)))
+    loss = jax.jit(lambda c: jnp.sum(w * st.observe(c, obs, STEPS, segment=3)))
+    d = jnp.asarray(np.random.default_rng(2).standard_normal(np.shape(c["v"])))
+    ad, err = fd_check(loss, c, "v", d)
+    assert err <= 1e-6, err
+
+
+def test_segmenting_does_not_change_the_gradient():
+    st = build_stepper(grad_scene(2, laws=("fixed_corotated",)), "jax", "mls", "fp64")
+    c = smooth_controls(st)
+    obs = Lagrangian(quantity="x", particles=5)
+    grads = [jax.grad(lambda c: jnp.sum(st.observe(c, obs, [3, 6, 9], segment=s) ** 2))(c) for s in (1, 4, 100)]
+    for other in grads[1:]:
+        for a, b in zip(jax.tree_util.tree_leaves(grads[0]), jax.tree_util.tree_leaves(other)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
+
+
+def test_observe_matches_rollout_and_irregular_schedule():
+    st = build_stepper(grad_scene(2, laws=("weakly_compressible",)), "jax", "apic", "fp64")
+    c = st.controls()
+    tr = st.rollout(steps=9, every=1)
+    y = np.asarray(st.observe(c, Lagrangian(quantity="v"), [0, 2, 3, 9], segment=4))
+    np.testing.assert_allclose(y, tr.v[[0, 2, 3, 9]], rtol=0, atol=1e-14)
+    with pytest.raises(ConfigError):
+        st.observe(c, Lagrangian(quantity="v"), [3, 3])
+
+
+def test_friction_gradient_per_segment_and_per_node():
+    """Block sliding over a floor with Coulomb friction (JAX-MPM Eqs. 35-36): d loss / d mu by FD."""
+    floorless = Walls(default="slip", faces={"y-": "none"}, thickness=2)
+    for fw in (FrictionWalls(face="y-", mu=[0.3, 0.2], along="x", thickness=2),
+               FrictionWalls(face="y-", mu=list(np.linspace(0.1, 0.4, 21)), along="x", thickness=2, per_node=True)):
+        body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.05], "hi": [0.5, 0.15]}, material="fixed_corotated",
+                           params={"E": 5e4, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=[1.5, -0.3])
+        scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
+                             boundaries=[floorless, fw], dt=5e-4, name="slide")
+        st = build_stepper(scene, "jax", "apic", "fp64")
+        c = st.controls()
+        obs = Lagrangian(quantity="x")
+        loss = jax.jit(lambda c: jnp.sum(st.observe(c, obs, [10, 20])[..., 0]))
+        g = jax.grad(loss)(c)["boundary"][1]["mu"]
+        assert float(jnp.max(jnp.abs(g))) > 0
+        mu = c["boundary"][1]["mu"]
+        for d in (jnp.ones_like(mu), jnp.asarray(np.random.default_rng(3).standard_normal(mu.shape))):
+            ad = float(jnp.sum(g * d))
+
+            def shifted(s):
+                cp = dict(c)
+                b = list(c["boundary"])
+                b[1] = {"mu": mu + s * d}
+                cp["boundary"] = tuple(b)
+                return cp
+            h = 1e-6
+            fd = float(loss(shifted(h)) - loss(shifted(-h))) / (2 * h)
+            assert abs(ad - fd) <= 1e-6 * abs(ad), (fw.per_node, ad, fd)
+
+
+def test_observations_against_hand_values():
+    st = build_stepper(grad_scene(2, laws=("fixed_corotated",)), "jax", "pic", "fp64")
+    x = np.array([[0.1, 0.1], [0.12, 0.09], [0.5, 0.5], [0.3, 0.3]])
+    v = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0], [7.0, 8.0]])
+    state = {"x": jnp.asarray(x), "v": jnp.asarray(v)}
+    # monitor 0 holds particles 0 and 1 -> mean (2, 3); monitor 1 holds none -> 0; monitor 2 holds particle 2
+    eul = Eulerian(centers=[[0.11, 0.1], [0.8, 0.8], [0.5, 0.49]], half_size=0.02)
+    impl = eul.implementation("jax", "observation")(eul, st)
+    expect = np.array([[2.0, 3.0], [0.0, 0.0], [5.0, 6.0]])
+    np.testing.assert_allclose(np.asarray(impl.fn(state)), expect)
+    np.testing.assert_allclose(apply_numpy(eul, state), expect)
+    assert eul.empty(x).tolist() == [False, True, False]
+    lag = Lagrangian(quantity="x", particles=[3, 1])
+    impl = lag.implementation("jax", "observation")(lag, st)
+    np.testing.assert_allclose(np.asarray(impl.fn(state)), x[[3, 1]])
+    # gradient of an Eulerian observation flows to the velocities of the particles inside only
+    e_impl = eul.implementation("jax", "observation")(eul, st)
+    g = jax.grad(lambda v_: jnp.sum(e_impl.fn({"x": jnp.asarray(x), "v": v_})))(jnp.asarray(v))
+    np.testing.assert_allclose(np.asarray(g), [[0.5, 0.5], [0.5, 0.5], [1.0, 1.0], [0.0, 0.0]])
+
+
+def test_nan_gradient_is_located():
+    """A NaN entering the backward pass at a known step and particle is reported there."""
+    st = build_stepper(grad_scene(2, laws=("fixed_corotated",)), "jax", "apic", "fp64")
+    c = smooth_controls(st)
+    obs = Lagrangian(quantity="x")
+    steps = [3, 6]
+    ct = np.zeros((2, st.particles.count, 2))
+    ct[0, 7, 1] = np.nan                           # dL/d x_7 at step 3 is NaN
+    with pytest.raises(GradientError) as e:
+        D.locate_nan_gradient(st, c, obs, steps, jnp.asarray(ct), segment=2)
+    assert e.value.step == 3 and e.value.particle == 7
+    assert "step 3" in str(e.value) and "particle 7" in str(e.value)
+    assert not D.check_gradient({"a": jnp.asarray([1.0, np.nan])})
+    assert D.check_gradient({"a": jnp.asarray([1.0, 2.0])})
