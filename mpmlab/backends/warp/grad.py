@@ -30,7 +30,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from ...core.errors import ConfigError, GradientError
+from ...core.errors import ConfigError, GradientError, SimulationDiverged
 from ..boundary_geometry import box_obstacle_normals, friction_node_mu_index, node_positions, wall_masks
 from . import kernels as K
 from .boundaries import _coulomb_func
@@ -370,6 +370,8 @@ class GradPath:
         self.k_g2p = st.k_g2p
         self.k_laws = st.k_laws
         self.k_finite = finite_kernels(D, prec)
+        self.k_guard = K.guard_kernel(D, prec)
+        self.flag = wp.zeros(1, dtype=int, device=dev)
         self.gvec = K.grid_vec_type(D, prec)
         self.empty_vec = wp.zeros(1, dtype=T.vec, device=dev)
         self.empty_C = wp.zeros(1, dtype=T.mat, device=dev)
@@ -551,6 +553,7 @@ class GradPath:
         out = torch.empty((len(steps), L, d), dtype=torch.float64 if self.st.precision == "fp64" else torch.float32,
                           device=_torch_device(self.dev))
         s = self.initial(ctl, grad=False)
+        self._guard(s, 0)
         saved, times, t = {}, [], 0.0
         for k in range(n + 1):
             if k in want:
@@ -564,6 +567,7 @@ class GradPath:
             times.append(t)
             s = self.step(s, ctl, t, grad=False)
             t = t + self.st.dt            # accumulated like the fast path's state.t (boundary windows)
+            self._guard(s, k + 1)
         return out, SimpleNamespace(saved=saved, times=times)
 
     def backward(self, names, flat, observation, steps, segment, saved, grad_out):
@@ -632,6 +636,19 @@ class GradPath:
             g = wp.to_torch(a.grad).clone()
             grads.append(g.reshape(torch.as_tensor(t).shape))
         return grads
+
+    def _guard(self, s, step: int):
+        """Raise SimulationDiverged if a position/velocity is non-finite or left the domain interior:
+        checked after every step, because the next P2G would index the grid with it."""
+        st = self.st
+        self.flag.zero_()
+        wp.launch(self.k_guard, dim=self.N, inputs=[s.x, s.v, st.lo, st.hi, self.flag], device=self.dev)
+        if not self.flag.numpy()[0]:
+            return
+        bad = st.locate_failure({"x": s.x.numpy().astype(np.float64), "v": s.v.numpy().astype(np.float64)})
+        p, field, value = bad if bad is not None else (-1, "x", "?")
+        raise SimulationDiverged(step, p, field, value, "in the forward pass of observe(); check the controls "
+                                                        "(a non-finite or extreme value) and the time step")
 
     def _flag(self, s, ctl_arrays, flags, slot):
         arrays = [a for _, a, _ in (self.state_arrays(s) if s is not None else []) if a.requires_grad]
