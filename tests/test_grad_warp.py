@@ -158,6 +158,55 @@ def test_fd_3d():
         assert abs(ad) > 1e-9 and e <= 1e-6, (k, e, ad)
 
 
+@pytest.mark.parametrize("dim", (2, 3))
+@pytest.mark.parametrize("law", ("fixed_corotated", "hencky_von_mises"))
+def test_stress_adjoint_at_repeated_singular_values(law, dim):
+    """The rest state and rigid rotations have repeated singular values, where the SVD's own derivative
+    is undefined; the spectral maps' adjoints (U V^T, the Hencky stress) must match central differences
+    there and next to it (the divided-difference limit branch, |s_i - s_j| < eps^(1/3))."""
+    from mpmlab.backends.warp.kernels import law_kernels
+
+    cls = registry.laws.get(law)
+    st = stepper(("law_scene", law, dim), "apic")
+    T = st.T
+    k = law_kernels(cls, dim, "fp64").stress
+    rng = np.random.default_rng(0)
+
+    def rot(a):
+        R = np.eye(dim)
+        R[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+        return R
+
+    near = np.eye(dim) * 1.02
+    near[0, 0] += 1e-9
+    Fs = np.array([np.eye(dim), 1.01 * rot(0.4), rot(0.3) @ near @ rot(-1.1).T])
+    prm = np.tile(st.groups[0].params[0], (len(Fs), 1))
+    w = rng.standard_normal((len(Fs), dim, dim))
+
+    def tau(F, grad=False):
+        Fa = wp.array(F, dtype=T.mat, requires_grad=grad)
+        out = wp.zeros(len(F), dtype=T.mat, requires_grad=grad)
+        empty_m, empty_s = wp.zeros(1, dtype=T.mat), wp.zeros(1, dtype=T.scalar)
+        tape = wp.Tape()
+        with tape:
+            wp.launch(k, dim=len(F), inputs=[Fa, empty_s, empty_m, empty_s, wp.array(prm, dtype=T.scalar), 0, out])
+        if not grad:
+            return out.numpy()
+        out.grad = wp.array(w, dtype=T.mat)
+        tape.backward()
+        return Fa.grad.numpy()
+
+    adj = tau(Fs, grad=True)
+    assert np.all(np.isfinite(adj))
+    for i in range(len(Fs)):
+        d = rng.standard_normal((dim, dim))
+        h = 1e-6
+        e = np.zeros_like(Fs)
+        e[i] = h * d
+        fd = ((tau(Fs + e) - tau(Fs - e)) * w).sum() / (2 * h)
+        assert abs(fd - (adj[i] * d).sum()) <= 1e-6 * max(abs(fd), 1.0), (i, fd, (adj[i] * d).sum())
+
+
 # ---- boundaries, gravity, mass, volume -----------------------------------------------------------------
 def friction_scene(kind):
     floorless = Walls(default="slip", faces={"y-": "none"}, thickness=2)   # the friction wall is the floor
@@ -190,6 +239,26 @@ def test_friction_gradient(kind, transfer):
         assert torch.all(mu.grad != 0)
     elif kind == "per_node":
         assert int((mu.grad != 0).sum()) >= 4
+
+
+@pytest.mark.parametrize("transfer", ("apic", "flip"))
+@pytest.mark.parametrize("kind", ("walls", "particle_velocity", "particle_load", "box_obstacle"))
+def test_boundary_gradients(kind, transfer):
+    """Domain walls in contact (sticky x-, slip x+, separate y-), a prescribed particle velocity, a
+    particle load (active from step 21) and a box obstacle: gradients w.r.t. their data and v."""
+    keys = {"walls": ("v", "x"), "particle_velocity": (("boundary", 1, "velocity"), "v"),
+            "particle_load": (("boundary", 0, "force"), "v"), "box_obstacle": ("v",)}[kind]
+    st = stepper(("boundary_scene", kind), transfer)
+    steps = (20, 40) if kind in ("particle_load", "box_obstacle") else (10, 20)
+    errs = fd_errors(st, st.controls(), Lagrangian(quantity="v"), steps, keys, scale={"x": 0.01})
+    for k, (e, ad) in errs.items():
+        assert abs(ad) > 1e-9 and e <= 1e-6, (k, e, ad)
+
+
+def boundary_scene(kind):
+    from .test_boundaries import scene_for
+
+    return scene_for(kind, 2)
 
 
 def test_segments_do_not_change_gradients():

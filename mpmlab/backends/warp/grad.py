@@ -149,10 +149,19 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
 @lru_cache(maxsize=None)
 def grid_kernel(dim: int, precision: str, split_force: bool):
     """Grid velocity update (JAX-MPM Eqs. 13-14) and domain walls over every node, into fresh arrays
-    (the fast path's ``grid_update_kernel`` clears what it reads, which a tape cannot replay)."""
+    (the fast path's ``grid_update_kernel`` clears what it reads, which a tape cannot replay).
+
+    Warp pitfall: in a differentiated kernel never overwrite a vector component that depends on the
+    inputs (``v[d] = 0``): Warp 1.19 still routes the old value's adjoint through. Build new vectors."""
     T = warp_types(dim, precision)
     scalar, vec, ivec = T.scalar, T.vec, T.ivec
     gvec = K.grid_vec_type(dim, precision)
+
+    @wp.func
+    def axis(d: int):
+        e = vec()
+        e[d] = scalar(1.0)
+        return e
 
     @wp.kernel(module="unique")
     def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), gravity: wp.array(dtype=vec),
@@ -192,7 +201,9 @@ def grid_kernel(dim: int, precision: str, split_force: bool):
                             else:
                                 into = vn[d] > scalar(0.0)
                             if kind == 2 or into:
-                                vn[d] = scalar(0.0)
+                                # not vn[d] = 0: Warp 1.19's adjoint of a vector component overwrite
+                                # still passes the overwritten value's gradient through
+                                vn = vn - vn[d] * axis(d)
         grid_v[i] = vn
 
     return grid_update
