@@ -434,8 +434,9 @@ def unpack_colors(packed: np.ndarray) -> np.ndarray:
     return np.stack([(p >> 24) & 255, (p >> 16) & 255, (p >> 8) & 255, p & 255], axis=-1).astype(np.uint8)
 
 
-def read_recording_metrics(path: str | os.PathLike) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``{name: (frames, values)}`` of every ``rr.Scalars`` series under ``metrics/``."""
+def read_recording_metrics(path: str | os.PathLike, timeline: str = "frame") -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{name: (frames, values)}`` of every ``rr.Scalars`` series under ``metrics/`` (``timeline``:
+    ``frame`` for simulation recordings, ``epoch`` for ``task=inverse``)."""
     from rerun.chunk import RrdReader
 
     if not Path(path).is_file():
@@ -445,7 +446,7 @@ def read_recording_metrics(path: str | os.PathLike) -> dict[str, tuple[np.ndarra
                                                    components="Scalars:scalars"):
         rb = ch.to_record_batch()
         name = str(ch.entity_path).strip("/").removeprefix("metrics/")
-        frames = rb.column("frame").to_numpy()
+        frames = rb.column(timeline).to_numpy()
         for f, row in zip(frames, rb.column("Scalars:scalars")):
             out.setdefault(name, {})[int(f)] = float(row.values.to_numpy()[0])
     return {k: (np.array(sorted(d)), np.array([d[f] for f in sorted(d)])) for k, d in out.items()}

@@ -4,10 +4,13 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import jax.numpy as jnp
+import numpy as np
 
 
 def lagrangian(obs, stepper):
-    idx = jnp.asarray(obs.indices(stepper.particles.count))
+    # NumPy constants: the factory may run inside a jax trace (first call under jit); jnp constants made
+    # there would be tracers that leak into the cached function
+    idx = obs.indices(stepper.particles.count)
     q = obs.quantity
 
     def fn(state):
@@ -17,7 +20,7 @@ def lagrangian(obs, stepper):
 
 
 def eulerian(obs, stepper):
-    c = jnp.asarray(obs.centers_array(stepper.dim), stepper.dtype)
+    c = np.asarray(obs.centers_array(stepper.dim), dtype=np.dtype(stepper.dtype))
     h = obs.half_size
     q = obs.quantity
 

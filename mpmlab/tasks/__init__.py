@@ -25,6 +25,7 @@ ENTRY_POINT_GROUP = "mpmlab.tasks"
 _TASKS: dict[str, Any] = {
     "simulate": "mpmlab.tasks.simulate:run",
     "replay": "mpmlab.tasks.replay:run",
+    "inverse": "mpmlab.tasks.inverse:run",
 }
 _entry_points_loaded = False
 

@@ -77,8 +77,20 @@ def schedule(steps) -> tuple[int, int, int, np.ndarray]:
     return int(s[0]), g, count, ((s - s[0]) // g).astype(np.int64)
 
 
-def observe_fn(stepper, observation, steps, segment: int | None = None):
-    """A pure function ``controls -> [T, L, d]`` (jitted): the rollout observed after each of ``steps``."""
+def _invalid(stepper, state):
+    """True where the state has a non-finite x/v or a particle outside the domain interior (the Warp
+    path raises there; a JAX gather would silently clip)."""
+    lo, hi = stepper.scene.inner_bounds
+    x, v = state["x"], state["v"]
+    return (~jnp.all(jnp.isfinite(x)) | ~jnp.all(jnp.isfinite(v)) | jnp.any((x < jnp.asarray(lo, x.dtype))
+            | (x >= jnp.asarray(hi, x.dtype))))
+
+
+def observe_fn(stepper, observation, steps, segment: int | None = None, health: bool = False):
+    """A pure function ``controls -> [T, L, d]`` (jitted): the rollout observed after each of ``steps``.
+
+    ``health=True``: ``controls -> ([T, L, d], invalid)`` where ``invalid`` says whether any observed
+    state had a non-finite position/velocity or a particle outside the domain interior."""
     impl = observation.implementation("jax", "observation")(observation, stepper)
     first, g, count, pick = schedule(steps)
     segment = int(segment or DEFAULT_SEGMENT)
@@ -90,26 +102,28 @@ def observe_fn(stepper, observation, steps, segment: int | None = None):
         state, params = split_controls(stepper, c)
         state = advance(stepper, state, params, first, segment)
         y0 = impl.fn(state)
+        bad0 = _invalid(stepper, state)
         if count == 1:
-            return y0[None]
+            return (y0[None], bad0) if health else y0[None]
 
         @jax.checkpoint
         def interval(s, _):
             s = advance(stepper, s, params, g, segment)
-            return s, impl.fn(s)
+            return s, (impl.fn(s), _invalid(stepper, s))
 
-        _, ys = jax.lax.scan(interval, state, None, length=count - 1)
+        _, (ys, bad) = jax.lax.scan(interval, state, None, length=count - 1)
         ys = jnp.concatenate([y0[None], ys], axis=0)
-        return ys[jnp.asarray(pick)] if dense else ys
+        ys = ys[jnp.asarray(pick)] if dense else ys
+        return (ys, bad0 | jnp.any(bad)) if health else ys
 
     return jax.jit(fn)
 
 
-def observe(stepper, c, observation, steps, segment: int | None = None):
-    key = (id(observation), tuple(np.asarray(steps).reshape(-1).tolist()), segment)
+def observe(stepper, c, observation, steps, segment: int | None = None, health: bool = False):
+    key = (id(observation), tuple(np.asarray(steps).reshape(-1).tolist()), segment, health)
     cache = stepper.__dict__.setdefault("_observe_cache", {})
     if key not in cache:
-        cache[key] = (observation, observe_fn(stepper, observation, steps, segment))
+        cache[key] = (observation, observe_fn(stepper, observation, steps, segment, health))
     return cache[key][1](c)
 
 

@@ -1,0 +1,290 @@
+"""Gradient-based fitting of rollout controls to observations (JAX-MPM Eq. 28), on either backend.
+
+``Fit`` owns: the stepper, the observation operator and schedule, the reference data, the
+:class:`~mpmlab.inverse.parameters.FitParameter` list and an optimiser. One ``epoch`` = one rollout,
+one gradient, one optimiser step. The loss is the masked mean of Eq. 28's squared residuals
+(the mean instead of the sum: Adam is invariant to the scale, and the number reads the same at every
+observation density).
+
+JAX: ``jax.value_and_grad`` of a jitted loss through ``stepper.observe``; optimiser = an optax
+GradientTransformation. Warp: ``stepper.observe`` is a ``torch.autograd.Function``; optimiser = a
+``torch.optim`` optimiser (+ optional lr scheduler). A non-finite loss stops the fit with
+``FitDiverged``; a non-finite gradient is located (``GradientError``: step and particle).
+Checkpoints (every ``checkpoint_every`` epochs, atomic) let an interrupted fit resume where it stopped.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ..core.errors import MpmlabError, SimulationDiverged
+from ..observations import ObservationSchedule
+from .parameters import FitParameter, ops_for
+
+
+class FitDiverged(MpmlabError):
+    """The loss of a fit became NaN/Inf (the optimiser pushed the parameters somewhere unstable)."""
+
+
+def _atomic_pickle(path: Path, obj: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(obj, f)
+    os.replace(tmp, path)
+
+
+class Fit:
+    def __init__(self, stepper, scene, parameters: Sequence[FitParameter], observation, schedule: ObservationSchedule,
+                 segment: int | None = None, reference: np.ndarray | None = None):
+        self.stepper, self.scene = stepper, scene
+        self.backend = stepper.backend_name
+        self.ops = ops_for(self.backend, stepper.precision)
+        self.parameters = list(parameters)
+        self.observation, self.schedule, self.segment = observation, schedule, segment
+        self.steps = schedule.steps_array()
+        self.base = stepper.controls()
+        self.reference = reference
+        self.history: list[dict[str, Any]] = []
+        self.epoch = 0
+
+    # ---- reference data --------------------------------------------------------------------------
+    def truth_controls(self):
+        c = self.base
+        for p in self.parameters:
+            c = p.truth_controls(self.ops, c, self.stepper, self.scene)
+        return c
+
+    def make_reference(self) -> np.ndarray:
+        """Observations of the rollout under the truth (plus the schedule's noise), NumPy."""
+        if any(p.truth is None for p in self.parameters):
+            missing = [p.name for p in self.parameters if p.truth is None]
+            raise MpmlabError(f"cannot generate reference observations: parameter(s) {missing} have no 'truth'; "
+                              f"give task.parameters.<name>.truth or a reference trajectory (input=PATH.h5).")
+        y = self.stepper.observe(self.truth_controls(), self.observation, self.steps, self.segment)
+        ref = self.ops.numpy(y) if self.backend == "warp" else np.asarray(y, float)
+        self.reference = self.schedule.add_noise(ref)
+        return self.reference
+
+    # ---- the loss ----------------------------------------------------------------------------------------
+    def controls_of(self, raw: dict):
+        c = self.base
+        for p in self.parameters:
+            c = p.apply(self.ops, c, p.value(self.ops, raw[p.name]))
+        return c
+
+    def _mask(self):
+        T, L, d = np.shape(self.reference)
+        m = self.schedule.mask_array((T, L))
+        if self.observation.name == "eulerian":
+            # an empty monitor reads exactly 0 (Eq. 27 is undefined there): no data, m_{l,t} = 0
+            m = m * np.any(np.asarray(self.reference) != 0.0, axis=2)
+        return m
+
+    def loss_function(self) -> Callable:
+        ops, obs, steps, seg = self.ops, self.observation, self.steps, self.segment
+        mask = self._mask()
+        norm = float(mask.sum() * np.shape(self.reference)[2])
+        ref = ops.asarray(self.reference)
+        m = ops.asarray(mask)[..., None]
+
+        if self.backend == "jax":
+            from ..backends.jax import differentiable as JD
+
+            def loss(raw):          # (loss, invalid): the JAX rollout reports a diverged state as aux
+                pred, bad = JD.observe(self.stepper, self.controls_of(raw), obs, steps, seg, health=True)
+                r = (pred - ref) * m
+                return (r * r).sum() / norm, bad                                  # JAX-MPM Eq. 28 (mean)
+            return loss
+
+        def loss(raw):              # the Warp rollout raises SimulationDiverged itself
+            pred = self.stepper.observe(self.controls_of(raw), obs, steps, seg)
+            r = (pred - ref) * m
+            return (r * r).sum() / norm
+
+        return loss
+
+    def init_raw(self) -> dict:
+        return {p.name: p.init_raw(self.ops) for p in self.parameters}
+
+    # ---- reporting ----------------------------------------------------------------------------------------
+    def values(self, raw) -> dict[str, Any]:
+        out = {}
+        for p in self.parameters:
+            if p.form == "mlp":
+                continue
+            v = self.ops.numpy(p.value(self.ops, raw[p.name]))
+            out[p.name] = v.tolist() if np.ndim(v) else float(v)
+        return out
+
+    def report(self, raw) -> dict[str, Any]:
+        return {p.name: p.report(self.ops, raw[p.name], self.stepper, self.scene) for p in self.parameters}
+
+    def profiles(self, raw) -> dict[str, Any]:
+        out = {}
+        for p in self.parameters:
+            pr = p.profile(self.ops, raw[p.name], self.stepper, self.scene)
+            if pr is not None:
+                out[p.name] = pr
+        return out
+
+    # ---- the loop -----------------------------------------------------------------------------------------
+    def run(self, epochs: int, optimizer_cfg, schedule_cfg=None, checkpoint: Path | None = None,
+            checkpoint_every: int = 10, resume: bool = True, progress: bool | None = None,
+            on_epoch: Callable[[int, float, dict], None] | None = None, tolerance: float = 0.0) -> dict:
+        """Optimise for ``epochs`` epochs (total, counting those done before a resume); returns the
+        final trainable values. ``on_epoch(epoch, loss, values)`` runs after every epoch."""
+        if self.reference is None:
+            self.make_reference()
+        runner = self._run_jax if self.backend == "jax" else self._run_torch
+        return runner(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
+                      tolerance)
+
+    def _bar(self, epochs, progress):
+        from tqdm.auto import tqdm
+
+        return tqdm(total=epochs, initial=self.epoch, disable=None if progress is None else not progress,
+                    unit="epoch", leave=False, mininterval=0.5)
+
+    def _record(self, epoch, loss, raw, grad_norm, t):
+        entry = {"epoch": epoch, "loss": float(loss), "grad_norm": float(grad_norm), "time_s": float(t),
+                 "values": self.values(raw)}
+        self.history.append(entry)
+        return entry
+
+    def _diverged(self, epoch, loss, why: str = ""):
+        last = self.history[-1]["values"] if self.history else {}
+        return FitDiverged(f"fit diverged at epoch {epoch}: {why or 'the loss is ' + str(loss)} (parameters of the "
+                           f"last good epoch: {last}); lower the learning rate, bound the parameter with transform: "
+                           f"softplus, or check the data.")
+
+    def _run_jax(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol):
+        import jax
+        import optax
+
+        from ..backends.jax import differentiable as JD
+
+        loss = self.loss_function()
+        vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
+        opt = opt_cfg(sched_cfg) if callable(opt_cfg) else opt_cfg
+        raw = self.init_raw()
+        state = opt.init(raw)
+        if checkpoint is not None and resume and checkpoint.exists():
+            ck = pickle.load(open(checkpoint, "rb"))
+            raw = jax.tree.map(lambda a: self.ops.asarray(a), ck["raw"])
+            state = jax.tree.map(lambda ref, a: self.ops.jnp.asarray(a, dtype=getattr(ref, "dtype", None))
+                                 if hasattr(ref, "dtype") else a, state, ck["opt_state"])
+            self.epoch, self.history = ck["epoch"], ck["history"]
+        bar = self._bar(epochs, progress)
+        t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)
+        try:
+            while self.epoch < epochs:
+                (val, bad), g = vg(raw)
+                val = float(val)
+                if bool(bad):
+                    raise self._diverged(self.epoch, val, "the rollout left the domain or became non-finite")
+                if not np.isfinite(val):
+                    raise self._diverged(self.epoch, val)
+                if not JD.check_gradient(g):
+                    self._locate_jax(raw)
+                gn = float(optax.global_norm(g))
+                self._record(self.epoch, val, raw, gn, time.perf_counter() - t0)
+                updates, state = opt.update(g, state, raw)
+                raw = optax.apply_updates(raw, updates)
+                self.epoch += 1
+                bar.update(1)
+                bar.set_postfix(loss=f"{val:.3e}")
+                if on_epoch is not None:
+                    on_epoch(self.epoch - 1, val, self.history[-1]["values"])
+                if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
+                    _atomic_pickle(checkpoint, {"epoch": self.epoch, "history": self.history,
+                                                "raw": jax.device_get(raw), "opt_state": jax.device_get(state)})
+                if val <= tol:
+                    break
+        finally:
+            bar.close()
+        self.final_loss = float(loss(raw)[0])
+        return raw
+
+    def _locate_jax(self, raw):
+        """Turn a non-finite JAX gradient into a GradientError naming step and particle."""
+        import jax
+
+        from ..backends.jax import differentiable as JD
+
+        c = self.controls_of(raw)
+        ref, m = self.ops.asarray(self.reference), self.ops.asarray(self._mask())[..., None]
+        norm = float(self._mask().sum() * np.shape(self.reference)[2])
+        pred = self.stepper.observe(c, self.observation, self.steps, self.segment)
+        ct = jax.grad(lambda p: (((p - ref) * m) ** 2).sum() / norm)(pred)
+        JD.locate_nan_gradient(self.stepper, c, self.observation, self.steps, ct, self.segment)
+
+    def _run_torch(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol):
+        import torch
+
+        loss = self.loss_function()
+        raw = self.init_raw()
+        params = []
+        for p in self.parameters:
+            r = raw[p.name]
+            if isinstance(r, list):                 # MLP: a list of nn.Linear
+                raw[p.name] = torch.nn.ModuleList(r)
+                params += list(raw[p.name].parameters())
+            else:
+                raw[p.name] = r.clone().requires_grad_(True)
+                params.append(raw[p.name])
+        opt = opt_cfg(params)
+        sched = sched_cfg(opt) if sched_cfg is not None else None
+        if checkpoint is not None and resume and checkpoint.exists():
+            ck = torch.load(checkpoint, weights_only=False)
+            with torch.no_grad():
+                for p in self.parameters:
+                    if isinstance(raw[p.name], torch.nn.Module):
+                        raw[p.name].load_state_dict(ck["raw"][p.name])
+                    else:
+                        raw[p.name].copy_(ck["raw"][p.name])
+            opt.load_state_dict(ck["opt"])
+            if sched is not None and ck.get("sched") is not None:
+                sched.load_state_dict(ck["sched"])
+            self.epoch, self.history = ck["epoch"], ck["history"]
+        bar = self._bar(epochs, progress)
+        t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)
+        try:
+            while self.epoch < epochs:
+                opt.zero_grad()
+                try:
+                    val = loss(raw)
+                except SimulationDiverged as exc:
+                    raise self._diverged(self.epoch, float("nan"), f"the rollout diverged ({exc})") from None
+                v = float(val.detach())
+                if not np.isfinite(v):
+                    raise self._diverged(self.epoch, v)
+                val.backward()                       # a non-finite adjoint raises GradientError in the bridge
+                gn = float(torch.sqrt(sum((q.grad.detach() ** 2).sum() for q in params if q.grad is not None)))
+                self._record(self.epoch, v, raw, gn, time.perf_counter() - t0)
+                opt.step()
+                if sched is not None:
+                    sched.step()
+                self.epoch += 1
+                bar.update(1)
+                bar.set_postfix(loss=f"{v:.3e}")
+                if on_epoch is not None:
+                    on_epoch(self.epoch - 1, v, self.history[-1]["values"])
+                if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
+                    state = {p.name: (raw[p.name].state_dict() if isinstance(raw[p.name], torch.nn.Module)
+                                      else raw[p.name].detach().clone()) for p in self.parameters}
+                    tmp = checkpoint.with_name(checkpoint.name + ".tmp")
+                    torch.save({"epoch": self.epoch, "history": self.history, "raw": state, "opt": opt.state_dict(),
+                                "sched": sched.state_dict() if sched is not None else None}, tmp)
+                    os.replace(tmp, checkpoint)
+                if v <= tol:
+                    break
+        finally:
+            bar.close()
+        with torch.no_grad():
+            self.final_loss = float(loss(raw))
+        return raw

@@ -1,0 +1,263 @@
+"""``task=inverse``: fit rollout controls to observations (JAX-MPM Sec. 3.2 and 5).
+
+Reads ``task.parameters`` (what to fit, see :mod:`mpmlab.inverse.parameters`), ``task.observation``
+(an observation operator: ``{kind: lagrangian|eulerian, ...}``), the observation schedule, and either
+generates reference observations from the parameters' ``truth`` or reads them from an HDF5 trajectory
+(top-level ``input``). Optimiser and learning-rate schedule come from ``task.optimizer.<backend>`` /
+``task.lr_schedule.<backend>`` (``_target_``: optax on JAX, torch.optim on Warp).
+
+Outputs in the run directory: ``summary.json`` (truth, recovered, relative_error per parameter, epochs,
+wall_time_s, loss history), ``fit.png`` (loss and parameter convergence), ``recording.rrd`` (loss and
+parameters per epoch as rerun scalars), ``config.yaml`` and ``fit_checkpoint.*`` (resume: run the same
+command with the same ``hydra.run.dir``).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..config import build_scene, check_run_options, make_transfer_from_config
+from ..core.errors import ConfigError
+from .common import CONFIG, RECORDING, SUMMARY, write_config, write_json
+
+log = logging.getLogger("mpmlab")
+FIT_PLOT = "fit.png"
+
+
+def _plain(node):
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    return OmegaConf.to_container(node, resolve=True) if isinstance(node, (DictConfig, ListConfig)) else node
+
+
+def schedule_from_config(tc, total_steps: int):
+    from ..observations import ObservationSchedule
+
+    s = _plain(tc.schedule) or {}
+    noise, seed = float(tc.noise), int(tc.noise_seed)
+    if s.get("steps") is not None:
+        return ObservationSchedule(steps=tuple(int(a) for a in s["steps"]), noise=noise, seed=seed)
+    frames, every = s.get("frames"), s.get("every")
+    if frames is None:
+        raise ConfigError("task.schedule needs 'steps' (a list) or 'frames' (+ 'every', or 'spread: true').")
+    frames = int(frames)
+    if s.get("spread"):
+        if total_steps % frames:
+            raise ConfigError(f"task.schedule: {frames} evenly spread frames need steps ({total_steps}) divisible by {frames}.")
+        every = total_steps // frames
+    if every is None:
+        raise ConfigError("task.schedule: give 'every' (steps between frames) or 'spread: true'.")
+    sch = ObservationSchedule.last_frames(total_steps, frames, int(every))
+    return ObservationSchedule(steps=sch.steps, noise=noise, seed=seed)
+
+
+def parameters_from_config(tc):
+    from ..inverse.parameters import FitParameter
+
+    consts = _plain(tc.constants) or {}
+    out = []
+    for name, p in (_plain(tc.parameters) or {}).items():
+        p = {k: v for k, v in p.items() if v is not None}
+        try:
+            out.append(FitParameter(name=name, constants=consts, **p))
+        except TypeError as exc:
+            raise ConfigError(f"task.parameters.{name}: {exc}; check the option names.") from None
+    if not out:
+        raise ConfigError("task=inverse needs at least one entry under task.parameters.")
+    return out
+
+
+def reference_from_h5(path: str, observation, schedule, steps_total: int):
+    """Observations of a stored trajectory at the schedule's steps (frames must exist there)."""
+    from ..io.h5 import read_trajectory
+    from ..observations import apply_numpy
+
+    traj = read_trajectory(path)
+    want = schedule.steps_array(steps_total)
+    where = {int(s): k for k, s in enumerate(traj.step)}
+    missing = [int(s) for s in want if int(s) not in where]
+    if missing:
+        raise ConfigError(f"input '{path}' has no frames at steps {missing[:5]}{'...' if len(missing) > 5 else ''}; "
+                          f"store frames at the observation steps (frame_every) or change task.schedule.")
+    ref = np.stack([apply_numpy(observation, {"x": traj.x[where[int(s)]], "v": traj.v[where[int(s)]]}) for s in want])
+    return schedule.add_noise(ref)
+
+
+def run(cfg, ctx) -> dict:
+    from hydra.utils import instantiate
+
+    from .. import __version__
+    from ..inverse.fit import Fit
+    from ..observations import make_observation
+    from ..simulator import build_stepper
+
+    t_task = time.perf_counter()
+    out = Path(ctx.output_dir)
+    check_run_options(cfg)
+    tc = cfg.task
+    scene = build_scene(cfg)
+    transfer = make_transfer_from_config(cfg)
+    backend, precision = cfg.backend.name, cfg.precision.name
+    steps = int(cfg.steps)
+    observation = make_observation(_plain(tc.observation))
+    schedule = schedule_from_config(tc, steps)
+    schedule.steps_array(steps)
+    params = parameters_from_config(tc)
+    opt_node = tc.optimizer.get(backend) if tc.optimizer is not None else None
+    if opt_node is None:
+        raise ConfigError(f"task.optimizer has no entry for backend '{backend}'; add task.optimizer.{backend}._target_.")
+    ckpt = out / ("fit_checkpoint.pkl" if backend == "jax" else "fit_checkpoint.pt")
+    if (out / SUMMARY).exists() and not ctx.overwrite and not (tc.resume and ckpt.exists()):
+        raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
+    write_config(out, cfg, True)
+
+    stepper = build_stepper(scene, backend, transfer, precision)
+    for p in params:
+        p.bind(scene, stepper, list(scene_boundary_names(cfg)))
+    fit = Fit(stepper, scene, params, observation, schedule, segment=int(tc.segment))
+    if cfg.input:
+        fit.reference = reference_from_h5(str(cfg.input), observation, schedule, steps)
+    t0 = time.perf_counter()
+    ref = fit.reference if fit.reference is not None else fit.make_reference()
+    ref_time = time.perf_counter() - t0
+    log.info("inverse: %s on %s/%s/%s, %d particles, %d steps, %d observation frames x %d indices, fitting %s",
+             scene.name, backend, transfer.name, precision, stepper.particles.count, steps, ref.shape[0], ref.shape[1],
+             ", ".join(p.name for p in params))
+
+    sched_node = tc.lr_schedule.get(backend) if tc.lr_schedule is not None else None
+    if backend == "jax":   # optax: the schedule is the optimiser's learning rate
+        kw = {"learning_rate": instantiate(sched_node)} if sched_node is not None else \
+            ({} if "learning_rate" in opt_node else {"learning_rate": float(tc.learning_rate)})
+        optimizer = instantiate(opt_node, **kw)
+        sched = None
+    else:                  # torch.optim: the scheduler wraps the optimiser
+        kw = {} if "lr" in opt_node else {"lr": float(tc.learning_rate)}
+        optimizer = (lambda prm: instantiate(opt_node, prm, **kw))
+        sched = (lambda opt: instantiate(sched_node, opt)) if sched_node is not None else None
+
+    rec = _Recorder(out / RECORDING, f"inverse-{scene.name}-{out.name}") if cfg.output.recording else None
+    try:
+        raw = fit.run(int(tc.epochs), optimizer, sched, checkpoint=ckpt, checkpoint_every=int(tc.checkpoint_every),
+                      resume=bool(tc.resume), progress=ctx.progress,
+                      on_epoch=rec.log if rec is not None else None, tolerance=float(tc.loss_tolerance))
+    finally:
+        if rec is not None:
+            rec.close(fit.history)
+    report = fit.report(raw)
+    summary = {
+        "task": "inverse", "status": "ok", "scene": scene.name, "resolution": str(cfg.scene.resolution),
+        "backend": backend, "transfer": transfer.name, "precision": precision,
+        "particles": int(stepper.particles.count), "steps": steps, "dt": float(stepper.dt),
+        "observation": {"kind": observation.name, **{k: v for k, v in _plain(tc.observation).items() if k != "kind"}},
+        "observation_frames": int(ref.shape[0]), "observed_indices": int(ref.shape[1]),
+        "truth": {k: v.get("truth", v.get("truth_field_rms")) for k, v in report.items()},
+        "recovered": {k: v.get("recovered", v.get("recovered_field_rms")) for k, v in report.items()},
+        "relative_error": {k: v.get("relative_error") for k, v in report.items()},
+        "parameters": report,
+        "profiles": fit.profiles(raw),
+        "epochs": int(fit.epoch),
+        "final_loss": float(fit.final_loss),
+        "initial_loss": float(fit.history[0]["loss"]) if fit.history else None,
+        "reference_time_s": float(ref_time),
+        "history": fit.history,
+        "wall_time_s": None,
+        "mpmlab_version": __version__,
+        "overrides": list(ctx.job.get("overrides", [])),
+    }
+    if cfg.output.plots:
+        plot_fit(out / FIT_PLOT, fit.history, report, summary["profiles"], f"{scene.name}: {backend}/{transfer.name}")
+    summary["wall_time_s"] = float(time.perf_counter() - t_task)
+    write_json(out / SUMMARY, summary, True)
+    errs = ", ".join(f"{k} {_fmt(v)}" for k, v in summary["relative_error"].items())
+    print(f"mpmlab: inverse {scene.name} {backend}: {fit.epoch} epochs in {summary['wall_time_s']:.1f} s, "
+          f"loss {summary['initial_loss']:.3e} -> {summary['final_loss']:.3e}; relative error: {errs} -> {out}", flush=True)
+    return summary
+
+
+def scene_boundary_names(cfg):
+    """Config names of the enabled boundaries, in the scene's order."""
+    return [name for name, b in cfg.scene.boundaries.items() if b.enabled] if not cfg.scene.builder else []
+
+
+def _fmt(v):
+    if v is None:
+        return "n/a"
+    if isinstance(v, list):
+        return "[" + ", ".join(f"{a:.2%}" for a in v) + "]"
+    return f"{v:.2%}"
+
+
+class _Recorder:
+    """Loss and parameter values per epoch as rerun scalars (timeline ``epoch``), written atomically."""
+
+    def __init__(self, path: Path, recording_id: str):
+        import rerun as rr
+
+        self.path = path
+        self.tmp = path.with_name(path.name + ".tmp")
+        self.rec = rr.RecordingStream("mpmlab", recording_id=recording_id)
+        self.rec.save(self.tmp)
+
+    def log(self, epoch, loss, values):
+        import rerun as rr
+
+        self.rec.set_time("epoch", sequence=int(epoch))
+        self.rec.log("metrics/loss", rr.Scalars(float(loss)))
+        for name, v in values.items():
+            v = np.asarray(v, float).reshape(-1)
+            if v.size == 1:
+                self.rec.log(f"metrics/{name}", rr.Scalars(float(v[0])))
+            else:
+                for k, a in enumerate(v):
+                    self.rec.log(f"metrics/{name}/{k}", rr.Scalars(float(a)))
+
+    def close(self, history):
+        import os
+
+        self.rec.flush()
+        self.rec.disconnect()
+        if self.tmp.exists():
+            os.replace(self.tmp, self.path)
+
+
+def plot_fit(path: Path, history, report, profiles, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scalars = {k: v for k, v in report.items() if "truth" in v or "recovered" in v}
+    n = 1 + (1 if history and history[0]["values"] else 0) + len(profiles)
+    fig, axs = plt.subplots(1, n, figsize=(5 * n, 3.8), squeeze=False)
+    ax = axs[0, 0]
+    ax.semilogy([h["epoch"] for h in history], [h["loss"] for h in history])
+    ax.set_xlabel("epoch"); ax.set_ylabel("loss (mean squared residual)"); ax.set_title("loss")
+    k = 1
+    if history and history[0]["values"]:
+        ax = axs[0, k]; k += 1
+        for name in history[0]["values"]:
+            vals = np.array([np.asarray(h["values"][name], float).reshape(-1) for h in history])
+            truth = np.asarray(scalars.get(name, {}).get("truth", np.nan), float).reshape(-1)
+            for j in range(vals.shape[1]):
+                lab = name if vals.shape[1] == 1 else f"{name}[{j}]"
+                line, = ax.plot([h["epoch"] for h in history], vals[:, j], label=lab)
+                if j < truth.size and np.isfinite(truth[j]):
+                    ax.axhline(truth[j], color=line.get_color(), ls="--", lw=0.8)
+        ax.set_xlabel("epoch"); ax.set_title("parameters (dashed: truth)"); ax.legend(fontsize=7)
+    for name, pr in profiles.items():
+        ax = axs[0, k]; k += 1
+        ax.plot(pr["recovered"], pr["at"], label="recovered")
+        if "truth" in pr:
+            ax.plot(pr["truth"], pr["at"], "k--", label="truth")
+        ax.set_ylabel(pr["coordinate"]); ax.set_xlabel(name); ax.legend(fontsize=7); ax.set_title(f"{name} profile")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    import os
+
+    os.replace(tmp, path)
