@@ -231,3 +231,26 @@ def test_nan_gradient_is_located():
     assert "step 3" in str(e.value) and "particle 7" in str(e.value)
     assert not D.check_gradient({"a": jnp.asarray([1.0, np.nan])})
     assert D.check_gradient({"a": jnp.asarray([1.0, 2.0])})
+
+
+@pytest.mark.parametrize("kind", ["sticky", "slip", "separate"])
+def test_fd_with_walls_in_contact(kind):
+    """A block pressed onto the floor and sliding along it (every floor node in contact keeps v.n < 0,
+    away from the separate-wall switch): wall clamps are differentiated correctly."""
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.2, 0.05], "hi": [0.5, 0.2]}, material="fixed_corotated",
+                       params={"E": 3e4, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=[1.0, -1.5])
+    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
+                         boundaries=[Walls(default=kind, thickness=2)], dt=5e-4, name="press")
+    st = build_stepper(scene, "jax", "apic", "fp64")
+    c = st.controls()
+    obs = Lagrangian(quantity="v")
+    w = jnp.asarray(np.random.default_rng(5).standard_normal((2, st.particles.count, 2)))
+    loss = jax.jit(lambda c: jnp.sum(w * st.observe(c, obs, [6, 12], segment=4)))
+    d = jnp.asarray(np.random.default_rng(6).standard_normal(np.shape(c["v"])))
+    ad, err = fd_check(loss, c, "v", d)
+    assert err <= 1e-6, (kind, ad, err)
+    gi = 0
+    dl = np.zeros(np.shape(c["law"][0]))
+    dl[:, 0] = np.asarray(c["law"][0])[:, 0]
+    ad, err = fd_check(loss, c, "law", (gi, jnp.asarray(dl)), hs=(1e-3, 1e-4, 1e-5, 1e-6))
+    assert err <= 1e-6, (kind, "E", ad, err)
