@@ -212,7 +212,8 @@ def friction_scene(kind):
     floorless = Walls(default="slip", faces={"y-": "none"}, thickness=2)   # the friction wall is the floor
     if kind == "plane":
         bcs = [Walls(default="slip", thickness=2), Plane(point=[0.5, 0.29], normal=[0.0, 1.0], friction=0.3)]
-        bodies = [body(2, [0.4, 0.3], [0.6, 0.4], "fixed_corotated", velocity=[1.0, -0.3], params={"E": 5e4, "nu": 0.3})]
+        bodies = [body(2, [0.4, 0.3], [0.6, 0.4], "fixed_corotated", velocity=[1.0, -0.3],
+                       params={"E": 5e4, "nu": 0.3})]
     else:
         mu = [0.2, 0.4] if kind == "segments" else list(np.linspace(0.1, 0.5, 21))
         bcs = [floorless, FrictionWalls(face="y-", mu=mu, along="x", thickness=2, per_node=kind == "per_node")]
@@ -288,7 +289,8 @@ def hand_state(x, v, grad=False):
     from types import SimpleNamespace
 
     T = stepper(("law_scene", "fixed_corotated"), "pic").T
-    return SimpleNamespace(x=wp.array(x, dtype=T.vec, requires_grad=grad), v=wp.array(v, dtype=T.vec, requires_grad=grad))
+    return SimpleNamespace(x=wp.array(x, dtype=T.vec, requires_grad=grad),
+                           v=wp.array(v, dtype=T.vec, requires_grad=grad))
 
 
 def run_obs(obs, state):
@@ -328,7 +330,8 @@ def test_observation_adjoints():
     x = np.full((n, 2), 0.9)
     x[:3] = [[0.10, 0.10], [0.12, 0.09], [0.30, 0.30]]
     v = np.ones((n, 2))
-    for obs in (Lagrangian(quantity="v", particles=[2, 0]), Eulerian(centers=[[0.11, 0.1]], half_size=0.02, quantity="v")):
+    for obs in (Lagrangian(quantity="v", particles=[2, 0]),
+                Eulerian(centers=[[0.11, 0.1]], half_size=0.02, quantity="v")):
         state = hand_state(x, v, grad=True)
         impl, out, tape = run_obs(obs, state)
         seed = np.arange(1, 2 * impl.shape[0] + 1, dtype=float).reshape(impl.shape)

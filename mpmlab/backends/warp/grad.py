@@ -328,7 +328,6 @@ class GradPath:
         self.bcs = []
         self.wall_kind = wp.array(np.asarray([K.WALL_CODES["none"]] * (2 * D), np.int32), dtype=int, device=dev)
         self.thickness = 1
-        BK = None
         for b in scene.boundaries:
             kind = b.name
             bc = SimpleNamespace(name=kind, stage=b.stage, params={}, b=b)
@@ -409,8 +408,8 @@ class GradPath:
         if missing:
             raise ConfigError(f"controls lack {sorted(missing)}; start from stepper.controls() and replace entries.")
         if len(c["law"]) != len(self.st.groups) or len(c["boundary"]) != len(self.bcs):
-            raise ConfigError(f"controls have {len(c['law'])} law and {len(c['boundary'])} boundary entries; this scene "
-                              f"has {len(self.st.groups)} material groups and {len(self.bcs)} boundaries.")
+            raise ConfigError(f"controls have {len(c['law'])} law and {len(c['boundary'])} boundary entries; this "
+                              f"scene has {len(self.st.groups)} material groups and {len(self.bcs)} boundaries.")
         names, flat = ["x", "v"], [c["x"], c["v"]]
         for i, a in enumerate(c["law"]):
             names.append(f"law[{i}]"); flat.append(a)
@@ -432,24 +431,29 @@ class GradPath:
         dev = _torch_device(self.dev)
         out = SimpleNamespace(law=[], bc=[{} for _ in self.bcs])
 
-        def arr(tensor, dtype, shape):
-            a = torch.as_tensor(tensor).detach().to(device=dev, dtype=dt).reshape(shape).contiguous()
+        def arr(item, dtype, shape):
+            name, tensor = item
+            a = torch.as_tensor(tensor).detach().to(device=dev, dtype=dt)
+            if a.numel() != int(np.prod(shape)):
+                raise ConfigError(f"control '{name}' has shape {tuple(a.shape)}; this scene needs {shape} "
+                                  f"(the shape stepper.controls() gives).")
+            a = a.reshape(shape).contiguous()
             if not grad:
                 return wp.from_torch(a, dtype=dtype, requires_grad=False)
-            return wp.from_torch(a, dtype=dtype, grad=torch.zeros_like(a))
+            return wp.from_torch(a, dtype=dtype, requires_grad=True, grad=torch.zeros_like(a))
 
         it = iter(zip(names, flat))
-        out.x = arr(next(it)[1], T.vec, (N, D))
-        out.v = arr(next(it)[1], T.vec, (N, D))
+        out.x = arr(next(it), T.vec, (N, D))
+        out.v = arr(next(it), T.vec, (N, D))
         for g in self.st.groups:
-            out.law.append(arr(next(it)[1], T.scalar, (g.count, len(g.law.params))))
+            out.law.append(arr(next(it), T.scalar, (g.count, len(g.law.params))))
         for i, bc in enumerate(self.bcs):
             for k, a in bc.params.items():
                 shape = (1, D) if k in ("velocity", "force") else (max(1, int(np.size(a))),)
-                out.bc[i][k] = arr(next(it)[1], T.vec if len(shape) == 2 else T.scalar, shape)
-        out.gravity = arr(next(it)[1], T.vec, (1, D))
-        out.mass = arr(next(it)[1], T.scalar, (N,))
-        out.volume = arr(next(it)[1], T.scalar, (N,))
+                out.bc[i][k] = arr(next(it), T.vec if len(shape) == 2 else T.scalar, shape)
+        out.gravity = arr(next(it), T.vec, (1, D))
+        out.mass = arr(next(it), T.scalar, (N,))
+        out.volume = arr(next(it), T.scalar, (N,))
         return out
 
     def control_arrays(self, ctl):
