@@ -70,6 +70,13 @@ def markdown(builtin_only: bool = False) -> str:
         b = registry.boundaries.get(name)
         cells = ["✓" if be in getattr(b, "implementations", {}) else "–" for be in backends]
         lines.append("| " + " | ".join([f"`{name}`"] + cells + [registry.boundaries.provenance(name)]) + " |")
+    lines += ["", "| observation | " + " | ".join(backends) + " | from |", "|---|" + "---|" * (len(backends) + 1)]
+    for name in registry.observations.names():
+        if builtin_only and registry.observations.provenance(name) != "mpmlab":
+            continue
+        o = registry.observations.get(name)
+        cells = ["✓" if be in getattr(o, "implementations", {}) else "–" for be in backends]
+        lines.append("| " + " | ".join([f"`{name}`"] + cells + [registry.observations.provenance(name)]) + " |")
     return "\n".join(lines) + "\n"
 
 
