@@ -82,54 +82,36 @@ def warp_linalg(dim: int, precision: str) -> SimpleNamespace:
         # values); values derived from s only choose branches (yield tests) or feed ``spectral_func``.
         return
 
-    # U V^T, the rotation of F = R S (fixed corotated stress, the Drucker-Prager cone tip); call as
-    # polar(F, U, s, V, no_params()) with U, s, V = svd_const(F)
-    polar = spectral_func(dim, precision, ones_g(dim, precision), left=False, nparams=1, ones=True)
+    pv1 = wp.types.vector(1, scalar)
+    polar_map = spectral_func(dim, precision, None, left=False, nparams=1, ones=True)
+
+    @wp.func
+    def polar(F: mat, U: mat, s: vec, V: mat):
+        """U V^T, the rotation of F = R S (fixed corotated stress, the Drucker-Prager cone tip), for
+        U, s, V = svd_const(F); its derivative is finite at F = I."""
+        return polar_map(F, U, s, V, vec(), pv1())
 
     return SimpleNamespace(svd_rotations=svd_rotations, svd_const=svd_const, diag=diag, lame=lame,
-                           hencky_strain=hencky_strain, polar=polar, no_params=wp.types.vector(1, scalar),
-                           identity=lambda: None)
+                           hencky_strain=hencky_strain, polar=polar, identity=lambda: None)
 
 
-@lru_cache(maxsize=None)
-def ones_g(dim: int, precision: str) -> SimpleNamespace:
-    """g(s) = 1 (the polar rotation U V^T): value and Jacobians for ``spectral_func``."""
-    T = warp_types(dim, precision)
-    scalar, vec, mat = T.scalar, T.vec, T.mat
-    pvec = wp.types.vector(1, scalar)
-    pmat = wp.types.matrix((dim, 1), scalar)
-
-    @wp.func
-    def g(s: vec, pv: pvec):
-        out = vec()
-        for i in range(dim):
-            out[i] = scalar(1.0)
-        return out
-
-    @wp.func
-    def jac(s: vec, pv: pvec):
-        return mat(), pmat()
-
-    return SimpleNamespace(g=g, jac=jac)
-
-
-def spectral_func(dim: int, precision: str, gdef, left: bool, nparams: int, ones: bool = False):
-    """A spectral map of F, U diag(g(s, pv)) W^T (W = U if ``left`` else V, F = U diag(s) V^T from
+def spectral_func(dim: int, precision: str, jac, left: bool, nparams: int, ones: bool = False):
+    """A spectral map of F, U diag(g) W^T (W = U if ``left`` else V, F = U diag(s) V^T from
     ``svd_const``), with a hand-written adjoint that stays finite at repeated singular values.
 
-    ``gdef.g(s, pv) -> vec`` (isotropic in s) and ``gdef.jac(s, pv) -> (dg/ds [D, D], dg/dpv [D, P])``.
-    The adjoint is the transpose of the JAX custom JVP (``backends.jax.linalg.spectral``), so both
-    backends take the same derivative: divided differences (g_i - g_j)/(s_i - s_j) off the diagonal,
-    their symmetrised limit 0.5 (Jg_ii - Jg_ij + Jg_jj - Jg_ji) when s_i, s_j are closer than eps^(1/3)
-    (relative), and rotation terms (g_i +- g_j)/(s_i + s_j). The call passes F (whose adjoint this
-    writes) together with its ``svd_const`` factors, so the forward does one SVD and is bit-identical
-    to writing U diag(g) W^T inline.
+    Called as ``spectral(F, U, s, V, g, pv)``: the caller computes g = g(s, pv) itself (so the forward
+    arithmetic is exactly the inline U diag(g) W^T), and ``jac(s, g, pv) -> dg/ds [D, D]`` gives the
+    Jacobian of its isotropic g. The adjoint is the transpose of the JAX custom JVP
+    (``backends.jax.linalg.spectral``), so both backends take the same derivative: divided differences
+    (g_i - g_j)/(s_i - s_j) off the diagonal, their symmetrised limit 0.5 (Jg_ii - Jg_ij + Jg_jj - Jg_ji)
+    when s_i, s_j are closer than eps^(1/3) (relative), rotation terms (g_i +- g_j)/(s_i + s_j), and
+    dg/ds on the diagonal; the parameters' part flows through g (the adjoint of g is diag(U^T G_bar W)).
+    ``ones``: g = 1 (U W^T, no g or jac needed).
     """
     T = warp_types(dim, precision)
     scalar, vec, mat = T.scalar, T.vec, T.mat
     pvec = wp.types.vector(nparams, scalar)
     close_tol = float(np.finfo(np.float64 if precision == "fp64" else np.float32).eps ** (1.0 / 3.0))
-    g, jac = gdef.g, gdef.jac
 
     @wp.func
     def diag_(s: vec):
@@ -139,7 +121,7 @@ def spectral_func(dim: int, precision: str, gdef, left: bool, nparams: int, ones
         return D
 
     @wp.func
-    def spectral(F: mat, U: mat, s: vec, V: mat, pv: pvec):
+    def spectral(F: mat, U: mat, s: vec, V: mat, g: vec, pv: pvec):
         if wp.static(ones):
             if wp.static(left):
                 return U @ wp.transpose(U)
@@ -147,14 +129,19 @@ def spectral_func(dim: int, precision: str, gdef, left: bool, nparams: int, ones
                 return U @ wp.transpose(V)
         else:
             if wp.static(left):
-                return U @ diag_(g(s, pv)) @ wp.transpose(U)
+                return U @ diag_(g) @ wp.transpose(U)
             else:
-                return U @ diag_(g(s, pv)) @ wp.transpose(V)
+                return U @ diag_(g) @ wp.transpose(V)
 
     @wp.func_grad(spectral)
-    def adj_spectral(F: mat, U: mat, s: vec, V: mat, pv: pvec, adj_ret: mat):
-        gs = g(s, pv)
-        Jg, Jp = jac(s, pv)
+    def adj_spectral(F: mat, U: mat, s: vec, V: mat, g: vec, pv: pvec, adj_ret: mat):
+        gs = g
+        Jg = mat()
+        if wp.static(ones):
+            for i in range(dim):
+                gs[i] = scalar(1.0)
+        else:
+            Jg = jac(s, g, pv)
         Gb = mat()
         if wp.static(left):
             Gb = wp.transpose(U) @ adj_ret @ U
@@ -180,13 +167,13 @@ def spectral_func(dim: int, precision: str, gdef, left: bool, nparams: int, ones
                     # dGp_ij = 0.5 (dFp_ij + dFp_ji) dd + 0.5 (dFp_ij - dFp_ji) rot
                     A[i, j] = A[i, j] + scalar(0.5) * Gb[i, j] * (dd + rot)
                     A[j, i] = A[j, i] + scalar(0.5) * Gb[i, j] * (dd - rot)
-        apv = pvec()
+        ag = vec()
         for i in range(dim):
             for j in range(dim):
-                A[j, j] = A[j, j] + Gb[i, i] * Jg[i, j]       # dGp_ii = sum_j Jg_ij dFp_jj + dg_i/dpv dpv
-            for k in range(nparams):
-                apv[k] = apv[k] + Gb[i, i] * Jp[i, k]
+                A[j, j] = A[j, j] + Gb[i, i] * Jg[i, j]       # dGp_ii = sum_j Jg_ij dFp_jj + dg_i
+            ag[i] = Gb[i, i]
         wp.adjoint[F] += U @ A @ wp.transpose(V)
-        wp.adjoint[pv] += apv
+        if wp.static(not ones):
+            wp.adjoint[g] += ag
 
     return spectral

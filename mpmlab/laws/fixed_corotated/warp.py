@@ -19,7 +19,7 @@ def make(dim: int, precision: str) -> SimpleNamespace:
     def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
         mu, lam = La.lame(prm[p, 0], prm[p, 1])
         U, sig, V = La.svd_const(s.F)
-        R = La.polar(s.F, U, sig, V, La.no_params())   # U V^T with a derivative finite at F = I
+        R = La.polar(s.F, U, sig, V)   # U V^T with a derivative finite at F = I
         J = wp.determinant(s.F)
         return scalar(2.0) * mu * (s.F - R) @ wp.transpose(s.F) + lam * J * (J - scalar(1.0)) * wp.identity(dim, scalar)
 

@@ -2,8 +2,8 @@
 
 The stress and both return maps are spectral functions of F, U diag(g(s)) W^T; they go through
 ``linalg.spectral_func`` so their derivatives stay finite at repeated singular values (F = I, the rest
-state), as the JAX laws' ``spectral`` custom JVP. Each g comes with its Jacobians in s and in its
-parameters; the forward arithmetic is unchanged.
+state), as the JAX laws' ``spectral`` custom JVP. Each g comes with its Jacobian in s; the forward
+arithmetic is the inline one (bit-identical results).
 """
 
 from functools import lru_cache
@@ -24,7 +24,6 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
     scalar, vec, mat, LawState = T.scalar, T.vec, T.mat, T.LawState
     fdim = float(dim)   # scalar(dim) on the int closure constant confuses Warp's range(dim) (Warp 1.19)
     p1, p2 = wp.types.vector(1, scalar), wp.types.vector(2, scalar)
-    j1, j2 = wp.types.matrix((dim, 1), scalar), wp.types.matrix((dim, 2), scalar)
 
     @wp.func
     def logs(s: vec):
@@ -54,43 +53,34 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
             eps_hat[i] = eps[i] - tr / scalar(fdim)
         return tr, eps_hat, wp.length(eps_hat)
 
-    # ---- principal Kirchhoff stresses 2 mu eps + lambda tr(eps), pv = (mu, lambda) (NCLaw Eq. 14) ----
+    # ---- principal Kirchhoff stresses t = 2 mu eps + lambda tr(eps), pv = (mu, lambda) (NCLaw Eq. 14) ----
     @wp.func
-    def tau_g(s: vec, pv: p2):
-        eps = logs(s)
-        tr, eps_hat, n = trace_split(eps)
-        t = vec()
-        for i in range(dim):
-            t[i] = scalar(2.0) * pv[0] * eps[i] + pv[1] * tr
-        return t
-
-    @wp.func
-    def tau_jac(s: vec, pv: p2):
-        eps = logs(s)
+    def tau_jac(s: vec, t: vec, pv: p2):
         de = dlogs(s)
-        tr, eps_hat, n = trace_split(eps)
         Jg = mat()
-        Jp = j2()
         for i in range(dim):
             for j in range(dim):
                 Jg[i, j] = pv[1] * de[j]
             Jg[i, i] = Jg[i, i] + scalar(2.0) * pv[0] * de[i]
-            Jp[i, 0] = scalar(2.0) * eps[i]
-            Jp[i, 1] = tr
-        return Jg, Jp
+        return Jg
 
-    tau_map = spectral_func(dim, precision, SimpleNamespace(g=tau_g, jac=tau_jac), left=True, nparams=2)
+    tau_map = spectral_func(dim, precision, tau_jac, left=True, nparams=2)
 
     @wp.func
     def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
         """tau = U (2 mu eps + lambda tr(eps) I) U^T (NCLaw Eq. 14, which calls it "P"; P = tau F^-T)."""
         mu, lam = La.lame(prm[p, 0], prm[p, 1])
         U, sv, V = La.svd_const(s.F)
-        return tau_map(s.F, U, sv, V, p2(mu, lam))
+        eps = logs(sv)
+        tr, eps_hat, n = trace_split(eps)
+        t = vec()
+        for i in range(dim):
+            t[i] = scalar(2.0) * mu * eps[i] + lam * tr
+        return tau_map(s.F, U, sv, V, t, p2(mu, lam))
 
-    # ---- exp(eps - dg eps_hat / |eps_hat|): isochoric returns. With u = eps_hat / n, g_i = exp(tr/d +
-    # a u_i) where a = k (von Mises, dg = n - k) or a = -c alpha tr (Drucker-Prager, dg = n + c alpha
-    # tr); du_i/deps_j = (P_ij - u_i u_j) / n with P = I - 11^T/d. ----
+    # ---- e = exp(eps - dg eps_hat / |eps_hat|): the volume-keeping returns of Eqs. 16 and 19. With
+    # u = eps_hat / n, e_i = exp(tr/d + a u_i) where a = k (von Mises, dg = n - k) or a = -c alpha tr
+    # (Drucker-Prager, dg = n + c alpha tr); du_i/deps_j = (P_ij - u_i u_j) / n, P = I - 11^T/d. ----
     @wp.func
     def returned(eps: vec, eps_hat: vec, n: scalar, dg: scalar):
         e = vec()
@@ -99,8 +89,11 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
         return e
 
     @wp.func
-    def return_jac(g: vec, de: vec, u: vec, n: scalar, a: scalar, da_dtr: scalar):
+    def return_jac(g: vec, s: vec, a: scalar, da_dtr: scalar):
         """dg_i/ds_j for g_i = exp(tr/d + a u_i), a depending on tr with slope da_dtr."""
+        tr, eps_hat, n = trace_split(logs(s))
+        u = eps_hat / n
+        de = dlogs(s)
         Jg = mat()
         for i in range(dim):
             for j in range(dim):
@@ -111,46 +104,31 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
         return Jg
 
     @wp.func
-    def vm_g(s: vec, pv: p1):
-        eps = logs(s)
-        tr, eps_hat, n = trace_split(eps)
-        return returned(eps, eps_hat, n, n - pv[0])                      # NCLaw Eq. 19, k = tau_Y / (2 mu)
+    def vm_jac(s: vec, g: vec, pv: p1):
+        return return_jac(g, s, pv[0], scalar(0.0))                      # pv = (k = tau_Y / (2 mu))
 
     @wp.func
-    def vm_jac(s: vec, pv: p1):
-        g = vm_g(s, pv)
-        eps = logs(s)
-        tr, eps_hat, n = trace_split(eps)
-        u = eps_hat / n
-        Jp = j1()
-        for i in range(dim):
-            Jp[i, 0] = g[i] * u[i]
-        return return_jac(g, dlogs(s), u, n, pv[0], scalar(0.0)), Jp
+    def dp_jac(s: vec, g: vec, pv: p2):
+        tr, eps_hat, n = trace_split(logs(s))
+        ca = pv[0] * pv[1]                                               # pv = (c, alpha)
+        return return_jac(g, s, -ca * tr, -ca)
+
+    vm_map = spectral_func(dim, precision, vm_jac, left=False, nparams=1)
+    dp_map = spectral_func(dim, precision, dp_jac, left=False, nparams=2)
 
     @wp.func
-    def dp_g(s: vec, pv: p2):
-        eps = logs(s)
-        tr, eps_hat, n = trace_split(eps)
-        return returned(eps, eps_hat, n, n + pv[0] * tr * pv[1])         # NCLaw Eq. 16, (c, alpha)
+    def vm_return(F: mat, U: mat, sv: vec, V: mat, eps: vec, eps_hat: vec, n: scalar, k: scalar):
+        """NCLaw Eq. 19 for dg = n - k > 0, k = tau_Y / (2 mu)."""
+        return vm_map(F, U, sv, V, returned(eps, eps_hat, n, n - k), p1(k))
 
     @wp.func
-    def dp_jac(s: vec, pv: p2):
-        g = dp_g(s, pv)
-        eps = logs(s)
-        tr, eps_hat, n = trace_split(eps)
-        u = eps_hat / n
-        ca = pv[0] * pv[1]
-        Jp = j2()
-        for i in range(dim):
-            Jp[i, 0] = -g[i] * pv[1] * tr * u[i]
-            Jp[i, 1] = -g[i] * pv[0] * tr * u[i]
-        return return_jac(g, dlogs(s), u, n, -ca * tr, -ca), Jp
-
-    vm_return = spectral_func(dim, precision, SimpleNamespace(g=vm_g, jac=vm_jac), left=False, nparams=1)
-    dp_return = spectral_func(dim, precision, SimpleNamespace(g=dp_g, jac=dp_jac), left=False, nparams=2)
+    def dp_return(F: mat, U: mat, sv: vec, V: mat, eps: vec, eps_hat: vec, n: scalar, tr: scalar, c: scalar,
+                  alpha: scalar):
+        """NCLaw Eq. 16, third case: dg = n + c tr alpha, c = (d lambda + 2 mu) / (2 mu)."""
+        return dp_map(F, U, sv, V, returned(eps, eps_hat, n, n + c * tr * alpha), p2(c, alpha))
 
     return SimpleNamespace(logs=logs, trace_split=trace_split, kirchhoff=kirchhoff, vm_return=vm_return,
-                           dp_return=dp_return, p1=p1, p2=p2)
+                           dp_return=dp_return)
 
 
 @lru_cache(maxsize=None)
@@ -169,14 +147,15 @@ def make(dim: int, precision: str) -> SimpleNamespace:
         sp = wp.sin(prm[p, 2] * (scalar(wp.pi) / scalar(180.0)))
         alpha = wp.sqrt(scalar(2.0) / scalar(3.0)) * scalar(2.0) * sp / (scalar(3.0) - sp)   # NCLaw Eq. 15
         U, sv, V = La.svd_const(F)
-        tr, eps_hat, n = H.trace_split(H.logs(sv))
+        eps = H.logs(sv)
+        tr, eps_hat, n = H.trace_split(eps)
         if tr > scalar(0.0):                       # tension: cone tip (Eq. 16, first case)
-            F = La.polar(F, U, sv, V, La.no_params())
+            F = La.polar(F, U, sv, V)
         else:
             c = (scalar(fdim) * lam + scalar(2.0) * mu) / (scalar(2.0) * mu)
             dg = n + c * tr * alpha
             if dg > scalar(0.0) and n > scalar(0.0):   # outside the cone: project onto it (third case)
-                F = H.dp_return(F, U, sv, V, H.p2(c, alpha))
+                F = H.dp_return(F, U, sv, V, eps, eps_hat, n, tr, c, alpha)
         out.F = F
         return out
 

@@ -24,10 +24,11 @@ def make(dim: int, precision: str) -> SimpleNamespace:
         F = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
         mu, lam = La.lame(prm[p, 0], prm[p, 1])
         U, sv, V = La.svd_const(F)
-        tr, eps_hat, n = H.trace_split(H.logs(sv))
+        eps = H.logs(sv)
+        tr, eps_hat, n = H.trace_split(eps)
         k = prm[p, 2] / (scalar(2.0) * mu)
         if n - k > scalar(0.0):                    # NCLaw Eq. 18: isochoric return (Eq. 19)
-            F = H.vm_return(F, U, sv, V, H.p1(k))
+            F = H.vm_return(F, U, sv, V, eps, eps_hat, n, k)
         out.F = F
         return out
 
