@@ -604,7 +604,7 @@ class GradPath:
         g_out = grad_out.detach().to(device=_torch_device(self.dev)).contiguous()
         times = saved.times
         adj_end = None                                  # adjoint of the current segment's end state
-        starts = list(range(0, max(n, 1), segment)) if n > 0 else [0]
+        starts = list(range(0, n, segment)) or [0]        # segment start steps (n = 0: one empty segment)
         for k0 in reversed(starts):
             k1 = min(k0 + segment, n)
             flags = wp.zeros(k1 - k0 + 1, dtype=int, device=self.dev)
