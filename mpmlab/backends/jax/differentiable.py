@@ -28,7 +28,10 @@ def controls(stepper) -> dict[str, Any]:
     """The differentiable inputs of a rollout (``AbstractStepper.controls``), as JAX arrays."""
     P, dt = stepper.particles, stepper.dtype
     prm = stepper.default_params()
-    return {"x": jnp.asarray(P.x, dt), "v": jnp.asarray(P.v, dt), "law": prm["law"], "boundary": prm["boundary"],
+    scene_order = [None] * len(stepper._bc_order)
+    for k, i in enumerate(stepper._bc_order):
+        scene_order[i] = prm["boundary"][k]
+    return {"x": jnp.asarray(P.x, dt), "v": jnp.asarray(P.v, dt), "law": prm["law"], "boundary": tuple(scene_order),
             "gravity": prm["gravity"], "mass": prm["mass"], "volume": prm["volume"]}
 
 
@@ -43,8 +46,10 @@ def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
     state = {"x": jnp.asarray(c["x"], dt), "v": jnp.asarray(c["v"], dt), "law": law_states, "t": jnp.asarray(0.0, dt)}
     if stepper.transfer.needs_affine:
         state["C"] = jnp.zeros((stepper.particles.count, stepper.dim, stepper.dim), dt)
+    if len(c["boundary"]) != len(stepper._bc_order):
+        raise ConfigError(f"controls have {len(c['boundary'])} boundary entries; the scene has {len(stepper._bc_order)}.")
     params = {"law": tuple(c["law"]), "mass": c["mass"], "volume": c["volume"], "gravity": c["gravity"],
-              "boundary": tuple(c["boundary"])}
+              "boundary": tuple(c["boundary"][i] for i in stepper._bc_order)}   # scene -> stepper order
     return state, params
 
 

@@ -64,6 +64,10 @@ class JaxStepper(BaseStepper):
             impl = b.implementation("jax", "boundary")(b, scene, dtype)
             {"grid": grid_bcs, "particle_velocity": self._particle_bcs, "particle_force": self._force_bcs}[b.stage].append(impl)
         self._grid_bcs = grid_bcs
+        # params["boundary"] is ordered grid, particle-velocity, particle-force; controls() use scene order
+        stages = [b.stage for b in scene.boundaries]
+        self._bc_order = [i for st in ("grid", "particle_velocity", "particle_force")
+                          for i, s_ in enumerate(stages) if s_ == st]
         node_idx = np.stack(np.meshgrid(*[np.arange(n) for n in self.grid_shape], indexing="ij"), -1).reshape(-1, D)
         self._node_x = jnp.asarray(scene.origin + node_idx * scene.dx, dtype=dtype)
         self._jit_advance = jax.jit(self._advance_impl, static_argnums=2)
