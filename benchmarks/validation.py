@@ -73,7 +73,12 @@ def dam_runs(quick, backend):
     if backend == "warp":  # investigation runs (EOS, transfer, walls): Warp is the faster CPU backend
         runs += [("apic", dict(dx=0.004, min_pressure=-1e30), 0.45), ("apic", dict(dx=0.008, min_pressure=-1e30), 0.45),
                  ("flip", dict(dx=0.008), 0.45), ("tpic", dict(dx=0.008), 0.45),
-                 ("apic", dict(dx=0.008, wall="separate"), 0.45)]
+                 ("apic", dict(dx=0.008, wall="separate"), 0.45),
+                 # refinement: is the lag numerical? (2 mm: 100k particles)
+                 ("apic", dict(dx=0.002), 0.45),
+                 # a 4 m tank (the front reaches the 2 m tank's end wall at t = 0.5 s) scored later,
+                 # t sqrt(g/H0) = 6-9: does the flow approach Ritter's long-time solution?
+                 ("apic", dict(dx=0.004, length=4.0), 0.9, (0.6, 0.9))]
     return runs
 
 
@@ -137,8 +142,8 @@ def run_bar(backends, quick, rows, raw):
 def run_dam(backends, quick, rows, raw):
     results = []
     for backend in backends:
-        for tr, kw, t_end in dam_runs(quick, backend):
-            window = (0.2, min(0.45, t_end))
+        for tr, kw, t_end, *win in dam_runs(quick, backend):
+            window = win[0] if win else (0.2, min(0.45, t_end))
             r = V.run_dam_break(backend=backend, transfer=tr, precision="fp32", t_end=t_end, window=window, **kw)
             dx = r["scene"].dx
             lv, err = r["levels"], r["error"]
@@ -156,6 +161,7 @@ def run_dam(backends, quick, rows, raw):
             eos = ("Eq. 20 unclamped (min_pressure=-1e30, tension)" if kw.get("min_pressure", 0.0) < 0
                    else "p >= 0 (library default)")
             walls = f", {kw['wall']} walls" if "wall" in kw else ", slip walls"
+            walls += f", {kw['length']:g} m tank" if "length" in kw else ""
             row = {
                 "case": "3a Ritter dam break",
                 "variant": f"{eos}{walls}; y in [2dx, 0.4 H0], t in [{window[0]}, {window[1]}] s",
@@ -183,7 +189,7 @@ def run_dam(backends, quick, rows, raw):
             results.append((backend, tr, kw, r))
     # plot: profiles of the finest APIC run per backend + error history per level
     fig, axs = plt.subplots(3, 1, figsize=(12, 10))
-    first = [x for x in results if x[1] == "apic" and "min_pressure" not in x[2] and "wall" not in x[2]]
+    first = [x for x in results if x[1] == "apic" and not {"min_pressure", "wall", "length"} & set(x[2])]
     pick = min(first, key=lambda x: (x[3]["scene"].dx, x[0] != "warp", "dt" in x[2]))
     backend, tr, kw, r = pick
     T = r["traj"]
@@ -376,13 +382,26 @@ p >= 0) and what remains.
      (4 mm: 97 % vs 84 %; earlier run, not repeated here).
    * *Measurement* -- the depth-based front and the literal "rightmost particle reaching y" agree
      within a few % (checked earlier, unclamped); the one-cell tip is excluded by construction.
-   **Verdict:** the note's bar (A <= 5 %) is not met and, at y near 0.4 H0, cannot defensibly be
-   demanded of a dx = 4 mm simulation (it asks for dx/4). The honest alternatives: (B) y <= 0.2 H0 --
-   8 % at 8 mm, 15 % at 4 mm: not met; (C) error relative to the wave length -- met at 8 mm (3.1 %),
-   missed at 4 mm (5.2 %). mpmlab does not meet a 5 % front-position bar at the paper's resolution in
-   [0.2, 0.45] s under any of these metrics; it meets ~10 % (B at t >= 0.3 s, 4 mm) and 5 % on (C) at
-   8 mm. Meeting 5 % would need a later window (Ritter is a long-time solution) or a finer grid study
-   this CPU machine cannot run in reasonable time.
+   * **Refinement and a later window: the lag is the early, non-hydrostatic flow, not numerics.**
+     (a) dx = 8 -> 4 -> 2 mm (APIC, Warp): the mid-height error does not shrink with dx; it settles --
+     at t = 0.3 s, heights 20 / 24 / 28 mm: 8 mm -4 / -5 / -4 %, 4 mm -12 / -13 / -13 %, 2 mm
+     -14 / -16 / -16 % -- so the simulation converges to a flow that differs from Ritter (the coarse
+     grid's numerical smoothing sat closer to Ritter by accident) (a sound speed of 70
+     instead of 35 m/s changes A by 3 points: compressibility is not the cause either).
+     (b) In a 4 m tank (the 2 m tank's end wall is hit at t = 0.5 s), 4 mm, the error at every height
+     decays like 1/t: heights 16-32 mm go from -10..-18 % (t = 0.2 s, t sqrt(g/H0) = 2) to -6..-8 %
+     (0.5 s), -3..-5 % (0.7 s) and -1..-3 % (0.9 s); the tip moves at Ritter's 2 sqrt(g H0) (1.92 m/s
+     measured over 0.5-0.9 s vs 1.98) with a constant lag of ~0.19 m = a start delay of ~0.1 s, the
+     finite initial acceleration that Ritter's shallow-water solution (infinite at t = 0) leaves out.
+     At 40 mm = 0.4 H0 (next to the dam-site depth 4/9 H0) the error stays 8-9 % (the ill-posed level,
+     2 cells). The row "4 m tank, t in [0.6, 0.9] s" scores this window.
+   **Verdict:** the note's bar (A <= 5 %) for t in [0.2, 0.45] s is not met, and a converged solver
+   should not meet it: in that window (t sqrt(g/H0) = 2-4.5) the flow has not yet reached Ritter's
+   long-time shallow-water state. B (y <= 0.2 H0): 8 % at 8 mm, 15 % at 4 mm, not met; C (relative to
+   the wave length): 3.1 % at 8 mm, 5.2 % at 4 mm. Ritter is approached as t grows: within 5 % at every
+   height up to 0.36 H0 for t >= 0.7 s (4 m tank). Meeting the issue's bar as written needs either a
+   later window (t sqrt(g/H0) >= 6) or a non-hydrostatic reference (e.g. a converged Navier-Stokes /
+   VOF dam break) for [0.2, 0.45] s.
 5. **Speed (CPU).** Warp's CPU backend is about 2x faster than JAX's here (current code): dam break
    4 mm 30 s vs 61 s, column 2.5 mm 149 s vs 305 s. Wall times come from 2 cores shared with other
    jobs and vary 2-3x between runs. "+dirty" in the code line above means colleagues' uncommitted
