@@ -1,0 +1,722 @@
+#!/usr/bin/env python
+"""Gradients through rollouts: peak memory against segment length, and forward+backward time against
+forward alone, on both backends (issue #4, item 3).
+
+What is measured
+----------------
+A loss ``L = sum(y**2)`` of the Lagrangian positions ``y = stepper.observe(c, Lagrangian("x"),
+steps=[N], segment=n)`` of every particle after N steps, differentiated w.r.t. the initial velocity
+``c["v"]`` and the law parameters ``c["law"]`` (JAX: ``jax.value_and_grad``, jitted; Warp: torch
+autograd, ``loss.backward()``). ``n`` is the segment length: the backward pass recomputes segments of
+n steps from saved segment-start states, so memory should go as O(N/n + n) states instead of O(N).
+Scene: the 2D Ritter dam break (``mpmlab.scenes.validation.ritter_dam_break``, ``--dx`` 0.0125 m:
+2560 particles, 163 x 13 grid nodes, dt 1.07e-4 s), APIC, fp32.
+
+* **Memory.** Every (backend, N, n) runs in a fresh subprocess. Compilation is kept out of it on both
+  backends: JAX programs are compiled beforehand in a separate process into a persistent compilation
+  cache (a temporary directory) and loaded from there; Warp kernels come from Warp's on-disk kernel
+  cache, filled by a warm-up process. In the measured process: build the stepper, run one forward-only
+  ``observe`` (segment = N, so nothing is saved; Warp also runs a 2-step gradient to load the backward
+  kernels, JAX loads the compiled gradient program), ``gc.collect()``, then record the process's peak
+  resident memory (``resource.getrusage(RUSAGE_SELF).ru_maxrss``) = *base*; run the gradient once,
+  record ``ru_maxrss`` again = *grad*; the reported peak is *grad - base* (both raw numbers are in the
+  JSON). A thread samples the current resident size (``/proc/self/statm``) every millisecond during
+  the gradient call as a second estimate (peak during the call minus the size just before it); it
+  also sees memory that the allocator reuses below the earlier peak. JAX also reports XLA's static
+  buffer assignment of the compiled gradient program (``compiled.memory_analysis()``, temp bytes:
+  exact for that program). *model* = (N/n + n) x the bytes of one simulation state (JAX state
+  pytree: x, v, C, law state), the expected scaling with its smallest constant.
+* **Time.** Same process, after the memory measurement: ``--reps`` rounds that each time the
+  forward alone (``observe`` with segment = N under no gradient, the same call the gradient
+  differentiates) and then the full forward + backward; medians are reported and the ratio is
+  median(grad) / median(forward). Compilation (JAX, in the compile process) and the first call are
+  reported apart. A breakdown process per backend (``--breakdown``) times, at N steps, the fast
+  stepper (``stepper._advance``, the non-differentiable path), the gradient path without any
+  recomputation (JAX: ``value_and_grad`` of a plain ``lax.scan`` of the step; Warp: one ``wp.Tape`` over
+  all N steps) and with per-step rematerialisation only (JAX), to show where the time goes.
+* **JAX variant.** The segment sweep and the breakdown are run once more for JAX with
+  ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=`` (XLA CPU's YNNPACK fusions off): on jaxlib
+  0.10 they turn the small reductions of the step's transpose into slow library calls (README).
+  ``--jax-variant-flags ''`` skips it.
+* The parent process never imports JAX, Warp or torch: Linux carries a process's ``ru_maxrss``
+  high-water mark into its children (fork/vfork + execve), so a heavy parent would raise every
+  child's baseline above what the child itself reaches.
+
+Output: ``benchmarks/out/gradients.json``, ``benchmarks/out/gradients.png`` and the "Gradients: memory
+and time" section of ``benchmarks/README.md`` (regenerated between markers).
+
+Usage::
+
+    python benchmarks/gradients.py                     # the default sweep (~7 min on 2 cores)
+    python benchmarks/gradients.py --quick             # small sizes, a smoke run
+    python benchmarks/gradients.py --N 400 --segments 10,20,50,100,400 --scaling-N 100,200,400,800
+    python benchmarks/gradients.py --render            # README table and plot from the JSON only
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+MiB = 2.0**20
+
+
+# ---- shared set-up ----------------------------------------------------------------------------------
+def scene_of(spec):
+    from mpmlab.scenes.validation import ritter_dam_break
+
+    return ritter_dam_break(dx=spec["dx"])
+
+
+def build(spec, backend):
+    from mpmlab.simulator import build_stepper
+
+    return build_stepper(scene_of(spec), backend, spec["transfer"], spec["precision"])
+
+
+def jax_setup(cache_dir):
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", cache_dir)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    return jax
+
+
+def jax_programs(st, N, n):
+    """(loss, value_and_grad) of L = sum(observe(...)**2) w.r.t. p = (v, law): jitted, not compiled."""
+    import jax
+    import jax.numpy as jnp
+    from mpmlab.observations import Lagrangian
+
+    obs = Lagrangian(quantity="x")
+
+    def loss(p, c, segment):
+        y = st.observe({**c, "v": p[0], "law": p[1]}, obs, steps=[N], segment=segment)
+        return jnp.sum(y * y)
+
+    fwd = jax.jit(lambda p, c: loss(p, c, N))                       # forward alone: nothing to save
+    grad = jax.jit(jax.value_and_grad(lambda p, c: loss(p, c, n)))
+    return fwd, grad
+
+
+def jax_state_bytes(st):
+    import jax
+    from mpmlab.backends.jax import differentiable
+
+    state, _ = differentiable.split_controls(st, st.controls())
+    return int(sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(state)))
+
+
+def mem_stats(ma) -> dict:
+    if ma is None:
+        return {}
+    keys = ("temp_size_in_bytes", "argument_size_in_bytes", "output_size_in_bytes", "alias_size_in_bytes",
+            "generated_code_size_in_bytes")
+    return {k: int(getattr(ma, k)) for k in keys if hasattr(ma, k)}
+
+
+def maxrss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0      # Linux: KiB
+
+
+def rss_mib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / MiB
+
+
+class Sampler(threading.Thread):
+    """Peak current resident size, sampled every ``period`` s while running."""
+
+    def __init__(self, period=1e-3):
+        super().__init__(daemon=True)
+        # a private name: threading.Thread uses self._stop
+        self.period, self.peak, self._stop_ev = period, rss_mib(), threading.Event()
+
+    def run(self):
+        while not self._stop_ev.is_set():
+            self.peak = max(self.peak, rss_mib())
+            time.sleep(self.period)
+
+    def stop(self):
+        self._stop_ev.set()
+        self.join()
+        self.peak = max(self.peak, rss_mib())
+        return self.peak
+
+
+# ---- workers (each runs in its own process) ----------------------------------------------------------
+def worker_compile(spec):
+    """JAX: compile every forward and gradient program into the persistent cache; compile times and
+    XLA's memory analysis."""
+    jax_setup(spec["cache"])
+    st = build(spec, "jax")
+    c = st.controls()
+    p = (c["v"], c["law"])
+    out = {"fwd": {}, "grad": {}}
+    for N in sorted({N for N, _ in spec["configs"]}):
+        fwd, _ = jax_programs(st, N, N)
+        t0 = time.perf_counter()
+        comp = fwd.lower(p, c).compile()
+        out["fwd"][str(N)] = {"compile_s": time.perf_counter() - t0, "xla": mem_stats(comp.memory_analysis())}
+    for N, n in spec["configs"]:
+        _, grad = jax_programs(st, N, n)
+        t0 = time.perf_counter()
+        comp = grad.lower(p, c).compile()
+        out["grad"][f"{N},{n}"] = {"compile_s": time.perf_counter() - t0, "xla": mem_stats(comp.memory_analysis())}
+        print(f"  compiled jax N={N} n={n}: {out['grad'][f'{N},{n}']['compile_s']:.1f} s", file=sys.stderr, flush=True)
+    out["state_bytes"] = jax_state_bytes(st)
+    out["particles"] = st.particles.count
+    out["grid"] = list(st.scene.grid_shape)
+    out["dt"] = float(st.dt)
+    return out
+
+
+def warp_fns(st, N, n):
+    import torch
+    from mpmlab.observations import Lagrangian
+
+    obs = Lagrangian(quantity="x")
+    c = st.controls()
+
+    def fwd():
+        with torch.no_grad():
+            y = st.observe(c, obs, steps=[N], segment=N)
+            return float((y * y).sum())
+
+    def grad(steps=N, segment=n):
+        v = c["v"].detach().clone().requires_grad_(True)
+        law = tuple(a.detach().clone().requires_grad_(True) for a in c["law"])
+        y = st.observe({**c, "v": v, "law": law}, obs, steps=[steps], segment=segment)
+        loss = (y * y).sum()
+        loss.backward()
+        return float(loss), v.grad, [a.grad for a in law]
+
+    return fwd, grad
+
+
+def worker_warm(spec):
+    """Warp: fill the kernel cache (forward and backward kernels) with a short gradient."""
+    st = build(spec, "warp")
+    t0 = time.perf_counter()
+    fwd, grad = warp_fns(st, 2, 1)
+    fwd()
+    grad()
+    return {"first_call_s": time.perf_counter() - t0}
+
+
+def worker_measure(spec):
+    backend, N, n, reps = spec["backend"], spec["N"], spec["n"], spec["reps"]
+    res = {"backend": backend, "N": N, "n": n, "stages": []}
+    stage = lambda name: res["stages"].append((name, maxrss_mib(), rss_mib()))
+    t0 = time.perf_counter()
+    if backend == "jax":
+        jax = jax_setup(spec["cache"])
+        st = build(spec, "jax")
+        c = st.controls()
+        p = (c["v"], c["law"])
+        stage("build")
+        fwd_j, grad_j = jax_programs(st, N, n)
+        fwd_c = fwd_j.lower(p, c).compile()                         # from the persistent cache
+        stage("load forward")
+        float(fwd_c(p, c))                                           # one forward-only observe
+        stage("forward")
+        t1 = time.perf_counter()
+        grad_c = grad_j.lower(p, c).compile()                       # from the persistent cache
+        res["grad_load_s"] = time.perf_counter() - t1
+        stage("load gradient")
+
+        def fwd():
+            return float(fwd_c(p, c))
+
+        def grad():
+            out = grad_c(p, c)
+            jax.block_until_ready(out)
+            return out
+    else:
+        st = build(spec, "warp")
+        stage("build")
+        fwd, grad_full = warp_fns(st, N, n)
+        fwd()                                                        # one forward-only observe
+        stage("forward")
+        t1 = time.perf_counter()
+        grad_full(steps=2, segment=1)                                # loads the backward kernels
+        res["grad_load_s"] = time.perf_counter() - t1
+        stage("load gradient")
+        grad = grad_full
+    res["setup_s"] = time.perf_counter() - t0
+    gc.collect()
+    res["maxrss_base_mib"] = maxrss_mib()
+    res["rss_before_mib"] = rss_mib()
+    sampler = Sampler()
+    sampler.start()
+    t1 = time.perf_counter()
+    out = grad()
+    res["first_grad_s"] = time.perf_counter() - t1
+    res["rss_peak_mib"] = sampler.stop()
+    res["maxrss_grad_mib"] = maxrss_mib()
+    res["peak_mib"] = res["maxrss_grad_mib"] - res["maxrss_base_mib"]
+    res["peak_sampled_mib"] = res["rss_peak_mib"] - res["rss_before_mib"]
+    leaves = list(_leaves(out[1:] if backend == "warp" else out[1]))
+    res["grad_finite"] = bool(all(np.all(np.isfinite(np.asarray(a))) for a in leaves))
+    res["loss"] = float(out[0])
+    res["grad_v_norm"] = float(np.linalg.norm(np.asarray(leaves[0])))
+    del out
+    tf, tg = [], []
+    for _ in range(reps):
+        t1 = time.perf_counter()
+        fwd()
+        tf.append(time.perf_counter() - t1)
+        t1 = time.perf_counter()
+        grad()
+        tg.append(time.perf_counter() - t1)
+    res["fwd_s_all"], res["grad_s_all"] = tf, tg
+    res["fwd_s"], res["grad_s"] = float(np.median(tf)), float(np.median(tg))
+    res["ratio"] = res["grad_s"] / res["fwd_s"]
+    res["particles"] = st.particles.count
+    return res
+
+
+def _leaves(x):
+    if isinstance(x, (list, tuple)):
+        for a in x:
+            yield from _leaves(a)
+    elif isinstance(x, dict):
+        for a in x.values():
+            yield from _leaves(a)
+    elif x is not None:
+        yield x.detach().cpu().numpy() if hasattr(x, "detach") else x
+
+
+def _time(f, reps):
+    f()                                                               # warm-up / compile
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        f()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts)), ts
+
+
+def worker_breakdown(spec):
+    """Where the time goes at N steps: the fast stepper, the gradient path's forward, and its
+    gradient without recomputation (O(N) memory)."""
+    backend, N, reps = spec["backend"], spec["N"], spec["reps"]
+    res = {"backend": backend, "N": N}
+    if backend == "jax":
+        jax = jax_setup(spec["cache"])
+        import jax.numpy as jnp
+        from mpmlab.backends.jax import differentiable
+
+        st = build(spec, "jax")
+        c = st.controls()
+        s0 = st.init()
+        res["fast_s"], _ = _time(lambda: st._block(st._advance(s0, N)), reps)
+        state0, params = differentiable.split_controls(st, c)
+
+        def make(step):
+            def loss(v, law):
+                prm = {**params, "law": law}
+                s = jax.lax.scan(lambda s, _: (step(s, prm), None), {**state0, "v": v}, None, length=N)[0]
+                return jnp.sum(s["x"] * s["x"])
+            return loss
+
+        plain = make(st.step_fn)
+        remat = make(jax.checkpoint(st.step_fn))
+        args = (c["v"], params["law"])
+        for name, f in (("plain_fwd", jax.jit(plain)), ("plain_grad", jax.jit(jax.value_and_grad(plain, (0, 1)))),
+                        ("remat_grad", jax.jit(jax.value_and_grad(remat, (0, 1))))):
+            comp = f.lower(*args).compile()
+            res[f"{name}_xla"] = mem_stats(comp.memory_analysis())
+            res[f"{name}_s"], _ = _time(lambda: jax.block_until_ready(comp(*args)), reps)
+        res["ratio_plain"] = res["plain_grad_s"] / res["plain_fwd_s"]
+        res["ratio_remat"] = res["remat_grad_s"] / res["plain_fwd_s"]
+    else:
+        import warp as wp
+        from mpmlab.backends.warp import grad as wgrad
+
+        st = build(spec, "warp")
+        s0 = st.init()
+        res["fast_s"], _ = _time(lambda: st._block(st._advance(s0, N)), reps)
+        path = wgrad.path_of(st)
+        names, flat = path.flatten(st.controls())
+
+        def run(grad):
+            ctl = path.to_warp(names, flat, grad=grad)
+            tape = wp.Tape() if grad else None
+            t = 0.0
+            with (tape if grad else _null()):
+                s = path.initial(ctl, grad)
+                for _ in range(N):
+                    s = path.step(s, ctl, t, grad)
+                    t += st.dt
+            return s, tape
+
+        def fwd():
+            run(False)
+
+        res["path_fwd_s"], _ = _time(fwd, reps)
+        tf, tb = [], []
+        for _ in range(reps + 1):
+            t0 = time.perf_counter()
+            s, tape = run(True)
+            t1 = time.perf_counter()
+            x = wp.to_torch(s.x)
+            wp.to_torch(s.x.grad).copy_(2 * x)
+            tape.backward()
+            tb.append(time.perf_counter() - t1)
+            tf.append(t1 - t0)
+            del s, tape
+        res["tape_fwd_s"], res["tape_bwd_s"] = float(np.median(tf[1:])), float(np.median(tb[1:]))
+        res["plain_grad_s"] = res["tape_fwd_s"] + res["tape_bwd_s"]
+        res["plain_fwd_s"] = res["path_fwd_s"]
+        res["ratio_plain"] = res["plain_grad_s"] / res["path_fwd_s"]
+    return res
+
+
+class _null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        return False
+
+
+def worker_info(spec):
+    """Versions, machine, and the scene's sizes (in a worker: the parent stays small, see main)."""
+    st = build(spec, "jax")
+    return {"machine": machine_info(), "state_bytes": jax_state_bytes(st), "particles": st.particles.count,
+            "grid": list(st.scene.grid_shape), "dt": float(st.dt)}
+
+
+WORKERS = {"info": worker_info, "compile": worker_compile, "warm": worker_warm, "measure": worker_measure, "breakdown": worker_breakdown}
+
+
+def run_worker(kind, spec, log, timeout=900):
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", kind, "--spec", json.dumps(spec)]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env.update(spec.get("env", {}))
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    line = next((l for l in reversed(r.stdout.splitlines()) if l.startswith("RESULT ")), None)
+    for l in r.stderr.splitlines():
+        if l.startswith("  compiled"):
+            log(l)
+    if r.returncode != 0 or line is None:
+        raise RuntimeError(f"worker {kind} {spec.get('backend', '')} failed (exit {r.returncode}): "
+                           f"{r.stderr.strip()[-1500:]}")
+    return json.loads(line[len("RESULT "):])
+
+
+# ---- report -----------------------------------------------------------------------------------------------
+def machine_info() -> dict:
+    import jax
+    import torch
+    import warp
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "python": platform.python_version(),
+            "jax": jax.__version__, "warp": warp.config.version, "torch": torch.__version__,
+            "numpy": np.__version__, "platform": platform.platform(),
+            "load_before": " ".join(f"{x:.1f}" for x in os.getloadavg())}
+
+
+def _xla_temp(res, r):
+    x = res.get("compile", {}).get(r["label"], {}).get("grad", {}).get(f"{r['N']},{r['n']}", {}).get("xla", {})
+    return x.get("temp_size_in_bytes")
+
+
+def model_mib(res, N, n):
+    return (np.ceil(N / n) + n) * res["state_bytes"] / MiB
+
+
+def row_md(res, r):
+    xt = _xla_temp(res, r) if r["backend"] == "jax" else None
+    comp = res.get("compile", {}).get(r["label"], {}).get("grad", {}).get(f"{r['N']},{r['n']}", {}).get("compile_s")
+    first = f"{comp:.1f} (compile)" if (r["backend"] == "jax" and comp is not None) else \
+        f"{r['grad_load_s']:.2f} (load)"
+    return (f"| {r['label']} | {r['N']} | {r['n']} | {np.ceil(r['N'] / r['n']) + r['n']:.0f} | "
+            f"{r['peak_mib']:.1f} | {r['peak_sampled_mib']:.1f} | "
+            f"{(f'{xt / MiB:.1f}' if xt is not None else '-')} | {model_mib(res, r['N'], r['n']):.1f} | "
+            f"{r['maxrss_base_mib']:.0f} / {r['maxrss_grad_mib']:.0f} | "
+            f"{r['fwd_s']:.3f} | {r['grad_s']:.3f} | **{r['ratio']:.1f}x** | {first} |")
+
+
+HEADER = ("| backend | N | n | N/n + n | peak (MiB) | peak, sampled (MiB) | XLA temp (MiB) | model (MiB) | "
+          "ru_maxrss base / grad (MiB) | forward (s) | fwd+bwd (s) | ratio | first (s) |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+def tables(res) -> str:
+    m = res["machine"]
+    sp = res["spec"]
+    L = []
+    L.append(f"Measured {res['date']} on {m['cpu']} ({m['cores']} cores, shared; load average "
+             f"{m['load_before']} before the run, {m.get('load_after', '?')} after), {m['platform']}, no GPU; "
+             f"Python {m['python']}, JAX {m['jax']} (CPU, XLA's own threads), Warp {m['warp']} (CPU device; "
+             f"the gradient path is single-threaded), torch {m['torch']}. Regenerate with "
+             "`python benchmarks/gradients.py` (method in its docstring; raw numbers in "
+             "`benchmarks/out/gradients.json`, plot `benchmarks/out/gradients.png`).\n")
+    L.append(f"Scene: 2D Ritter dam break (`ritter_dam_break(dx={sp['dx']})`), {res['particles']} particles, "
+             f"{res['grid'][0]} x {res['grid'][1]} grid nodes, dt = {res['dt']:.3g} s, {sp['transfer']}, "
+             f"{sp['precision']}. Loss = sum of squares of all particle positions after N steps "
+             "(`observe(c, Lagrangian('x'), steps=[N], segment=n)`), gradient w.r.t. the initial velocity "
+             "and the law parameters. One simulation state (x, v, C, J, sigma) is "
+             f"{res['state_bytes'] / 1024:.0f} KiB; *model* = (N/n + n) states.\n")
+    L.append("How measured: each row is a fresh process with compilation kept out of it (JAX: compiled "
+             "beforehand into a persistent compilation cache and loaded from it; Warp: kernels from its "
+             "disk cache). *peak* = `ru_maxrss` after one gradient call minus `ru_maxrss` after building "
+             "the stepper, one forward-only `observe` (segment = N) and loading the gradient program / "
+             "backward kernels; *peak, sampled* = the highest resident size sampled every 1 ms during the "
+             "call minus the size just before it; *XLA temp* = `jax.jit(grad).lower(c).compile()"
+             ".memory_analysis()` temp bytes (exact for the compiled program). *forward* = the same "
+             "observe with segment = N under no gradient, *fwd+bwd* = loss and gradient; medians of "
+             f"{sp['reps']} alternating repeats after a warm-up; *ratio* = fwd+bwd / forward; *first* = "
+             "JAX compile time of the gradient program (fresh, in the compile process); Warp: a 2-step "
+             "gradient that loads the backward kernels from Warp's disk cache.\n")
+    order = {lab: i for i, lab in enumerate(dict.fromkeys(r["label"] for r in res["rows"]))}
+    seg = sorted([r for r in res["rows"] if r["N"] == sp["N"]], key=lambda r: (order[r["label"]], r["n"]))
+    L.append(f"**Segment length** (N = {sp['N']} steps):\n")
+    L.append(HEADER)
+    L += [row_md(res, r) for r in seg]
+    scal = sorted([r for r in res["rows"] if r["label"] == r["backend"] and
+                   (r["N"] != sp["N"] or r["n"] in (sp["scaling_segment"], sp["N"]))],
+                  key=lambda r: (order[r["label"]], r["n"] == r["N"], r["N"], r["n"]))
+    L.append(f"\n**Steps** (n = {sp['scaling_segment']} vs n = N, i.e. no recomputation):\n")
+    L.append(HEADER)
+    L += [row_md(res, r) for r in scal]
+    if res.get("breakdown"):
+        L.append(f"\n**Where the time goes** (N = {sp['N']}, medians of {sp['reps']}): *fast* = the "
+                 "non-differentiable stepper (`_advance`); *grad path fwd* = the differentiable path's forward "
+                 "(JAX: plain `lax.scan` of the step, the same program as the forward above; Warp: fresh "
+                 "arrays per step, atomic P2G, no tape); *no recompute* = gradient with every intermediate "
+                 "kept (O(N) memory: JAX `value_and_grad` of the plain scan, Warp one `wp.Tape` over all N "
+                 "steps); *step remat* = JAX with `jax.checkpoint` on each step only.\n")
+        L.append("| backend | fast (s) | grad path fwd (s) | no recompute: fwd+bwd (s) | ratio | step remat only (s) | ratio | "
+                 "XLA temp, no recompute (MiB) |")
+        L.append("|---|---|---|---|---|---|---|---|")
+        for b in res["breakdown"]:
+            if b["backend"] == "jax":
+                L.append(f"| {b.get('label', 'jax')} | {b['fast_s']:.3f} | {b['plain_fwd_s']:.3f} | {b['plain_grad_s']:.3f} | "
+                         f"{b['ratio_plain']:.1f}x | {b['remat_grad_s']:.3f} | {b['ratio_remat']:.1f}x | "
+                         f"{b['plain_grad_xla'].get('temp_size_in_bytes', 0) / MiB:.0f} |")
+            else:
+                L.append(f"| warp | {b['fast_s']:.3f} | {b['path_fwd_s']:.3f} | {b['plain_grad_s']:.3f} "
+                         f"(tape fwd {b['tape_fwd_s']:.3f} + bwd {b['tape_bwd_s']:.3f}) | {b['ratio_plain']:.1f}x | "
+                         f"- | - | - |")
+    L.append("\n**Summary** (generated):\n")
+    for lab in order:
+        rows = [r for r in res["rows"] if r["label"] == lab]
+        ratios = [r["ratio"] for r in rows]
+        at = sorted([r for r in rows if r["N"] == sp["N"]], key=lambda r: r["n"])
+        line = f"* {lab}: fwd+bwd / forward = {min(ratios):.1f}x - {max(ratios):.1f}x over {len(rows)} runs: " + \
+               ("target <= 3x **met**" if max(ratios) <= 3 else "target <= 3x **not met**")
+        if at:
+            best = min(at, key=lambda r: r["peak_mib"])
+            full = next((r for r in at if r["n"] == sp["N"]), None)
+            line += (f". At N = {sp['N']} the smallest peak is at n = {best['n']} ({best['peak_mib']:.1f} MiB"
+                     + (f", vs {full['peak_mib']:.1f} MiB without recomputation, n = N" if full else "") + ")")
+        ok = all(r.get("grad_finite", True) for r in rows)
+        L.append(line + ("" if ok else "; NON-FINITE gradients in some runs") + ".")
+    if res.get("notes"):
+        L.append("\n" + res["notes"])
+    return "\n".join(L) + "\n"
+
+
+def write_readme(path: Path, body: str, title="Gradients: memory and time", name="gradients"):
+    text = path.read_text() if path.exists() else "# Benchmarks\n"
+    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    block = f"{start}\n{body}{end}"
+    if start in text and end in text:
+        text = text[: text.index(start)] + block + text[text.index(end) + len(end):]
+    else:
+        text = text.rstrip("\n") + f"\n\n## {title}\n\n{block}\n"
+    path.write_text(text)
+
+
+def plot(res, path: Path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sp = res["spec"]
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    labels = list(dict.fromkeys(r["label"] for r in res["rows"]))
+    palette = ["tab:blue", "tab:orange", "tab:cyan", "tab:red"]
+    colors = {lab: palette[i % len(palette)] for i, lab in enumerate(labels)}
+    a = ax[0]
+    for b in labels:
+        rows = sorted([r for r in res["rows"] if r["label"] == b and r["N"] == sp["N"]], key=lambda r: r["n"])
+        if not rows:
+            continue
+        n = [r["n"] for r in rows]
+        a.plot(n, [r["peak_mib"] for r in rows], "o-", color=colors[b], label=f"{b}: ru_maxrss peak")
+        a.plot(n, [r["peak_sampled_mib"] for r in rows], "s:", color=colors[b], alpha=0.7, label=f"{b}: sampled RSS peak")
+        if b == "jax":
+            xt = [_xla_temp(res, r) for r in rows]
+            if all(x is not None for x in xt):
+                a.plot(n, [x / MiB for x in xt], "^--", color="tab:purple", label="jax: XLA temp bytes")
+    nn = np.array(sorted({r["n"] for r in res["rows"] if r["N"] == sp["N"]}))
+    if nn.size:
+        a.plot(nn, model_mib(res, sp["N"], nn), "k-", lw=0.8, alpha=0.6, label="(N/n + n) x state size")
+    a.set_xscale("log")
+    if nn.size:
+        a.set_xticks(nn)
+        a.set_xticklabels([str(v) for v in nn])
+        a.minorticks_off()
+    a.set_xlabel("segment length n (steps)")
+    a.set_ylabel("peak memory of the gradient call (MiB)")
+    a.set_title(f"N = {sp['N']} steps, {res['particles']} particles")
+    a.legend(fontsize=7)
+    a.grid(alpha=0.3)
+    a = ax[1]
+    for b in [lab for lab in labels if lab in ("jax", "warp")]:
+        for kind, style in (("seg", "o-"), ("full", "x--")):
+            rows = sorted([r for r in res["rows"] if r["label"] == b and
+                           ((r["n"] == sp["scaling_segment"]) if kind == "seg" else (r["n"] == r["N"]))],
+                          key=lambda r: r["N"])
+            if rows:
+                a.plot([r["N"] for r in rows], [max(r["peak_mib"], 0.1) for r in rows], style, color=colors[b],
+                       label=f"{b}: n = {sp['scaling_segment']}" if kind == "seg" else f"{b}: n = N")
+    NN = np.array(sorted({r["N"] for r in res["rows"]}))
+    a.plot(NN, model_mib(res, NN, sp["scaling_segment"]), "k-", lw=0.8, alpha=0.6,
+           label=f"model n = {sp['scaling_segment']}")
+    a.plot(NN, model_mib(res, NN, NN), "k--", lw=0.8, alpha=0.6, label="model n = N")
+    a.set_xscale("log")
+    a.set_yscale("log")                   # (a zero peak is drawn at 0.1 MiB)
+    a.set_xticks(NN)
+    a.set_xticklabels([str(v) for v in NN])
+    a.minorticks_off()
+    a.set_xlabel("steps N")
+    a.set_ylabel("peak memory (ru_maxrss delta, MiB)")
+    a.set_title("memory vs steps")
+    a.legend(fontsize=7)
+    a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---- main ------------------------------------------------------------------------------------------------------
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--backends", default="jax,warp")
+    ap.add_argument("--N", type=int, default=400, help="steps of the segment-length sweep")
+    ap.add_argument("--segments", default="1,10,20,50,100,400", help="segment lengths n at --N (n > N dropped)")
+    ap.add_argument("--scaling-N", default="100,200,400,800", help="steps of the N sweep")
+    ap.add_argument("--scaling-segment", type=int, default=20, help="segment length of the N sweep (and n = N)")
+    ap.add_argument("--reps", type=int, default=5, help="timed repeats (median)")
+    ap.add_argument("--dx", type=float, default=0.0125, help="dam-break cell size (0.0125: 2560 particles)")
+    ap.add_argument("--transfer", default="apic")
+    ap.add_argument("--precision", default="fp32")
+    ap.add_argument("--no-breakdown", action="store_true", help="skip the where-the-time-goes runs")
+    ap.add_argument("--jax-variant-flags", default="--xla_cpu_experimental_ynn_fusion_type=",
+                    help="XLA_FLAGS of an extra JAX run of the segment sweep ('' to skip)")
+    ap.add_argument("--jax-variant-label", default="jax, YNN off")
+    ap.add_argument("--quick", action="store_true", help="N = 40, n in {5, 40}, N sweep {20, 40}, dx 0.025")
+    ap.add_argument("--render", action="store_true", help="only rewrite the README section and plot from --out")
+    ap.add_argument("--out", default=str(HERE / "out" / "gradients.json"))
+    ap.add_argument("--plot", default=str(HERE / "out" / "gradients.png"))
+    ap.add_argument("--readme", default=str(HERE / "README.md"), help="'' to leave the README alone")
+    ap.add_argument("--worker", choices=sorted(WORKERS), help=argparse.SUPPRESS)
+    ap.add_argument("--spec", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+
+    if args.worker:
+        res = WORKERS[args.worker](json.loads(args.spec))
+        print("RESULT " + json.dumps(res), flush=True)
+        return res
+
+    log = lambda *a: print(*a, file=sys.stderr, flush=True)
+    out = Path(args.out)
+    if args.render:
+        res = json.loads(out.read_text())
+        return report(res, args)
+    if args.quick:
+        args.N, args.segments, args.scaling_N, args.scaling_segment, args.dx = 40, "5,40", "20,40", 5, 0.025
+    backends = args.backends.split(",")
+    N = args.N
+    # (label, backend, environment, configs): the JAX variant re-runs the segment sweep with XLA CPU's
+    # YNNPACK fusions off (see the README: they make the small reductions of the step's transpose slow)
+    variants = [(b, b, {}, "all") for b in backends]
+    if "jax" in backends and args.jax_variant_flags:
+        variants.append((args.jax_variant_label, "jax", {"XLA_FLAGS": args.jax_variant_flags}, "segments"))
+    segs = [n for n in (int(s) for s in args.segments.split(",")) if n <= N]
+    configs = [(N, n) for n in segs]
+    for M in (int(s) for s in args.scaling_N.split(",")):
+        for n in (args.scaling_segment, M):
+            if n <= M and (M, n) not in configs:
+                configs.append((M, n))
+    spec = {"dx": args.dx, "transfer": args.transfer, "precision": args.precision, "N": N, "segments": segs,
+            "scaling_N": [int(s) for s in args.scaling_N.split(",")], "scaling_segment": args.scaling_segment,
+            "reps": args.reps}
+    # This process never imports JAX, Warp or torch: a child's ru_maxrss starts at its parent's peak
+    # (Linux carries the high-water mark through fork/vfork + execve), so the parent must stay below
+    # what the measured processes reach before their baseline.
+    t_start = time.perf_counter()
+    res = {"date": time.strftime("%Y-%m-%d %H:%M"), "spec": spec, "rows": [], "breakdown": [], "configs": configs}
+    with tempfile.TemporaryDirectory(prefix="mpmlab-gradbench-") as cache:
+        base = dict(spec, cache=cache)
+        res.update(run_worker("info", base, log))
+        res["machine"]["parent_maxrss_mib"] = maxrss_mib()
+        res["compile"] = {}
+        for k, (label, b, env, which) in enumerate(variants):
+            cfgs = configs if which == "all" else [(M, n) for M, n in configs if M == N]
+            vbase = dict(base, env=env, cache=os.path.join(cache, str(k)), label=label)
+            if b == "jax":
+                log(f"{label}: compiling {len(cfgs)} gradient programs")
+                res["compile"][label] = run_worker("compile", dict(vbase, configs=cfgs), log)
+            else:
+                res["warp_warm"] = run_worker("warm", dict(vbase, backend=b), log)
+            for M, n in cfgs:
+                r = run_worker("measure", dict(vbase, backend=b, N=M, n=n), log)
+                r.update(label=label, env=env)
+                res["rows"].append(r)
+                log(f"{label} N={M} n={n}: peak {r['peak_mib']:.1f} MiB (sampled {r['peak_sampled_mib']:.1f}; "
+                    f"maxrss {r['maxrss_base_mib']:.0f} -> {r['maxrss_grad_mib']:.0f}), fwd {r['fwd_s']:.3f} s, "
+                    f"fwd+bwd {r['grad_s']:.3f} s, ratio {r['ratio']:.1f}x; loss {r['loss']:.6g}, "
+                    f"|dL/dv| {r['grad_v_norm']:.6g}")
+            if not args.no_breakdown:
+                bd = run_worker("breakdown", dict(vbase, backend=b, N=N), log)
+                bd.update(label=label, env=env)
+                res["breakdown"].append(bd)
+                log(f"{label} breakdown: {json.dumps({k: v for k, v in bd.items() if not k.endswith('xla')})}")
+    res["machine"]["parent_maxrss_mib_end"] = maxrss_mib()
+    res["machine"]["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
+    res["total_s"] = time.perf_counter() - t_start
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1))
+    log(f"total {res['total_s']:.0f} s")
+    return report(res, args)
+
+
+def report(res, args):
+    for r in res["rows"] + res.get("breakdown", []):
+        r.setdefault("label", r["backend"])
+    md = tables(res)
+    print(md)
+    if args.plot:
+        plot(res, Path(args.plot))
+    if args.readme:
+        write_readme(Path(args.readme), md)
+    return res
+
+
+if __name__ == "__main__":
+    main()
