@@ -39,10 +39,42 @@ def _coulomb_func(dim, precision):
 
 
 @lru_cache(maxsize=None)
+def _node_funcs(dim, precision):
+    """The per-node velocity maps of planes and obstacles, shared by the fast kernels below and the
+    differentiable path (``grad.boundary_kernels``). They build new vectors (no component overwrite),
+    so Warp's adjoint is right."""
+    T = warp_types(dim, precision)
+    scalar, vec = T.scalar, T.vec
+    coulomb = _coulomb_func(dim, precision)
+
+    @wp.func
+    def plane_velocity(v: vec, n_in: vec, kind: int, mu: scalar):
+        out = v
+        if kind == 1:
+            out = vec()
+        elif kind == 2:
+            out = v - wp.dot(v, n_in) * n_in
+        else:
+            out = coulomb(v, -n_in, mu)
+        return out
+
+    @wp.func
+    def obstacle_velocity(v: vec, n: vec):
+        out = v
+        vn = wp.dot(v, n)
+        if vn < scalar(0.0):
+            out = v - vn * n   # JAX-MPM Eq. 33, only into the box
+        return out
+
+    return SimpleNamespace(plane=plane_velocity, obstacle=obstacle_velocity)
+
+
+@lru_cache(maxsize=None)
 def _node_kernels(dim, precision):
     T = warp_types(dim, precision)
     scalar, vec = T.scalar, T.vec
     coulomb = _coulomb_func(dim, precision)
+    F = _node_funcs(dim, precision)
 
     @wp.kernel(module="unique")
     def friction(grid_v: wp.array(dtype=vec), nodes: wp.array(dtype=int), mu_index: wp.array(dtype=int),
@@ -56,25 +88,14 @@ def _node_kernels(dim, precision):
               friction: wp.array(dtype=scalar), out: wp.array(dtype=vec)):
         k = wp.tid()
         i = nodes[k]
-        v = grid_v[i]
-        if kind == 1:
-            v = vec()
-        elif kind == 2:
-            v = v - wp.dot(v, n_in) * n_in
-        else:
-            v = coulomb(v, -n_in, friction[0])
-        out[i] = v
+        out[i] = F.plane(grid_v[i], n_in, kind, friction[0])
 
     @wp.kernel(module="unique")
     def obstacle(grid_v: wp.array(dtype=vec), nodes: wp.array(dtype=int), normals: wp.array(dtype=vec),
                  out: wp.array(dtype=vec)):
         k = wp.tid()
         i = nodes[k]
-        v = grid_v[i]
-        vn = wp.dot(v, normals[k])
-        if vn < scalar(0.0):
-            v = v - vn * normals[k]   # JAX-MPM Eq. 33, only into the box
-        out[i] = v
+        out[i] = F.obstacle(grid_v[i], normals[k])
 
     @wp.kernel(module="unique")
     def set_velocity(v: wp.array(dtype=vec), x_in: wp.array(dtype=vec), x: wp.array(dtype=vec),

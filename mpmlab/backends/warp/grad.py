@@ -33,7 +33,7 @@ import warp as wp
 from ...core.errors import ConfigError, GradientError, SimulationDiverged
 from ..boundary_geometry import box_obstacle_normals, friction_node_mu_index, node_positions, wall_masks
 from . import kernels as K
-from .boundaries import _coulomb_func
+from .boundaries import _coulomb_func, _node_funcs
 from .types import warp_types
 
 #: Steps per recomputed segment when ``observe`` is not given one.
@@ -157,11 +157,7 @@ def grid_kernel(dim: int, precision: str, split_force: bool):
     scalar, vec, ivec = T.scalar, T.vec, T.ivec
     gvec = K.grid_vec_type(dim, precision)
 
-    @wp.func
-    def axis(d: int):
-        e = vec()
-        e[d] = scalar(1.0)
-        return e
+    walls = K.wall_func(dim, precision)
 
     @wp.kernel(module="unique")
     def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), gravity: wp.array(dtype=vec),
@@ -181,29 +177,10 @@ def grid_kernel(dim: int, precision: str, split_force: bool):
                 vn = vo + dt * (grid_f[i] / m + gravity[0])
             else:
                 vn = vo + dt * gravity[0]
+            I = ivec()
             for d in range(dim):
-                I = (i // strides[d]) % shape[d]
-                cells = shape[d] - 1
-                for side in range(2):
-                    kind = wall_kind[2 * d + side]
-                    near = False
-                    if side == 0:
-                        near = I < thickness
-                    else:
-                        near = I > cells - thickness
-                    if near and kind != 0:
-                        if kind == 1:
-                            vn = vec()
-                        else:
-                            into = False
-                            if side == 0:
-                                into = vn[d] < scalar(0.0)
-                            else:
-                                into = vn[d] > scalar(0.0)
-                            if kind == 2 or into:
-                                # not vn[d] = 0: Warp 1.19's adjoint of a vector component overwrite
-                                # still passes the overwritten value's gradient through
-                                vn = vn - vn[d] * axis(d)
+                I[d] = (i // strides[d]) % shape[d]
+            vn = walls(vn, I, shape, wall_kind, thickness)
         grid_v[i] = vn
 
     return grid_update
@@ -216,6 +193,7 @@ def boundary_kernels(dim: int, precision: str):
     T = warp_types(dim, precision)
     scalar, vec = T.scalar, T.vec
     coulomb = _coulomb_func(dim, precision)
+    F = _node_funcs(dim, precision)
 
     @wp.kernel(module="unique")
     def friction(grid_v: wp.array(dtype=vec), mu_index: wp.array(dtype=int), mu: wp.array(dtype=scalar), n: vec,
@@ -233,12 +211,7 @@ def boundary_kernels(dim: int, precision: str):
         i = wp.tid()
         v = grid_v[i]
         if behind[i] != 0:
-            if kind == 1:
-                v = vec()
-            elif kind == 2:
-                v = v - wp.dot(v, n_in) * n_in
-            else:
-                v = coulomb(v, -n_in, friction[0])
+            v = F.plane(v, n_in, kind, friction[0])
         out[i] = v
 
     @wp.kernel(module="unique")
@@ -248,9 +221,7 @@ def boundary_kernels(dim: int, precision: str):
         v = grid_v[i]
         k = normal_index[i]
         if k >= 0:
-            vn = wp.dot(v, normals[k])
-            if vn < scalar(0.0):
-                v = v - vn * normals[k]               # JAX-MPM Eq. 33, only into the box
+            v = F.obstacle(v, normals[k])
         out[i] = v
 
     @wp.kernel(module="unique")

@@ -190,6 +190,50 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
 
 
 @lru_cache(maxsize=None)
+def wall_func(dim: int, precision: str):
+    """Domain walls on one node's velocity: nodes within ``thickness`` of a face get that face's kind
+    (``WALL_CODES``: 1 sticky, 2 slip, 3 separate = only into the wall). Shared by the fast grid update and
+    the differentiable one (``grad.grid_kernel``); the normal component is removed by subtracting it
+    (``vn - vn[d] e_d``), not by overwriting it, because Warp 1.19's adjoint of a vector-component
+    overwrite still passes the old value's gradient through."""
+    T = warp_types(dim, precision)
+    scalar, vec, ivec = T.scalar, T.vec, T.ivec
+
+    @wp.func
+    def axis(d: int):
+        e = vec()
+        e[d] = scalar(1.0)
+        return e
+
+    @wp.func
+    def walls(vn: vec, I: ivec, shape: ivec, wall_kind: wp.array(dtype=int), thickness: int):
+        out = vn
+        for d in range(dim):
+            cells = shape[d] - 1
+            for side in range(2):
+                kind = wall_kind[2 * d + side]
+                near = False
+                if side == 0:
+                    near = I[d] < thickness
+                else:
+                    near = I[d] > cells - thickness
+                if near and kind != 0:
+                    if kind == 1:
+                        out = vec()
+                    else:
+                        into = False
+                        if side == 0:
+                            into = out[d] < scalar(0.0)
+                        else:
+                            into = out[d] > scalar(0.0)
+                        if kind == 2 or into:
+                            out = out - out[d] * axis(d)
+        return out
+
+    return walls
+
+
+@lru_cache(maxsize=None)
 def grid_update_kernel(dim: int, precision: str, split_force: bool):
     """Grid velocity update (JAX-MPM Eqs. 13-14) fused with the domain walls (kinds are arguments).
 
@@ -199,6 +243,7 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool):
     T = warp_types(dim, precision)
     scalar, vec, ivec = T.scalar, T.vec, T.ivec
     gvec = grid_vec_type(dim, precision)
+    walls = wall_func(dim, precision)
 
     @wp.kernel(module="unique")
     def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), copies: int, G: int, start: int,
@@ -239,26 +284,7 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool):
                 vn = vo + dt * (fs / m + gravity)
             else:
                 vn = vo + dt * gravity
-            for d in range(dim):
-                cells = shape[d] - 1
-                for side in range(2):
-                    kind = wall_kind[2 * d + side]
-                    near = False
-                    if side == 0:
-                        near = I[d] < thickness
-                    else:
-                        near = I[d] > cells - thickness
-                    if near and kind != 0:
-                        if kind == 1:
-                            vn = vec()
-                        else:
-                            into = False
-                            if side == 0:
-                                into = vn[d] < scalar(0.0)
-                            else:
-                                into = vn[d] > scalar(0.0)
-                            if kind == 2 or into:
-                                vn[d] = scalar(0.0)
+            vn = walls(vn, I, shape, wall_kind, thickness)
         elif wp.static(split_force):
             grid_v_old[i] = vec()
         grid_v[i] = vn
