@@ -259,7 +259,7 @@ def test_fd_with_walls_in_contact(kind):
 def test_jax_and_warp_gradients_agree_in_scene_order():
     """Both backends' controls() list boundaries in scene order (a particle constraint before the grid
     boundaries here) and give the same gradient of every control (fp64)."""
-    torch = pytest.importorskip("torch")
+    pytest.importorskip("torch")
     from mpmlab.boundaries import ParticleVelocity
 
     body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.05], "hi": [0.5, 0.15]}, material="fixed_corotated",

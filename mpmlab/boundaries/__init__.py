@@ -193,12 +193,4 @@ def make_boundary(spec: Mapping[str, Any]) -> AbstractBoundary:
     """Build a registered boundary from ``{"kind": name, **options}``."""
     from ..core import registry
 
-    spec = dict(spec)
-    kind = spec.pop("kind", None)
-    if kind is None:
-        raise ConfigError(f"boundary {spec} needs a 'kind'; known: {', '.join(registry.boundaries.names())}.")
-    cls = registry.boundaries.get(kind)
-    try:
-        return cls(**spec)
-    except TypeError as exc:
-        raise ConfigError(f"boundary '{kind}': {exc}.") from None
+    return registry.boundaries.build(spec)

@@ -12,7 +12,7 @@ import importlib
 from importlib.metadata import entry_points
 from typing import Any
 
-from .errors import UnknownPluginError
+from .errors import ConfigError, UnknownPluginError
 
 KINDS = {
     "law": "mpmlab.laws",
@@ -83,6 +83,18 @@ class Registry:
         obj = load_object(self._paths[name])
         self._objects[name] = obj
         return obj
+
+    def build(self, spec) -> Any:
+        """An instance from a config mapping ``{"kind": name, **options}`` (boundaries, observations)."""
+        spec = dict(spec)
+        name = spec.pop("kind", None)
+        if name is None:
+            raise ConfigError(f"{self.kind} {spec} needs a 'kind'; known: {', '.join(self.names())}.")
+        cls = self.get(name)
+        try:
+            return cls(**spec)
+        except TypeError as exc:
+            raise ConfigError(f"{self.kind} '{name}': {exc}; check the option names.") from None
 
     def provenance(self, name: str) -> str:
         self._load_entry_points()

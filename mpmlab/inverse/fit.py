@@ -85,26 +85,32 @@ class Fit:
             m = m * np.any(np.asarray(self.reference) != 0.0, axis=2)
         return m
 
-    def loss_function(self) -> Callable:
-        ops, obs, steps, seg = self.ops, self.observation, self.steps, self.segment
+    def data_loss(self) -> Callable:
+        """predicted observations [T, L, d] -> the masked mean squared residual (JAX-MPM Eq. 28, mean)."""
         mask = self._mask()
         norm = float(mask.sum() * np.shape(self.reference)[2])
-        ref = ops.asarray(self.reference)
-        m = ops.asarray(mask)[..., None]
+        ref = self.ops.asarray(self.reference)
+        m = self.ops.asarray(mask)[..., None]
 
+        def data_loss(pred):
+            r = (pred - ref) * m
+            return (r * r).sum() / norm
+
+        return data_loss
+
+    def loss_function(self) -> Callable:
+        obs, steps, seg = self.observation, self.steps, self.segment
+        data_loss = self.data_loss()
         if self.backend == "jax":
             from ..backends.jax import differentiable as JD
 
             def loss(raw):          # (loss, invalid): the JAX rollout reports a diverged state as aux
                 pred, bad = JD.observe(self.stepper, self.controls_of(raw), obs, steps, seg, health=True)
-                r = (pred - ref) * m
-                return (r * r).sum() / norm, bad                                  # JAX-MPM Eq. 28 (mean)
+                return data_loss(pred), bad
             return loss
 
         def loss(raw):              # the Warp rollout raises SimulationDiverged itself
-            pred = self.stepper.observe(self.controls_of(raw), obs, steps, seg)
-            r = (pred - ref) * m
-            return (r * r).sum() / norm
+            return data_loss(self.stepper.observe(self.controls_of(raw), obs, steps, seg))
 
         return loss
 
@@ -217,10 +223,8 @@ class Fit:
         from ..backends.jax import differentiable as JD
 
         c = self.controls_of(raw)
-        ref, m = self.ops.asarray(self.reference), self.ops.asarray(self._mask())[..., None]
-        norm = float(self._mask().sum() * np.shape(self.reference)[2])
         pred = self.stepper.observe(c, self.observation, self.steps, self.segment)
-        ct = jax.grad(lambda p: (((p - ref) * m) ** 2).sum() / norm)(pred)
+        ct = jax.grad(self.data_loss())(pred)
         JD.locate_nan_gradient(self.stepper, c, self.observation, self.steps, ct, self.segment)
 
     def _run_torch(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol):

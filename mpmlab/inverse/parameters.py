@@ -341,9 +341,7 @@ class FitParameter:
         t = self.truth_value(stepper, scene)
         if t is None:
             return controls
-        if self.target == "initial_velocity" and self.form == "mlp":
-            return self.apply(ops, controls, ops.asarray(t))
-        if self.target == "initial_velocity" and isinstance(self.truth, str):
+        if isinstance(self.truth, str):       # a field given at the particles (initial_velocity only)
             c = dict(controls)
             c["v"] = ops.set_column(c["v"], self._rows, self._col, ops.asarray(t))
             return c

@@ -22,7 +22,7 @@ writing ``out`` (a ``wp.array`` of L vectors of length d).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
@@ -174,12 +174,4 @@ def make_observation(spec: Mapping[str, Any]) -> AbstractObservation:
     """Build an observation from a config mapping ``{kind: NAME, ...options}``."""
     from ..core import registry
 
-    spec = dict(spec)
-    kind = spec.pop("kind", None)
-    if kind is None:
-        raise ConfigError(f"observation spec {spec} has no 'kind'; known kinds: {', '.join(registry.observations.names())}.")
-    cls = registry.observations.get(kind)
-    try:
-        return cls(**spec)
-    except TypeError as e:
-        raise ConfigError(f"observation '{kind}': {e}; check the option names.") from None
+    return registry.observations.build(spec)

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..config import build_scene, check_run_options, make_transfer_from_config
 from ..core.errors import ConfigError
-from .common import CONFIG, RECORDING, SUMMARY, write_config, write_json
+from .common import RECORDING, SUMMARY, write_config, write_json
 
 log = logging.getLogger("mpmlab")
 FIT_PLOT = "fit.png"
