@@ -69,6 +69,9 @@ from pathlib import Path
 
 import numpy as np
 
+import _common
+from _common import write_readme_section
+
 HERE = Path(__file__).resolve().parent
 MiB = 2.0**20
 
@@ -421,19 +424,10 @@ def run_worker(kind, spec, log, timeout=900):
 
 # ---- report -----------------------------------------------------------------------------------------------
 def machine_info() -> dict:
-    import jax
-    import torch
-    import warp
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "python": platform.python_version(),
-            "jax": jax.__version__, "warp": warp.config.version, "torch": torch.__version__,
-            "numpy": np.__version__, "platform": platform.platform(),
-            "load_before": " ".join(f"{x:.1f}" for x in os.getloadavg())}
+    info = _common.machine_info(("jax", "warp", "torch"))
+    info["platform"] = platform.platform()
+    info["load_before"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
+    return info
 
 
 def _xla_temp(res, r):
@@ -539,14 +533,7 @@ def tables(res) -> str:
 
 
 def write_readme(path: Path, body: str, title="Gradients: memory and time", name="gradients"):
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    block = f"{start}\n{body}{end}"
-    if start in text and end in text:
-        text = text[: text.index(start)] + block + text[text.index(end) + len(end):]
-    else:
-        text = text.rstrip("\n") + f"\n\n## {title}\n\n{block}\n"
-    path.write_text(text)
+    write_readme_section(path, name, title, body)
 
 
 def plot(res, path: Path):

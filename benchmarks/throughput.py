@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import subprocess
 import sys
@@ -44,7 +43,8 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+import _common
+from _common import write_readme_section
 
 HERE = Path(__file__).resolve().parent
 N_GRID_3D = {"8k": 32, "65k": 64, "524k": 128}
@@ -233,30 +233,15 @@ def tables(res: dict) -> tuple[str, str]:
 
 
 def write_readme(path: Path, throughput_md: str, skips_md: str) -> None:
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    for name, body, title in (("throughput", throughput_md, "Throughput"), ("skips", skips_md, "Skips")):
-        start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-        block = f"{start}\n{body}{end}"
-        if start in text and end in text:
-            text = text[: text.index(start)] + block + text[text.index(end) + len(end):]
-        else:
-            text = text.rstrip("\n") + f"\n\n## {title}\n\n{block}\n"
-    path.write_text(text)
+    write_readme_section(path, "throughput", "Throughput", throughput_md)
+    write_readme_section(path, "skips", "Skips", skips_md)
 
 
 # ---- main -------------------------------------------------------------------------------------------------
 def machine_info() -> dict:
-    import jax
-    import warp
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "python": platform.python_version(),
-            "jax": jax.__version__, "warp": warp.config.version, "numpy": np.__version__,
-            "load_before": " ".join(f"{x:.1f}" for x in os.getloadavg())}
+    info = _common.machine_info(("jax", "warp"))
+    info["load_before"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
+    return info
 
 
 def main(argv=None):
