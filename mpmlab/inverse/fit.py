@@ -182,8 +182,8 @@ class Fit:
         if checkpoint is not None and resume and checkpoint.exists():
             ck = pickle.load(open(checkpoint, "rb"))
             raw = jax.tree.map(lambda a: self.ops.asarray(a), ck["raw"])
-            state = jax.tree.map(lambda ref, a: self.ops.jnp.asarray(a, dtype=getattr(ref, "dtype", None))
-                                 if hasattr(ref, "dtype") else a, state, ck["opt_state"])
+            state = jax.tree.map(lambda ref, a: self.ops.jnp.asarray(a, ref.dtype) if hasattr(ref, "dtype") else a,
+                                 state, ck["opt_state"])
             self.epoch, self.history = ck["epoch"], ck["history"]
         bar = self._bar(epochs, progress)
         t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)

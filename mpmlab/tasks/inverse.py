@@ -14,6 +14,7 @@ command with the same ``hydra.run.dir``).
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -145,7 +146,7 @@ def run(cfg, ctx) -> dict:
                       on_epoch=rec.log if rec is not None else None, tolerance=float(tc.loss_tolerance))
     finally:
         if rec is not None:
-            rec.close(fit.history)
+            rec.close()
     report = fit.report(raw)
     summary = {
         "task": "inverse", "status": "ok", "scene": scene.name, "resolution": str(cfg.scene.resolution),
@@ -214,9 +215,7 @@ class _Recorder:
                 for k, a in enumerate(v):
                     self.rec.log(f"metrics/{name}/{k}", rr.Scalars(float(a)))
 
-    def close(self, history):
-        import os
-
+    def close(self):
         self.rec.flush()
         self.rec.disconnect()
         if self.tmp.exists():
@@ -258,6 +257,4 @@ def plot_fit(path: Path, history, report, profiles, title: str) -> None:
     tmp = path.with_name(path.stem + ".tmp.png")
     fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    import os
-
     os.replace(tmp, path)
