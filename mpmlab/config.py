@@ -289,6 +289,9 @@ class InverseTaskConfig(TaskConfig):
     resume: bool = True
     #: stop early once the loss is at or below this
     loss_tolerance: float = 0.0
+    #: keep XLA CPU's YNNPACK fusions (JAX backend); off by default here because they make the
+    #: backward pass ~2x slower (mpmlab/backends/jax/xla_options.py); XLA_FLAGS set by you wins
+    jax_ynn_fusions: bool = False
 
 
 @dataclass

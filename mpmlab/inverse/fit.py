@@ -127,6 +127,18 @@ class Fit:
             out[p.name] = v.tolist() if np.ndim(v) else float(v)
         return out
 
+    def field_errors(self, raw) -> dict[str, float]:
+        """Relative L2 error over the body's particles of each MLP field with a known truth (JAX-MPM
+        Fig. 14b); recorded every epoch."""
+        out = {}
+        for p in self.parameters:
+            if p.form == "mlp":
+                truth = p.truth_value(self.stepper, self.scene)
+                if truth is not None:
+                    val = np.asarray(self.ops.numpy(p.value(self.ops, raw[p.name])), float)
+                    out[p.name] = float(np.linalg.norm(val - truth) / max(np.linalg.norm(truth), 1e-300))
+        return out
+
     def report(self, raw) -> dict[str, Any]:
         return {p.name: p.report(self.ops, raw[p.name], self.stepper, self.scene) for p in self.parameters}
 
@@ -159,6 +171,9 @@ class Fit:
     def _record(self, epoch, loss, raw, grad_norm, t):
         entry = {"epoch": epoch, "loss": float(loss), "grad_norm": float(grad_norm), "time_s": float(t),
                  "values": self.values(raw)}
+        errors = self.field_errors(raw)
+        if errors:
+            entry["field_errors"] = errors
         self.history.append(entry)
         return entry
 

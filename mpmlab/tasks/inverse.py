@@ -102,6 +102,10 @@ def run(cfg, ctx) -> dict:
     scene = build_scene(cfg)
     transfer = make_transfer_from_config(cfg)
     backend, precision = cfg.backend.name, cfg.precision.name
+    if backend == "jax" and not tc.jax_ynn_fusions:
+        from ..backends.jax.xla_options import disable_ynn_fusions
+
+        disable_ynn_fusions()
     steps = int(cfg.steps)
     observation = make_observation(_plain(tc.observation))
     schedule = schedule_from_config(tc, steps)

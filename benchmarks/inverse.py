@@ -1,0 +1,295 @@
+"""The three JAX-MPM inverse experiments (Du & He 2025, Sec. 5), paper beside mpmlab, on both backends.
+
+Runs ``mpmlab task=inverse experiment=...`` for every case below and backend (each in its own run
+directory under ``benchmarks/out/inverse/<experiment>/<variant>/<backend>``; a finished run with the
+same settings is reused, an interrupted one resumes from its fit checkpoint), then writes
+
+- ``benchmarks/inverse.md``: the table, paper beside mpmlab, with the bars of issue #4;
+- ``benchmarks/results/inverse/*.json``: each run's summary without its raw history (small, committed,
+  so that the table can be regenerated with ``--table-only`` without rerunning hours of fits);
+- ``benchmarks/figures/inverse_*.png``: loss and parameter / field-error convergence per experiment;
+- the "Inverse problems" section of ``benchmarks/README.md``.
+
+    python benchmarks/inverse.py                                  # everything, CPU-sized scenes
+    python benchmarks/inverse.py --backends jax --cases 5.1       # one experiment on one backend
+    python benchmarks/inverse.py --table-only                     # regenerate from results/inverse
+    python benchmarks/inverse.py --resolution paper               # the paper's grids (GPU-sized)
+
+The cases (JAX-MPM Sec. 5; the paper's numbers from its text):
+  5.1  alpha of v_x = alpha (H0 - y), truth 2.0, start 0.1; Eulerian (9 monitors), full and sparse
+       (100 particles) Lagrangian supervision. Paper: all recover alpha "close to the ground truth"
+       (Fig. 12); bar: within 1 %.
+  5.2  v_x(y) = 2 (1 - (y/H0)^2) + 0.2 sin(4 pi y/H0) through an MLP from 100 / 500 / 1000 particles.
+       Paper: relative L2 45.1 / 6.4 / 3.7 %; bar: 500 and 1000 at most the paper's.
+  5.3  basal friction mu = [0, 0.5, 0.1, 0.2] from 100 / 500 particles. Paper: mu_3 = 0.229 / 0.198;
+       bar (500): every segment within 2 % (0.005 absolute for mu_0 = 0).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from _common import write_readme_section
+
+HERE = Path(__file__).resolve().parent
+RUNS = HERE / "out" / "inverse"
+RESULTS = HERE / "results" / "inverse"
+FIGURES = HERE / "figures"
+TABLE = HERE / "inverse.md"
+
+
+@dataclass
+class Case:
+    key: str            # "5.1"
+    experiment: str     # experiment config name
+    variant: str        # run-directory name
+    label: str          # table label
+    overrides: list[str] = field(default_factory=list)
+    paper: str = ""     # the paper's result, as text
+
+
+CASES = [
+    Case("5.1", "jaxmpm_velocity_constant", "eulerian", "Eulerian, 9 monitors", ["task.supervision=eulerian"],
+         "alpha ~ 2.0 (Fig. 12)"),
+    Case("5.1", "jaxmpm_velocity_constant", "lagrangian_full", "Lagrangian, all particles",
+         ["task.supervision=lagrangian_full"], "alpha ~ 2.0 (Fig. 12)"),
+    Case("5.1", "jaxmpm_velocity_constant", "lagrangian_sparse", "Lagrangian, 100 particles",
+         ["task.supervision=lagrangian_sparse"], "alpha ~ 2.0 (Fig. 12)"),
+    Case("5.2", "jaxmpm_velocity_field", "p100", "100 particles", ["task.observations.lagrangian.particles=100"],
+         "45.1 %"),
+    Case("5.2", "jaxmpm_velocity_field", "p500", "500 particles", ["task.observations.lagrangian.particles=500"],
+         "6.4 %"),
+    Case("5.2", "jaxmpm_velocity_field", "p1000", "1000 particles", ["task.observations.lagrangian.particles=1000"],
+         "3.7 %"),
+    Case("5.3", "jaxmpm_friction", "p100", "100 particles", ["task.observations.lagrangian.particles=100"],
+         "mu_3 = 0.229"),
+    Case("5.3", "jaxmpm_friction", "p500", "500 particles", ["task.observations.lagrangian.particles=500"],
+         "mu_3 = 0.198"),
+]
+PAPER_L2 = {"p100": 0.451, "p500": 0.064, "p1000": 0.037}
+TRUE_MU = [0.0, 0.5, 0.1, 0.2]
+
+
+def run_dir(case: Case, backend: str, resolution: str) -> Path:
+    sub = "" if resolution == "cpu" else f"_{resolution}"
+    return RUNS / f"{case.experiment}{sub}" / case.variant / backend
+
+
+def result_path(case: Case, backend: str, resolution: str) -> Path:
+    sub = "" if resolution == "cpu" else f"_{resolution}"
+    return RESULTS / f"{case.experiment}{sub}__{case.variant}__{backend}.json"
+
+
+def command(case: Case, backend: str, resolution: str, extra: list[str]) -> list[str]:
+    return [sys.executable, "-m", "mpmlab", "task=inverse", f"experiment={case.experiment}", f"backend={backend}",
+            f"scene.resolution={resolution}", *case.overrides, *extra,
+            f"hydra.run.dir={run_dir(case, backend, resolution)}"]
+
+
+def _same(a: list[str], b: list[str]) -> bool:
+    """The same run settings, whether or not the resolution was given on the command line."""
+    norm = lambda o: {x for x in o if not x.startswith("scene.resolution=")}
+    return norm(a) == norm(b)
+
+
+def run_case(case: Case, backend: str, resolution: str, extra: list[str]) -> dict | None:
+    """Run (or reuse, or resume) one fit; returns its summary, or None when it failed."""
+    d = run_dir(case, backend, resolution)
+    summ = d / "summary.json"
+    want = command(case, backend, resolution, extra)
+    if summ.exists():
+        s = json.loads(summ.read_text())
+        if s.get("status") == "ok" and s.get("resolution") == resolution and _same(s.get("overrides", []), want[3:-1]):
+            print(f"[inverse] reuse {d}", flush=True)
+            return s
+        # changed settings: rename the old run aside so that nothing is lost
+        summ.rename(d / f"summary.{int(time.time())}.json")
+    d.mkdir(parents=True, exist_ok=True)
+    print(f"[inverse] {case.key} {case.label} on {backend}: {' '.join(want[2:])}", flush=True)
+    env = dict(os.environ, MPLBACKEND="Agg")
+    with open(d / "run.log", "a") as log:
+        rc = subprocess.call(want, stdout=log, stderr=subprocess.STDOUT, env=env)
+    if rc != 0 or not summ.exists():
+        print(f"[inverse]   failed (exit {rc}); see {d / 'run.log'}", flush=True)
+        return None
+    return json.loads(summ.read_text())
+
+
+def compact(summary: dict) -> dict:
+    """A run's summary for committing: everything but the optimiser internals; history kept (small)."""
+    keep = ("scene", "resolution", "backend", "transfer", "precision", "particles", "steps", "dt", "observation",
+            "observation_frames", "observed_indices", "truth", "recovered", "relative_error", "parameters",
+            "profiles", "epochs", "initial_loss", "final_loss", "reference_time_s", "wall_time_s", "overrides",
+            "history", "mpmlab_version")
+    out = {k: summary.get(k) for k in keep}
+    out["history"] = [{k: h[k] for k in ("epoch", "loss", "time_s", "values", "field_errors") if k in h}
+                      for h in summary.get("history", [])]
+    return out
+
+
+# ---- verdicts (issue #4's bars) ----------------------------------------------------------------------------
+def verdict(case: Case, s: dict) -> tuple[str, bool | None]:
+    """(mpmlab's result as text, whether it meets the bar; None where the case has no bar)."""
+    if case.key == "5.1":
+        a, err = s["recovered"]["alpha"], s["relative_error"]["alpha"]
+        return f"alpha = {a:.4f} ({err:.2%})", err <= 0.01
+    if case.key == "5.2":
+        err = s["relative_error"]["vx0"]
+        bar = PAPER_L2[case.variant] if case.variant != "p100" else None
+        return f"{err:.1%}", (None if bar is None else err <= bar)
+    mu = s["recovered"]["mu"]
+    text = "[" + ", ".join(f"{m:.3f}" for m in mu) + "]"
+    if case.variant != "p500":
+        return text, None
+    ok = all((abs(m - t) <= 0.005) if t == 0 else (abs(m - t) <= 0.02 * t) for m, t in zip(mu, TRUE_MU))
+    return text, ok
+
+
+def _mark(ok):
+    return "" if ok is None else (" (met)" if ok else " (NOT met)")
+
+
+def table(results: dict, backends: list[str], resolution: str) -> str:
+    lines = ["| Sec. | case | paper | " + " | ".join(f"mpmlab {b}" for b in backends) + " | epochs | wall time |",
+             "|---|---|---|" + "---|" * len(backends) + "---|---|"]
+    for case in CASES:
+        cells, epochs, walls = [], [], []
+        for b in backends:
+            s = results.get((case.experiment, case.variant, b))
+            if s is None:
+                cells.append("not run")
+                continue
+            text, ok = verdict(case, s)
+            cells.append(text + _mark(ok))
+            epochs.append(f"{s['epochs']}")
+            walls.append(f"{s['wall_time_s'] / 60:.0f} min")
+        lines.append(f"| {case.key} | {case.label} | {case.paper} | " + " | ".join(cells)
+                     + f" | {' / '.join(epochs) or '-'} | {' / '.join(walls) or '-'} |")
+    first = next(iter(results.values()), None)
+    head = ""
+    if first is not None:
+        head = (f"Resolution `{resolution}`; wall time per backend ({' / '.join(backends)}) on "
+                f"{os.cpu_count()} CPU cores, two fits at a time.\n\n")
+    return head + "\n".join(lines) + "\n"
+
+
+# ---- plots -------------------------------------------------------------------------------------------------
+def plot(results: dict, backends: list[str], resolution: str) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    sub = "" if resolution == "cpu" else f"_{resolution}"
+    paths = []
+    style = {"jax": "-", "warp": "--"}
+    for key, title in (("5.1", "Sec. 5.1: constant initial velocity alpha"),
+                       ("5.2", "Sec. 5.2: initial velocity field (MLP)"),
+                       ("5.3", "Sec. 5.3: basal friction segments")):
+        cases = [c for c in CASES if c.key == key]
+        runs = [(c, b, results[(c.experiment, c.variant, b)]) for c in cases for b in backends
+                if (c.experiment, c.variant, b) in results]
+        if not runs:
+            continue
+        ncol = 3 if key == "5.2" else 2
+        fig, ax = plt.subplots(1, ncol, figsize=(5 * ncol, 4))
+        colors = {c.variant: f"C{i}" for i, c in enumerate(cases)}
+        for c, b, s in runs:
+            ep = [h["epoch"] for h in s["history"]]
+            ax[0].semilogy(ep, [h["loss"] for h in s["history"]], style[b], color=colors[c.variant],
+                           label=f"{c.label} ({b})")
+            if key == "5.1":
+                ax[1].plot(ep, [h["values"]["alpha"] for h in s["history"]], style[b], color=colors[c.variant])
+            elif key == "5.2":
+                ax[1].semilogy(ep, [h["field_errors"]["vx0"] for h in s["history"] if "field_errors" in h][: len(ep)],
+                               style[b], color=colors[c.variant])
+                pr = s["profiles"]["vx0"]
+                ax[2].plot(pr["recovered"], pr["at"], style[b], color=colors[c.variant])
+            else:
+                mu = np.array([h["values"]["mu"] for h in s["history"]])
+                if c.variant == "p500":
+                    for k in range(mu.shape[1]):
+                        ax[1].plot(ep, mu[:, k], style[b], color=f"C{k}", label=f"mu_{k} ({b})")
+        ax[0].set_xlabel("epoch"); ax[0].set_ylabel("loss"); ax[0].legend(fontsize=7)
+        ax[1].set_xlabel("epoch")
+        if key == "5.1":
+            ax[1].axhline(2.0, color="k", lw=0.8, ls=":"); ax[1].set_ylabel("alpha")
+        elif key == "5.2":
+            ax[1].set_ylabel("relative L2 error of v_x(y)")
+            for v, e in PAPER_L2.items():
+                ax[1].axhline(e, color=colors[v], lw=0.8, ls=":")
+            pr = next(s for _, _, s in runs)["profiles"]["vx0"]
+            ax[2].plot(pr["truth"], pr["at"], "k:", lw=1.5, label="truth")
+            ax[2].set_xlabel("v_x (m/s)"); ax[2].set_ylabel("y (m)"); ax[2].legend(fontsize=7)
+        else:
+            for k, t in enumerate(TRUE_MU):
+                ax[1].axhline(t, color=f"C{k}", lw=0.8, ls=":")
+            ax[1].set_ylabel("mu (500 particles)"); ax[1].legend(fontsize=7, ncol=2)
+        fig.suptitle(f"{title} -- mpmlab, resolution {resolution} (solid JAX, dashed Warp; dotted: truth / paper)")
+        fig.tight_layout()
+        p = FIGURES / f"inverse_{key.replace('.', '_')}{sub}.png"
+        fig.savefig(p, dpi=100)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+def load_results(backends: list[str], resolution: str) -> dict:
+    out = {}
+    for c in CASES:
+        for b in backends:
+            p = result_path(c, b, resolution)
+            if p.exists():
+                out[(c.experiment, c.variant, b)] = json.loads(p.read_text())
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--backends", nargs="+", default=["jax", "warp"], choices=["jax", "warp"])
+    ap.add_argument("--cases", nargs="+", default=["5.1", "5.2", "5.3"], choices=["5.1", "5.2", "5.3"])
+    ap.add_argument("--variants", nargs="+", default=None, help="only these run directories (e.g. p500 eulerian)")
+    ap.add_argument("--resolution", default="cpu", choices=["tiny", "cpu", "paper"])
+    ap.add_argument("--table-only", action="store_true", help="no fits: tabulate benchmarks/results/inverse")
+    ap.add_argument("--table-backends", nargs="+", default=["jax", "warp"],
+                    help="backends (columns) of the table; default both")
+    ap.add_argument("extra", nargs="*", help="extra Hydra overrides for every run (e.g. task.epochs=50)")
+    args = ap.parse_args(argv)
+
+    if not args.table_only:
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        for c in CASES:
+            if c.key not in args.cases or (args.variants and c.variant not in args.variants):
+                continue
+            for b in args.backends:
+                s = run_case(c, b, args.resolution, list(args.extra))
+                if s is not None:
+                    result_path(c, b, args.resolution).write_text(json.dumps(compact(s), indent=1))
+    results = load_results(args.table_backends, args.resolution)
+    if not results:
+        print("[inverse] no results to tabulate", file=sys.stderr)
+        return 1
+    body = table(results, args.table_backends, args.resolution)
+    figs = plot(results, args.table_backends, args.resolution)
+    sub = "" if args.resolution == "cpu" else f" ({args.resolution})"
+    TABLE.write_text(f"# JAX-MPM inverse experiments{sub}: paper beside mpmlab\n\n"
+                     "Generated by `python benchmarks/inverse.py` (see its docstring).\n\n" + body + "\n"
+                     + "\n".join(f"![{p.stem}](figures/{p.name})" for p in figs) + "\n")
+    if args.resolution == "cpu":
+        write_readme_section(HERE / "README.md", "inverse", "Inverse problems (JAX-MPM Sec. 5)",
+                             body + "\nFull table and plots: `benchmarks/inverse.md`.\n")
+    print(body)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
