@@ -469,6 +469,17 @@ class GradPath:
             bc_out=[z(G, T.vec) for bc in self.bcs if bc.stage == "grid"],
             pv=[(z(N, T.vec), z(N, T.vec)) for bc in self.bcs if bc.stage == "particle_velocity"])
 
+    def grad_buffers(self, count: int):
+        """``count`` step buffers with gradients, kept between calls (allocating a segment's worth
+        costs about as much as a 2000-step forward pass); :meth:`release_buffers` frees them."""
+        pool = self.__dict__.setdefault("_grad_pool", [])
+        while len(pool) < count:
+            pool.append(self.alloc_buffers(True))
+        return pool[:count]
+
+    def release_buffers(self):
+        self.__dict__.pop("_grad_pool", None)
+
     def buffer_arrays(self, buf):
         b = buf
         out = [b.grid_mm, b.grid_f, b.grid_v, b.grid_v_old, b.ext, *b.bc_out, *(a for xv in b.pv for a in xv)]
@@ -610,7 +621,7 @@ class GradPath:
         times = saved.times
         adj_end = None                                  # adjoint of the current segment's end state
         starts = list(range(0, n, segment)) or [0]        # segment start steps (n = 0: one empty segment)
-        pool = [self.alloc_buffers(True) for _ in range(min(segment, n))]   # one per step of a segment
+        pool = self.grad_buffers(min(segment, n))       # one per step of a segment
         for k0 in reversed(starts):
             k1 = min(k0 + segment, n)
             init_tape = wp.Tape()
