@@ -3,8 +3,8 @@
 The fast stepper (``stepper.py``) sorts particles, splits P2G over private grid copies and clears the
 grid it reads, all in place; a ``wp.Tape`` cannot replay that. This module is the separate
 gradient-correct path (Genesis-style forward-fast / gradient-correct split): particles in scene order,
-one fresh grid and one fresh particle state per step, boundaries writing fresh output arrays, atomic
-P2G. G2P (fused with each law's update) and the initial stress reuse the fast path's kernels, which
+a separate grid and particle state per step of a segment (buffers allocated once and reused, never
+overwritten while a tape still needs them), boundaries writing separate output arrays, atomic P2G. G2P (fused with each law's update) and the initial stress reuse the fast path's kernels, which
 already write only fresh outputs; the laws' spectral maps carry hand-written adjoints
 (``linalg.spectral_func``) so the derivative is finite at repeated singular values.
 
@@ -15,11 +15,12 @@ adjoint of the segment's end state (from the later segment) and of its observati
 backwards (control adjoints accumulate in the control arrays' ``.grad``) and hands the start state's
 adjoint to the previous segment: O(steps / segment + segment) states.
 
-Non-finite adjoints: after each step's backward pass a device-side check flags non-finite entries of
-the adjoint of the step's input state and of the controls (one flag per step, read once per
-segment); the last-flagged step (the first one the backward pass met) is reported as a
-``GradientError`` naming that step and the first particle (scene order) whose adjoint is non-finite.
-Nothing is zeroed.
+Non-finite adjoints: after each segment's backward pass a device-side check flags non-finite entries
+of the adjoints of the segment's start state and of the controls (a non-finite adjoint anywhere in
+the segment that matters for the gradient reaches them). Only then is the segment's backward pass
+replayed with a check after every step; the last-flagged step (the first one the backward pass met)
+is reported as a ``GradientError`` naming that step and the first particle (scene order) whose
+adjoint is non-finite. Nothing is zeroed. (Checking every step always cost ~15 % of a gradient.)
 
 Kernels are compiled on first use only (forward-only runs build none of them).
 """
