@@ -617,6 +617,8 @@ def main(argv=None):
                     help="XLA_FLAGS of an extra JAX run of the segment sweep ('' to skip)")
     ap.add_argument("--jax-variant-label", default="jax, YNN off")
     ap.add_argument("--quick", action="store_true", help="N = 40, n in {5, 40}, N sweep {20, 40}, dx 0.025")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the rows of variants not run now from the existing --out JSON (e.g. --backends warp)")
     ap.add_argument("--render", action="store_true", help="only rewrite the README section and plot from --out")
     ap.add_argument("--out", default=str(HERE / "out" / "gradients.json"))
     ap.add_argument("--plot", default=str(HERE / "out" / "gradients.png"))
@@ -687,6 +689,16 @@ def main(argv=None):
     res["machine"]["parent_maxrss_mib_end"] = maxrss_mib()
     res["machine"]["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
     res["total_s"] = time.perf_counter() - t_start
+    if args.merge and out.exists():
+        # keep the other variants' rows from the earlier run; say which rows were measured when
+        old = json.loads(out.read_text())
+        new_labels = {label for label, *_ in variants}
+        old_labels = sorted({r.get("label", r["backend"]) for r in old["rows"]} - new_labels)
+        res["rows"] = [r for r in old["rows"] if r.get("label", r["backend"]) in old_labels] + res["rows"]
+        res["breakdown"] = [r for r in old.get("breakdown", []) if r.get("label", r["backend"]) in old_labels] \
+            + res["breakdown"]
+        res["compile"] = {**{k: v for k, v in old.get("compile", {}).items() if k in old_labels}, **res["compile"]}
+        res["date"] = f"{old['date']} ({', '.join(old_labels)} rows); {res['date']} ({', '.join(sorted(new_labels))} rows)"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1))
     log(f"total {res['total_s']:.0f} s")
