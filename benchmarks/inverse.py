@@ -328,7 +328,12 @@ def landscape_section() -> str:
             "end of the window. "
             "The paper recovers mu_3 (0.198), so its flow must cover that segment much earlier; mpmlab's front "
             "(like the Ritter study of issue #2) starts with a ~0.1 s delay and then moves at ~3 m/s (2 sqrt(g H0) = "
-            "3.4 m/s), at the paper's resolution too (1.33 m at 0.4 s).\n")
+            "3.4 m/s), at the paper's resolution too (1.33 m at 0.4 s).\n"
+            "* **A longer window is not enough.** With 0.6 s (`mpmlab task=inverse experiment=jaxmpm_friction "
+            "backend=jax scene.resolutions.cpu.steps=3000 task.epochs=40`, measured once, JAX) mu_3 does move "
+            "(0.25 -> 0.10 in 40 epochs) but mu_0 still climbs into its plateau (0.57), mu_1 = 0.47, mu_2 = 0.16. "
+            "Recovering mu_0 needs a path that stays out of the sticking regime (e.g. per-parameter learning rates "
+            "or a start below it with plain gradient descent) -- not tried yet.\n")
 
 
 def load_results(backends: list[str], resolution: str) -> dict:
