@@ -177,13 +177,15 @@ def table(results: dict, backends: list[str], resolution: str) -> str:
             s = results.get((case.experiment, case.variant, b))
             if s is None:
                 cells.append("not run")
+                epochs.append("-")
+                walls.append("-")
                 continue
             text, ok = verdict(case, s)
             cells.append(text + _mark(ok))
             epochs.append(f"{s['epochs']}")
             walls.append(f"{fit_time(s) / 60:.0f} min ({epoch_time(s):.1f} s)")
         lines.append(f"| {case.key} | {case.label} | {case.paper} | " + " | ".join(cells)
-                     + f" | {' / '.join(epochs) or '-'} | {' / '.join(walls) or '-'} |")
+                     + f" | {' / '.join(epochs)} | {' / '.join(walls)} |")
     first = next(iter(results.values()), None)
     head = ""
     if first is not None:
