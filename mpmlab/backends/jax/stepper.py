@@ -22,6 +22,25 @@ from ...core.stepper import BaseStepper
 DTYPES = {"fp32": jnp.float32, "fp64": jnp.float64}
 
 
+@jax.custom_jvp
+def per_mass(q, m):
+    """q / m for grid momentum (or force) q [G, K] and node mass m [G, 1] > 0.
+
+    Its derivative is written with the quotient itself, d(q/m) = (dq - (q/m) dm) / m, instead of JAX's
+    -q dm / m^2: at free-surface nodes reached only by a stencil's far tail, m can be ~1e-20 in fp32, and
+    m^2 underflows to 0 (XLA CPU flushes subnormals), turning the reverse pass into inf/NaN (seen once
+    each in two 200-epoch MLP fits, JAX-MPM Sec. 5.2) while the forward value is fine."""
+    return q / m
+
+
+@per_mass.defjvp
+def _per_mass_jvp(primals, tangents):
+    q, m = primals
+    dq, dm = tangents
+    v = q / m
+    return v, (dq - v * dm) / m
+
+
 def bspline_weights(fx):
     """Quadratic B-spline weights and derivatives (in cell units) for fx = x/dx - base in [0.5, 1.5)."""
     w = jnp.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2], axis=1)  # [N, 3, D]
@@ -218,10 +237,10 @@ class JaxStepper(BaseStepper):
         # grid update (JAX-MPM Eqs. 13-14) -------------------------------------------------------------------
         has_mass = grid_m > 0
         safe_m = jnp.where(has_mass, grid_m, 1.0)[:, None]
-        v_old = jnp.where(has_mass[:, None], grid_mv / safe_m, 0.0)
+        v_old = jnp.where(has_mass[:, None], per_mass(grid_mv, safe_m), 0.0)
         acc = params["gravity"]
         if split:
-            acc = grid[:, D + 1:] / safe_m + acc
+            acc = per_mass(grid[:, D + 1:], safe_m) + acc
         v_new = jnp.where(has_mass[:, None], v_old + dt * acc, 0.0)
         for bc, bp in zip(self._grid_bcs, bc_params[:nb]):
             v_new = bc.apply(v_new, self._node_x, grid_m, state["t"], bp)

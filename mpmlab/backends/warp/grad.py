@@ -160,6 +160,19 @@ def grid_kernel(dim: int, precision: str, split_force: bool):
 
     walls = K.wall_func(dim, precision)
 
+    @wp.func
+    def per_mass(q: vec, m: scalar):
+        return q / m
+
+    @wp.func_grad(per_mass)
+    def adj_per_mass(q: vec, m: scalar, adj_ret: vec):
+        # d(q/m) = (dq - (q/m) dm) / m, not Warp's -q dm / m^2: m^2 underflows at free-surface nodes
+        # reached only by a stencil's far tail (m ~ 1e-20 in fp32) and would give inf/NaN (same as JAX's
+        # ``per_mass`` in backends/jax/stepper.py)
+        v = q / m
+        wp.adjoint[q] += adj_ret / m
+        wp.adjoint[m] -= wp.dot(v, adj_ret) / m
+
     @wp.kernel(module="unique")
     def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), gravity: wp.array(dtype=vec),
                     dt: scalar, shape: ivec, strides: ivec, wall_kind: wp.array(dtype=int), thickness: int,
@@ -172,10 +185,10 @@ def grid_kernel(dim: int, precision: str, split_force: bool):
             mv = vec()
             for d in range(dim):
                 mv[d] = acc[d]
-            vo = mv / m
+            vo = per_mass(mv, m)
             if wp.static(split_force):
                 grid_v_old[i] = vo
-                vn = vo + dt * (grid_f[i] / m + gravity[0])
+                vn = vo + dt * (per_mass(grid_f[i], m) + gravity[0])
             else:
                 vn = vo + dt * gravity[0]
             I = ivec()
