@@ -192,7 +192,7 @@ def table(results: dict, backends: list[str], resolution: str) -> str:
     head = ""
     if first is not None:
         head = (f"Resolution `{resolution}`; epochs and fit time per backend ({' / '.join(backends)}) on "
-                f"{os.cpu_count()} CPU cores with two fits running at a time (each slows the other).\n\n")
+                f"{os.cpu_count()} CPU cores shared by two to four processes (fits and tests), so times are upper bounds.\n\n")
     return head + "\n".join(lines) + "\n"
 
 
