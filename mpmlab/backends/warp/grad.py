@@ -4,7 +4,8 @@ The fast stepper (``stepper.py``) sorts particles, splits P2G over private grid 
 grid it reads, all in place; a ``wp.Tape`` cannot replay that. This module is the separate
 gradient-correct path (Genesis-style forward-fast / gradient-correct split): particles in scene order,
 a separate grid and particle state per step of a segment (buffers allocated once and reused, never
-overwritten while a tape still needs them), boundaries writing separate output arrays, atomic P2G. G2P (fused with each law's update) and the initial stress reuse the fast path's kernels, which
+overwritten while a tape still needs them), boundaries writing separate output arrays, atomic P2G.
+G2P (fused with each law's update) and the initial stress reuse the fast path's kernels, which
 already write only fresh outputs; the laws' spectral maps carry hand-written adjoints
 (``linalg.spectral_func``) so the derivative is finite at repeated singular values.
 
@@ -495,9 +496,10 @@ class GradPath:
         self.__dict__.pop("_grad_pool", None)
 
     def buffer_arrays(self, buf):
-        b = buf
-        out = [b.grid_mm, b.grid_f, b.grid_v, b.grid_v_old, b.ext, *b.bc_out, *(a for xv in b.pv for a in xv)]
-        out += [a for _, a, _ in self.state_arrays(b.state)]
+        """The arrays of ``buf`` that carry gradients."""
+        out = [buf.grid_mm, buf.grid_f, buf.grid_v, buf.grid_v_old, buf.ext, *buf.bc_out,
+               *(a for xv in buf.pv for a in xv)]
+        out += [a for _, a, _ in self.state_arrays(buf.state)]
         return [a for a in out if a.requires_grad]
 
     def zero_grads(self, buf):
