@@ -177,6 +177,14 @@ class Fit:
         self.history.append(entry)
         return entry
 
+    def _epoch_done(self, bar, loss, on_epoch):
+        """Count the epoch, show it on the progress bar and report it to ``on_epoch``."""
+        self.epoch += 1
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.3e}")
+        if on_epoch is not None:
+            on_epoch(self.epoch - 1, loss, self.history[-1]["values"])
+
     def _diverged(self, epoch, loss, why: str = ""):
         last = self.history[-1]["values"] if self.history else {}
         return FitDiverged(f"fit diverged at epoch {epoch}: {why or 'the loss is ' + str(loss)} (parameters of the "
@@ -216,11 +224,7 @@ class Fit:
                 self._record(self.epoch, val, raw, gn, time.perf_counter() - t0)
                 updates, state = opt.update(g, state, raw)
                 raw = optax.apply_updates(raw, updates)
-                self.epoch += 1
-                bar.update(1)
-                bar.set_postfix(loss=f"{val:.3e}")
-                if on_epoch is not None:
-                    on_epoch(self.epoch - 1, val, self.history[-1]["values"])
+                self._epoch_done(bar, val, on_epoch)
                 if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
                     _atomic_pickle(checkpoint, {"epoch": self.epoch, "history": self.history,
                                                 "raw": jax.device_get(raw), "opt_state": jax.device_get(state)})
@@ -288,11 +292,7 @@ class Fit:
                 opt.step()
                 if sched is not None:
                     sched.step()
-                self.epoch += 1
-                bar.update(1)
-                bar.set_postfix(loss=f"{v:.3e}")
-                if on_epoch is not None:
-                    on_epoch(self.epoch - 1, v, self.history[-1]["values"])
+                self._epoch_done(bar, v, on_epoch)
                 if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
                     state = {p.name: (raw[p.name].state_dict() if isinstance(raw[p.name], torch.nn.Module)
                                       else raw[p.name].detach().clone()) for p in self.parameters}
