@@ -295,7 +295,7 @@ def friction_landscape(backend: str, resolution: str, particles: int) -> dict:
         val = float(val[0] if isinstance(val, tuple) else val)
         rows.append({"point": name, "mu": mu, "loss": val})
     # the front in the truth run, from the fit's own reference observations of every particle
-    from mpmlab.observations import Lagrangian, ObservationSchedule
+    from mpmlab.observations import Lagrangian
 
     every = int(cfg.steps) // 20
     steps = np.arange(every, int(cfg.steps) + 1, every)

@@ -2,7 +2,6 @@
 the reverse pass must stay finite on both backends. The textbook adjoint -q / m^2 underflows m^2 to 0 and
 gave -inf there (a NaN gradient once each in two 200-epoch JAX fits of JAX-MPM Sec. 5.2)."""
 import numpy as np
-import pytest
 
 Q = np.array([[2e-25, 1e-25], [4.0, 2.0]], np.float32)   # momentum per node
 M = np.array([1e-25, 2.0], np.float32)                     # node mass

@@ -509,7 +509,7 @@ class GradPath:
     def step(self, s, ctl, t: float, grad: bool, buf=None):
         """One step from state s at time t into a fresh state (or into ``buf``, from
         :meth:`alloc_buffers`, which must not hold s); every launch lands on the active tape."""
-        st, T, dev, N, G = self.st, self.T, self.dev, self.N, self.G
+        st, dev, N, G = self.st, self.dev, self.N, self.G
         if buf is None:
             buf = self.alloc_buffers(grad)
         else:                               # atomically accumulated or partly written: clear
