@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..core.errors import MpmlabError, SimulationDiverged
+from ..core.errors import ConfigError, MpmlabError, SimulationDiverged
 from ..observations import ObservationSchedule
 from .parameters import FitParameter, ops_for
 
@@ -51,6 +51,7 @@ class Fit:
         self.reference = reference
         self.history: list[dict[str, Any]] = []
         self.epoch = 0
+        self.lm_stop: str | None = None     # why a Levenberg-Marquardt fit stopped early
 
     # ---- reference data --------------------------------------------------------------------------
     def truth_controls(self):
@@ -158,6 +159,11 @@ class Fit:
         final trainable values. ``on_epoch(epoch, loss, values)`` runs after every epoch."""
         if self.reference is None:
             self.make_reference()
+        from .lm import LevenbergMarquardt
+
+        if isinstance(optimizer_cfg, LevenbergMarquardt):
+            return self._run_lm(epochs, optimizer_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
+                                tolerance)
         runner = self._run_jax if self.backend == "jax" else self._run_torch
         return runner(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
                       tolerance)
@@ -245,6 +251,133 @@ class Fit:
         pred = self.stepper.observe(c, self.observation, self.steps, self.segment)
         ct = jax.grad(self.data_loss())(pred)
         JD.locate_nan_gradient(self.stepper, c, self.observation, self.steps, ct, self.segment)
+
+    # ---- Levenberg-Marquardt (mpmlab.inverse.lm): a few scalar / array parameters ----------------------------
+    def _flat_layout(self, lm) -> list[tuple[str, tuple[int, ...], slice]]:
+        layout, start = [], 0
+        for p in self.parameters:
+            if p.form == "mlp":
+                raise ConfigError(f"{p.where()}: LevenbergMarquardt fits scalar and array parameters only (this one "
+                                  f"is an MLP field); use a gradient optimiser such as optax.adam / torch.optim.Adam.")
+            shape = tuple(np.shape(self.ops.numpy(self.init_raw()[p.name])))
+            n = int(np.prod(shape)) if shape else 1
+            layout.append((p.name, shape, slice(start, start + n)))
+            start += n
+        if start > lm.max_parameters:
+            raise ConfigError(f"task.optimizer: LevenbergMarquardt with {start} parameters exceeds max_parameters = "
+                              f"{lm.max_parameters} (the Jacobian costs ~one rollout per parameter); use a gradient "
+                              f"optimiser, or raise max_parameters.")
+        return layout
+
+    def _residual_functions(self, lm, unflatten):
+        """(residual(x) -> r or None when the rollout diverged, jacobian(x) -> (r, J)) on NumPy float64 vectors,
+        scaled so that r.r is the data loss."""
+        mask = self._mask()
+        scale = 1.0 / np.sqrt(float(mask.sum() * np.shape(self.reference)[2]))
+        obs, steps, seg = self.observation, self.steps, self.segment
+        kind = lm.jacobian_kind(self.backend)
+        if self.backend == "jax":
+            import jax
+
+            from ..backends.jax import differentiable as JD
+
+            ref, m = self.ops.asarray(self.reference), self.ops.asarray(mask)[..., None]
+
+            def resid(x):
+                pred, bad = JD.observe(self.stepper, self.controls_of(unflatten(x)), obs, steps, seg, health=True)
+                return ((pred - ref) * m).ravel() * scale, bad
+
+            f = jax.jit(resid)
+
+            def residual(x):
+                r, bad = f(self.ops.asarray(x))
+                r = np.asarray(r, np.float64)
+                return None if bool(bad) or not np.all(np.isfinite(r)) else r
+
+            if kind == "forward":
+                def with_aux(x):
+                    r, bad = resid(x)
+                    return r, (r, bad)
+                jf = jax.jit(jax.jacfwd(with_aux, has_aux=True))
+
+                def jacobian(x):
+                    J, (r, bad) = jf(self.ops.asarray(x))
+                    return np.asarray(r, np.float64), np.asarray(J, np.float64), bool(bad)
+                return residual, jacobian
+        else:
+            import torch
+
+            ref = np.asarray(self.reference, np.float64)
+
+            def residual(x):
+                try:
+                    with torch.no_grad():
+                        raw = {k: self.ops.asarray(a) for k, a in unflatten(x).items()}
+                        pred = self.stepper.observe(self.controls_of(raw), obs, steps, seg)
+                except SimulationDiverged:
+                    return None
+                r = ((self.ops.numpy(pred).astype(np.float64) - ref) * mask[..., None]).ravel() * scale
+                return r if np.all(np.isfinite(r)) else None
+
+        def jacobian(x):
+            r = residual(x)
+            return r, (lm.central_jacobian(residual, x) if r is not None else None), r is None
+        return residual, jacobian
+
+    def _run_lm(self, epochs, lm, checkpoint, every, resume, progress, on_epoch, tol):
+        layout = self._flat_layout(lm)
+        init = self.init_raw()
+        x = np.concatenate([np.ravel(self.ops.numpy(init[name])) for name, _, _ in layout]).astype(np.float64)
+
+        def unflatten(v):
+            return {name: v[sl].reshape(shape) for name, shape, sl in layout}
+
+        def to_raw(v):
+            return {k: self.ops.asarray(np.asarray(a)) for k, a in unflatten(np.asarray(v, np.float64)).items()}
+
+        residual, jacobian = self._residual_functions(lm, unflatten)
+        damping = float(lm.damping)
+        if checkpoint is not None and resume and checkpoint.exists():
+            with open(checkpoint, "rb") as fh:
+                ck = pickle.load(fh)
+            if not isinstance(ck, dict) or ck.get("optimizer") != "levenberg_marquardt":
+                raise ConfigError(f"{checkpoint} was written by another optimiser; delete it or set task.resume=false.")
+            x, damping = np.asarray(ck["x"], np.float64), float(ck["damping"])
+            self.epoch, self.history = ck["epoch"], ck["history"]
+        self.lm_stop = None
+        bar = self._bar(epochs, progress)
+        t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)
+        try:
+            while self.epoch < epochs:
+                r, J, bad = jacobian(x)
+                if bad or r is None:
+                    raise self._diverged(self.epoch, float("nan"), "the rollout diverged at the current parameters")
+                val = float(r @ r)
+                if not np.isfinite(val) or not np.all(np.isfinite(J)):
+                    raise self._diverged(self.epoch, val, "non-finite residuals or Jacobian")
+                self._record(self.epoch, val, to_raw(x), float(np.linalg.norm(2 * J.T @ r)), time.perf_counter() - t0)
+                self.history[-1]["damping"] = damping
+                for _ in range(int(lm.max_tries)):
+                    trial = x + lm.propose(r, J, damping)
+                    rt = residual(trial)
+                    if rt is not None and float(rt @ rt) < val:
+                        x, damping = trial, max(damping / lm.decrease, lm.min_damping)
+                        break
+                    damping *= lm.increase
+                else:
+                    self.lm_stop = (f"no damped Gauss-Newton step lowers the loss after {lm.max_tries} tries "
+                                    f"(lambda = {damping:.3g}): converged")
+                self._epoch_done(bar, val, on_epoch)
+                if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs or self.lm_stop):
+                    _atomic_pickle(checkpoint, {"optimizer": "levenberg_marquardt", "epoch": self.epoch,
+                                                "history": self.history, "x": x, "damping": damping})
+                if self.lm_stop or val <= tol:
+                    break
+        finally:
+            bar.close()
+        r = residual(x)
+        self.final_loss = float(r @ r) if r is not None else float("nan")
+        return to_raw(x)
 
     def _run_torch(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol):
         import torch

@@ -114,6 +114,24 @@ def run(cfg, ctx) -> dict:
     opt_node = tc.optimizer.get(backend) if tc.optimizer is not None else None
     if opt_node is None:
         raise ConfigError(f"task.optimizer has no entry for backend '{backend}'; add task.optimizer.{backend}._target_.")
+    sched_node = tc.lr_schedule.get(backend) if tc.lr_schedule is not None else None
+    lm_class = _levenberg_marquardt_class(opt_node)
+    if lm_class is not None:                # no learning rate: the schedule does not apply
+        options = {k: v for k, v in _plain(opt_node).items() if k != "_target_"}
+        try:
+            optimizer, sched = lm_class(**options), None
+        except TypeError as exc:
+            raise ConfigError(f"task.optimizer.{backend}: {exc}; the options are those of "
+                              f"mpmlab.inverse.lm.LevenbergMarquardt.") from None
+    elif backend == "jax":   # optax: the schedule is the optimiser's learning rate
+        kw = {"learning_rate": instantiate(sched_node)} if sched_node is not None else \
+            ({} if "learning_rate" in opt_node else {"learning_rate": float(tc.learning_rate)})
+        optimizer = instantiate(opt_node, **kw)
+        sched = None
+    else:                  # torch.optim: the scheduler wraps the optimiser
+        kw = {} if "lr" in opt_node else {"lr": float(tc.learning_rate)}
+        optimizer = (lambda prm: instantiate(opt_node, prm, **kw))
+        sched = (lambda opt: instantiate(sched_node, opt)) if sched_node is not None else None
     ckpt = out / ("fit_checkpoint.pkl" if backend == "jax" else "fit_checkpoint.pt")
     if (out / SUMMARY).exists() and not ctx.overwrite and not (tc.resume and ckpt.exists()):
         raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
@@ -131,17 +149,6 @@ def run(cfg, ctx) -> dict:
     log.info("inverse: %s on %s/%s/%s, %d particles, %d steps, %d observation frames x %d indices, fitting %s",
              scene.name, backend, transfer.name, precision, stepper.particles.count, steps, ref.shape[0], ref.shape[1],
              ", ".join(p.name for p in params))
-
-    sched_node = tc.lr_schedule.get(backend) if tc.lr_schedule is not None else None
-    if backend == "jax":   # optax: the schedule is the optimiser's learning rate
-        kw = {"learning_rate": instantiate(sched_node)} if sched_node is not None else \
-            ({} if "learning_rate" in opt_node else {"learning_rate": float(tc.learning_rate)})
-        optimizer = instantiate(opt_node, **kw)
-        sched = None
-    else:                  # torch.optim: the scheduler wraps the optimiser
-        kw = {} if "lr" in opt_node else {"lr": float(tc.learning_rate)}
-        optimizer = (lambda prm: instantiate(opt_node, prm, **kw))
-        sched = (lambda opt: instantiate(sched_node, opt)) if sched_node is not None else None
 
     rec = _Recorder(out / RECORDING, f"inverse-{scene.name}-{out.name}") if cfg.output.recording else None
     try:
@@ -163,6 +170,8 @@ def run(cfg, ctx) -> dict:
         "relative_error": {k: v.get("relative_error") for k, v in report.items()},
         "parameters": report,
         "profiles": fit.profiles(raw),
+        "optimizer": str(opt_node.get("_target_")),
+        "stopped": fit.lm_stop,
         "epochs": int(fit.epoch),
         "final_loss": float(fit.final_loss),
         "initial_loss": float(fit.history[0]["loss"]) if fit.history else None,
@@ -180,6 +189,20 @@ def run(cfg, ctx) -> dict:
     print(f"mpmlab: inverse {scene.name} {backend}: {fit.epoch} epochs in {summary['wall_time_s']:.1f} s, "
           f"loss {summary['initial_loss']:.3e} -> {summary['final_loss']:.3e}; relative error: {errs} -> {out}", flush=True)
     return summary
+
+
+def _levenberg_marquardt_class(opt_node):
+    """The optimiser's class when it is mpmlab's LevenbergMarquardt (or a subclass), else None."""
+    from hydra.utils import get_class
+
+    from ..inverse.lm import LevenbergMarquardt
+
+    target = opt_node.get("_target_") if hasattr(opt_node, "get") else None
+    try:
+        cls = get_class(str(target)) if target else None
+    except Exception:       # not a class (e.g. optax.adam is a function): instantiate() reports real mistakes
+        return None
+    return cls if isinstance(cls, type) and issubclass(cls, LevenbergMarquardt) else None
 
 
 def scene_boundary_names(cfg):
