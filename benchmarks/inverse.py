@@ -324,7 +324,7 @@ def landscape_section() -> str:
     front = ", ".join(f"{f['t']:.2f} s: {f['x_front']:.2f} m" for f in r["front"][4::5])
     mu3_max = max(x["loss"] for x in r["points"] if x["point"].startswith("mu_3"))
     mu0_01 = next(x["loss"] for x in r["points"] if x["point"] == "mu_0 = 0.1")
-    return (f"\n## Why Sec. 5.3 is hard here (`python benchmarks/inverse.py --friction-landscape {r['backend']}`)\n\n"
+    return (f"\n## Sec. 5.3: the loss landscape, and why the optimiser matters (`python benchmarks/inverse.py --friction-landscape {r['backend']}`)\n\n"
             f"The fit's loss ({r['particles']} observed particles, {r['resolution']} resolution, {r['backend']}) at coefficient "
             f"vectors that differ from the truth [0, 0.5, 0.1, 0.2] in one segment, forward runs only:\n\n"
             f"| point | loss |\n|---|---|\n{rows}\n\n"

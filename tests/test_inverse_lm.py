@@ -63,7 +63,7 @@ def test_lm_jacobians_of_the_backends_agree():
     assert np.linalg.norm(Jj - Jw) <= 1e-5 * np.linalg.norm(Jj), np.linalg.norm(Jj - Jw) / np.linalg.norm(Jj)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", ("warp",))   # the LM loop and its checkpoint are backend-independent
 def test_lm_resume_continues_exactly(backend, tmp_path):
     ck = tmp_path / "ck.pkl"
     full = slide_fit(backend)
