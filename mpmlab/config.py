@@ -192,6 +192,8 @@ class SceneConfig:
     cfl: float = 0.3
     #: largest CFL number accepted for a fixed dt
     cfl_limit: float = 0.5
+    #: with dt auto: recompute dt from the current max particle speed every this many steps (0: once)
+    dt_every: int = 10
     #: default rollout length and frame spacing of the scene (top-level ``steps`` / ``frame_every``)
     steps: int = 1000
     frame_every: int = 10
@@ -224,6 +226,26 @@ class ReplayTaskConfig(TaskConfig):
     """Turn an ``mpmlab.trajectory`` HDF5 file (top-level ``input``) into a recording."""
 
     name: str = "replay"
+
+
+@dataclass
+class BenchTaskConfig(TaskConfig):
+    """One run-time-versus-error point (``mpmlab.tasks.bench``; ``benchmarks/pareto.py``). The backend,
+    transfer and precision are the top-level groups."""
+
+    name: str = "bench"
+    #: bar | ritter | hydrostatic | mms | mms_slip
+    scene: str = "mms"
+    #: cells (bar: along L; mms: per unit length) or dx in metres (ritter, hydrostatic)
+    resolution: Optional[float] = None
+    #: time-step factor dt = cfl dx / c (None: the scene's default)
+    cfl: Optional[float] = None
+    #: k: k^dim particles per cell (None: the scene's default)
+    particles_per_axis: Optional[int] = None
+    #: steady-state timing repeats (best of)
+    repeats: int = 1
+    #: JSON list that each job appends its record to (absolute path; empty: summary.json only)
+    out: str = ""
 
 
 @dataclass
@@ -365,6 +387,7 @@ def register_configs() -> None:
     register_task_schema("simulate", SimulateTaskConfig)
     register_task_schema("replay", ReplayTaskConfig)
     register_task_schema("inverse", InverseTaskConfig)
+    register_task_schema("bench", BenchTaskConfig)
     _REGISTERED = True
 
 
@@ -556,7 +579,7 @@ def build_scene(cfg: DictConfig, validate: bool = True):
         scene = Scene(
             dim=int(sc.dim), dx=float(sc.dx), domain=([a - pad for a in lo], [b + pad for b in hi]), bodies=bodies,
             gravity=_plain(sc.gravity), boundaries=boundaries, dt=dt, cfl=float(sc.cfl),
-            cfl_limit=float(sc.cfl_limit), name=sc.name, seed=seed,
+            cfl_limit=float(sc.cfl_limit), name=sc.name, seed=seed, dt_every=int(sc.dt_every),
         )
     if validate:
         scene.particles()

@@ -50,6 +50,11 @@ def scene_for(kind, dim):
                             force=[20.0, 5.0] + [0.0] * (dim - 2), t_start=0.01, t_end=0.04)]
         g = None
         bodies = [block(dim, [0.3, 0.3] + zlo, [0.5, 0.4] + zhi)]
+    elif kind == "body_force":   # a manufactured-solution force b(X, t) on one of two bodies, in a time window
+        from mpmlab.boundaries.body_force import BodyForce
+        bcs = [walls, BodyForce(field="mms_axis_aligned", bodies=[1], t_start=0.005, t_end=0.05,
+                                values={"A": 0.002, "c": 20.0, "E": 5e4, "density": 1000.0, "law": "hencky"})]
+        bodies = [block(dim, [0.1, 0.1] + zlo, [0.3, 0.3] + zhi), block(dim, [0.5, 0.1] + zlo, [0.7, 0.3] + zhi)]
     else:
         raise ValueError(kind)
     return mpmlab.Scene(dim=dim, dx=0.05, domain=([0.0] * dim, [1.0] * dim), bodies=bodies, gravity=g,
@@ -57,7 +62,7 @@ def scene_for(kind, dim):
 
 
 KINDS = ("walls", "friction_walls", "friction_walls_per_node", "plane", "box_obstacle", "particle_velocity",
-         "particle_load")
+         "particle_load", "body_force")
 
 
 def test_every_registered_boundary_is_covered():

@@ -23,7 +23,9 @@ def test_dt_above_cfl_is_refused():
 def test_dt_auto_uses_safety_factor():
     scene = cube(dt="auto")
     dt = scene.resolve_dt()
-    assert np.isclose(scene.cfl_number(dt), scene.cfl)
+    # dt (c_p + |v| + |g| n dt) = C dx: the speed gravity adds before the next update (n = dt_every) counts
+    assert np.isclose(scene.cfl_number(dt, speed=9.8 * scene.dt_every * dt), scene.cfl)
+    assert scene.cfl_number(dt) < scene.cfl
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

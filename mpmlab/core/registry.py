@@ -127,6 +127,7 @@ def _register_builtins() -> None:
                       ("box_obstacle", "BoxObstacle"), ("particle_velocity", "ParticleVelocity"),
                       ("particle_load", "ParticleLoad")):
         boundaries.register(name, f"mpmlab.boundaries:{cls}")
+    boundaries.register("body_force", "mpmlab.boundaries.body_force:BodyForce")
     observations.register("lagrangian", "mpmlab.observations:Lagrangian")
     observations.register("eulerian", "mpmlab.observations:Eulerian")
 

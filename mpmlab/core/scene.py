@@ -6,6 +6,7 @@ present and launches each law's kernel on its own block -- no per-particle switc
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Mapping, Sequence
@@ -96,6 +97,9 @@ class Scene:
         cfl: safety factor C used by ``dt: auto``: dt = C dx / (c_p + |v|_max).
         cfl_limit: largest accepted C for a fixed dt; above it the scene is refused.
         substeps: time steps per output frame.
+        dt_every: with ``dt: auto``, recompute dt from the current max particle speed every this many
+            steps of a rollout (0: compute it once from the initial velocities). Gradient rollouts
+            (``observe``) always keep the initial dt.
     """
 
     dim: int
@@ -105,13 +109,20 @@ class Scene:
     gravity: Sequence[float] | None = None
     boundaries: list[Any] = field(default_factory=list)
     dt: Any = "auto"
+    # Safety factor rule: cfl = min(0.3, C*_min / 2), C*_min = the smallest measured stable CFL factor
+    # over transfers x laws x {vibrating bar, falling cube} on both backends (benchmarks/stress.md:
+    # C*_min ~ 0.89, PIC/FLIP on the bar), so 0.3 keeps a margin of ~3 below the measured blow-up.
     cfl: float = 0.3
     cfl_limit: float = 0.5
     substeps: int = 1
     name: str = "scene"
     seed: int = 0
+    dt_every: int = 10
 
     def __post_init__(self):
+        if not (isinstance(self.dt_every, (int, np.integer)) and self.dt_every >= 0):
+            raise ConfigError(f"scene '{self.name}': dt_every = {self.dt_every!r} must be an integer >= 0 "
+                              f"(steps between dt: auto updates; 0 = once at the start).")
         if self.dim not in (2, 3):
             raise ConfigError(f"scene '{self.name}': dim = {self.dim}; mpmlab supports 2 or 3.")
         if not self.dx > 0:
@@ -227,6 +238,25 @@ class Scene:
             speed = float(np.max(np.linalg.norm(self.particles().v, axis=1), initial=0.0))
         return dt * (self.wave_speed() + speed) / self.dx
 
+    @property
+    def adaptive_dt(self) -> bool:
+        """True when ``dt: auto`` is recomputed during rollouts (``dt_every`` > 0)."""
+        return isinstance(self.dt, str) and self.dt == "auto" and self.dt_every > 0
+
+    def auto_dt(self, speed: float) -> float:
+        """The ``dt: auto`` step for a max particle speed [m/s]: the largest dt with
+        dt (c_p + speed + |g| n dt) <= cfl dx, n = max(dt_every, 1) -- the CFL bound of verification
+        note #7 counting the speed gravity can add before the next update (without it a soft body
+        falls several cells per step: c_p -> 0 gives dt -> inf). With g = 0: cfl dx / (c_p + speed)."""
+        a = self.wave_speed_cached + speed
+        gn = float(np.linalg.norm(self.gravity)) * max(int(self.dt_every), 1)
+        Cdx = self.cfl * self.dx
+        return 2.0 * Cdx / (a + math.sqrt(a * a + 4.0 * gn * Cdx))   # root of gn dt^2 + a dt - C dx = 0
+
+    @cached_property
+    def wave_speed_cached(self) -> float:
+        return self.wave_speed()
+
     def resolve_dt(self) -> float:
         """The time step to use: ``dt: auto`` -> C dx/(c+|v|); a fixed dt above ``cfl_limit`` is refused."""
         speed = float(np.max(np.linalg.norm(self.particles().v, axis=1), initial=0.0))
@@ -234,7 +264,7 @@ class Scene:
         if self.dt == "auto":
             if c == 0:
                 raise TimeStepError(f"scene '{self.name}': dt 'auto' needs a nonzero wave speed; set dt explicitly.")
-            return self.cfl * self.dx / c
+            return self.auto_dt(speed)
         try:
             dt = float(self.dt)
         except (TypeError, ValueError):

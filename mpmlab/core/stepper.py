@@ -43,6 +43,7 @@ class BaseStepper(AbstractStepper):
         self.precision = precision
         self.dim = scene.dim
         self.dt = scene.resolve_dt()
+        self._dt0 = self.dt            # build-time dt: fixed-dt runs and gradient rollouts (observe) use it
         self.particles = scene.particles()
         self.groups = self.particles.groups
         self.check_every = check_every
@@ -60,14 +61,39 @@ class BaseStepper(AbstractStepper):
     def step(self, state):
         return self._advance(state, 1)
 
+    # ---- dt: auto recomputed during a rollout (issue #5 item 4) ---------------------------------
+    def _max_speed(self, state) -> float:
+        """Largest particle speed |v| of ``state`` [m/s] (a device reduction where a backend has one)."""
+        v = self.to_numpy(state)["v"]
+        return float(np.max(np.linalg.norm(v, axis=1), initial=0.0))
+
+    def _observe_dt_note(self) -> None:
+        """Gradient rollouts (``observe``) step with the build-time dt; say so once when the scene asks
+        for an adaptive dt: auto (a dt that follows max |v| is piecewise constant in the controls and
+        would make the step count per unit time depend on them)."""
+        if self.scene.adaptive_dt and not getattr(self, "_observe_dt_noted", False):
+            import warnings
+
+            self._observe_dt_noted = True
+            warnings.warn(
+                f"scene '{self.scene.name}': observe() keeps the initial dt: auto step dt = {self._dt0:.4g} s for "
+                f"every step (scene.dt_every = {self.scene.dt_every} applies to rollout() only); set a fixed "
+                f"dt to silence this.", UserWarning, stacklevel=3)
+
+    def _set_dt(self, dt: float | None) -> None:
+        """Use ``dt`` for the following steps (None: back to the build-time dt). Backends that bake dt
+        into compiled code override this to pass it as a runtime value instead."""
+        self.dt = self._dt0 if dt is None else float(dt)
+
     # ---- shared logic ----------------------------------------------------------------------
     def meta(self) -> dict[str, Any]:
         s = self.scene
         return {
-            "dim": s.dim, "dt": self.dt, "dx": s.dx, "grid_origin": s.origin.tolist(), "grid_shape": list(s.grid_shape),
+            "dim": s.dim, "dt": getattr(self, "_dt0", self.dt), "dx": s.dx, "grid_origin": s.origin.tolist(), "grid_shape": list(s.grid_shape),
             "gravity": s.gravity.tolist(), "backend": self.backend_name, "transfer": self.transfer.name,
             "transfer_options": self.transfer.options(), "precision": self.precision, "scene": s.name,
             "laws": [g.law.name for g in self.groups],
+            **({"dt_auto_every": int(s.dt_every), "cfl": float(s.cfl)} if s.adaptive_dt else {}),
         }
 
     def locate_failure(self, npstate: dict[str, np.ndarray]) -> tuple[int, str, Any] | None:
@@ -130,6 +156,11 @@ class BaseStepper(AbstractStepper):
 
         ``every`` defaults to the scene's ``substeps`` (time steps per output frame).
 
+        With ``dt: auto`` and ``scene.dt_every`` > 0 the time step is recomputed every ``dt_every``
+        steps (and at the start) as ``cfl dx / (c_p + max |v|)`` of the current state; the kept
+        frames' times (``Trajectory.t``) are the sums of the steps actually taken. Otherwise every
+        step uses the build-time ``dt``.
+
         Args:
             state: start state (default ``init()``).
             fields: extra per-particle fields to keep per frame (``F``, ``C``, ``J``, ``sigma``, ``eps_p``).
@@ -143,17 +174,24 @@ class BaseStepper(AbstractStepper):
 
         state = self.init() if state is None else state
         check = self.check_every or every
+        adaptive = self.scene.adaptive_dt
+        dt_every = self.scene.dt_every if adaptive else steps + 1
         frames: list[dict[str, np.ndarray]] = []
         step_ids: list[int] = []
+        times: list[float] | None = [] if adaptive else None
+        t_now = 0.0                      # simulated time (float64 sum of the steps taken; adaptive dt)
 
         def keep(npstate, step_id):
             frames.append({k: npstate[k] for k in ("x", "v", *fields) if k in npstate})
             step_ids.append(step_id)
+            if times is not None:
+                times.append(t_now)
+                npstate["time"], npstate["step"] = t_now, step_id   # for on_frame consumers (TrajectoryWriter)
             if on_frame is not None:
                 on_frame(len(frames) - 1, npstate)
 
         def partial():
-            return self._trajectory(frames, step_ids, fields)
+            return self._trajectory(frames, step_ids, fields, times)
 
         npstate = self.to_numpy(state)
         bad = self.locate_failure(npstate)
@@ -166,10 +204,15 @@ class BaseStepper(AbstractStepper):
         t_first = None
         try:
             while done < steps:
-                # chunk boundary: next kept frame or next guard check, whichever comes first
+                if adaptive and done % dt_every == 0:
+                    speed = self._max_speed(state)
+                    if np.isfinite(speed):   # a non-finite state is left to the guard to report
+                        self._set_dt(self.scene.auto_dt(speed))
+                # chunk boundary: next kept frame, guard check or dt update, whichever comes first
                 next_frame = (done // every + 1) * every
                 next_check = (done // check + 1) * check
-                n = min(next_frame, next_check, steps) - done
+                next_dt = (done // dt_every + 1) * dt_every
+                n = min(next_frame, next_check, next_dt, steps) - done
                 start_state, start_step = state, done
                 t0 = time.perf_counter()
                 state = self._advance(state, n)
@@ -177,6 +220,7 @@ class BaseStepper(AbstractStepper):
                     self._block(state)
                     t_first = time.perf_counter() - t0
                 done += n
+                t_now += n * self.dt
                 if done % check == 0 or done == steps:
                     if self._is_bad(state):
                         self._diverged(start_state, start_step, n, partial)
@@ -185,12 +229,14 @@ class BaseStepper(AbstractStepper):
                 bar.update(n)
         finally:
             bar.close()
+            if adaptive:
+                self._set_dt(None)       # stepper.dt is the build-time dt again (observe, meta)
         return partial()
 
     def _block(self, state) -> None:
         """Wait for asynchronous work (JAX dispatch); no-op by default."""
 
-    def _trajectory(self, frames, step_ids, fields) -> Trajectory:
+    def _trajectory(self, frames, step_ids, fields, times=None) -> Trajectory:
         P = self.particles
         nparams = max(len(g.law.params) for g in self.groups)
         params = np.full((P.count, nparams), np.nan)
@@ -203,7 +249,8 @@ class BaseStepper(AbstractStepper):
         extra = {k: stack(k) for k in fields if frames and k in frames[0]}
         fp = {k: self._field_particles(k) for k in extra}
         steps = np.asarray(step_ids, dtype=np.int64)
-        return Trajectory(stack("x"), stack("v"), steps * self.dt, steps, P.mass, P.volume, P.material_id,
+        t = steps * self.dt if times is None else np.asarray(times, dtype=np.float64)
+        return Trajectory(stack("x"), stack("v"), t, steps, P.mass, P.volume, P.material_id,
                           P.body_id, materials, params, self.meta(), extra, fp)
 
     def _field_particles(self, name: str) -> np.ndarray:

@@ -422,11 +422,16 @@ class TrajectoryWriter:
         """The rollout ``on_frame`` callback: store the kept frame ``npstate``."""
         if self.every is not None:
             step = int(frame_index) * self.every
+        elif "step" in npstate:                  # adaptive dt: the rollout says which step this is
+            step = int(npstate["step"])
         elif "t" in npstate and np.isfinite(self.dt):
             step = int(round(float(npstate["t"]) / self.dt))
         else:
             step = int(frame_index)
-        time = step * self.dt if np.isfinite(self.dt) else float(npstate.get("t", np.nan))
+        if "time" in npstate:                    # adaptive dt (dt: auto with scene.dt_every): the summed steps
+            time = float(npstate["time"])
+        else:
+            time = step * self.dt if np.isfinite(self.dt) else float(npstate.get("t", np.nan))
         missing = [k for k in self.fields if k not in npstate]
         if missing:
             have = sorted(k for k in npstate if k not in ("x", "v", "t") and not k.endswith("_particles"))

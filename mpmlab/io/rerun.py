@@ -280,12 +280,14 @@ class RecordingWriter:
         """The rollout ``on_frame`` callback."""
         from .metrics import state_metrics
 
-        names = [k for k in npstate if k not in ("x", "v", "t") and not k.endswith("_particles")]
+        # "time"/"step": added by an adaptive-dt rollout (the float64 sum of the steps taken)
+        names = [k for k in npstate if k not in ("x", "v", "t", "time", "step") and not k.endswith("_particles")]
         fields = {k: npstate[k] for k in names}
         fp = {k: npstate[k + "_particles"] for k in names if k + "_particles" in npstate}
         m = state_metrics(self.static, npstate) if self.metrics else None
         m = {k: a[0] for k, a in m.items()} if m else None
-        self.add_frame(frame_index, npstate["x"], npstate["v"], float(npstate.get("t", np.nan)), fields, fp, m)
+        t = float(npstate["time"]) if "time" in npstate else float(npstate.get("t", np.nan))
+        self.add_frame(frame_index, npstate["x"], npstate["v"], t, fields, fp, m)
 
     def add_frame(self, frame_index: int, x, v, time: float, fields: dict | None = None,
                   field_particles: dict | None = None, metrics: dict | None = None, force: bool = False) -> None:

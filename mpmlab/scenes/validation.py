@@ -1,4 +1,4 @@
-"""Validation scenes with analytic references (verification note cases 1a/1c, 3a, 3c).
+"""Validation scenes with analytic references (verification note cases 1a/1c, 2a, 3a, 3c).
 
 Each builder returns a plain :class:`mpmlab.Scene`; the matching ``*_reference`` / ``measure_*``
 functions hold the closed forms and the post-processing used by ``benchmarks/validation.py`` and
@@ -23,6 +23,8 @@ quadratic B-splines need (``>= origin + dx / 2``).
   H0 = 0.1 m, L0 = 1 m, weakly compressible Newtonian fluid with c = 35 m/s, slip walls.
 * :func:`hydrostatic_column` -- CB-Geo's hydrostatic column: w = 0.2, h = 0.1 m, rho = 1800,
   bulk modulus 1e6 Pa, roller (slip) sides, 25 particles per cell.
+* :func:`mms_axis_aligned` -- the axis-aligned manufactured solution (2a) on the unit square/cube,
+  driven by the ``body_force`` boundary; :func:`run_mms` scores the particle displacement against U(X, t).
 """
 from __future__ import annotations
 
@@ -42,7 +44,7 @@ __all__ = [
     "G", "ProfiledScene", "vibrating_bar", "bar_wave_speed", "bar_reference", "measure_period", "ritter_dam_break",
     "ritter_front", "measure_front", "column_depth", "hydrostatic_column", "hydrostatic_base_stress",
     "particle_sigma_yy", "fit_base_stress", "CBGEO_HYDROSTATIC", "run_vibrating_bar", "run_dam_break",
-    "run_hydrostatic_column",
+    "run_hydrostatic_column", "MMS_LAW_NAMES", "mms_axis_aligned", "mms_exact", "mms_errors", "run_mms",
 ]
 
 
@@ -397,7 +399,7 @@ def run_vibrating_bar(backend: str = "jax", transfer: Any = "apic", precision: s
     stepper, traj, timing = _rollout(scene, backend, transfer, precision, steps, every)
     v_com = (traj.v[:, :, 0] * traj.mass).sum(1) / traj.mass.sum()
     m = measure_period(traj.time, v_com)
-    return {"scene": scene, "traj": traj, "time": traj.time, "v_com": v_com, "reference": ref,
+    return {"scene": scene, "traj": traj, "stepper": stepper, "every": every, "time": traj.time, "v_com": v_com, "reference": ref,
             "period": m["period"], "period_error": m["period"] / ref["period"] - 1.0,
             "amplitude_ratio": m["amplitude_ratio"], "cycles": m["cycles"], "dt": stepper.dt, "steps": steps,
             "particles": traj.particle_count, **timing}
@@ -442,7 +444,8 @@ def run_dam_break(backend: str = "jax", transfer: Any = "apic", precision: str =
     err_wave = (x_sim - x_ref) / (2.0 * np.sqrt(g * H0) * traj.time[fr][:, None])
     low = levels <= 0.2 * H0 + 1e-12
     tip = traj.x[:, :, 0].max(axis=1)
-    return {"scene": scene, "traj": traj, "levels": levels, "times": traj.time[fr], "x_sim": x_sim, "x_ref": x_ref,
+    return {"scene": scene, "traj": traj, "stepper": stepper, "every": every, "levels": levels, "times": traj.time[fr],
+            "x_sim": x_sim, "x_ref": x_ref,
             "error": err, "max_abs_error": float(np.nanmax(np.abs(err))),
             "max_abs_error_low": float(np.nanmax(np.abs(err[:, low]))) if low.any() else float("nan"),
             "error_wave": err_wave, "max_abs_error_wave": float(np.nanmax(np.abs(err_wave))), "tip": tip, "dt": stepper.dt,
@@ -514,9 +517,111 @@ def run_hydrostatic_column(backend: str = "jax", transfer: Any = "pic", precisio
     inner = y_avg > 2.0 * scene.dx
     fit_inner = fit_base_stress(y_avg[inner], s_avg[inner])
     v_scale = math.pi * G * height / (4.0 * c)   # velocity amplitude of the undamped fundamental mode
-    return {"scene": scene, "traj": traj, "reference": ref, "base_stress": fit["base_stress"], "slope": fit["slope"],
+    return {"scene": scene, "traj": traj, "stepper": stepper, "every": every, "reference": ref,
+            "base_stress": fit["base_stress"], "slope": fit["slope"],
             "error": fit["base_stress"] / ref - 1.0, "base_stress_inner": fit_inner["base_stress"],
             "error_inner": fit_inner["base_stress"] / ref - 1.0, "y_avg": y_avg, "sigma_avg": s_avg,
             "history_t": traj.time[1:], "history_base": np.asarray(hist), "averaged_frames": acc["n"],
             "residual_speed": float(np.abs(traj.v[-1]).max() / v_scale), "T1": T1, "dt": stepper.dt,
             "steps": steps, "particles": traj.particle_count, "build_s": build, "run_s": run}
+
+
+# ---------------------------------------------------------------------------------------------
+# 2a: axis-aligned manufactured solution (body force)
+# ---------------------------------------------------------------------------------------------
+MMS_LAW_NAMES = {"fixed_corotated": "fixed_corotated", "hencky": "hencky_von_mises"}
+
+
+def mms_axis_aligned(cells: int = 16, dim: int = 2, law: str = "fixed_corotated", E: float = 1.0e4, nu: float = 0.3,
+                     density: float = 1.0, amplitude: float = 0.05, c: float | None = None,
+                     particles_per_axis: int = 2, cfl: float = 0.3, t_end: float = 0.015,
+                     thickness: int = 2, boundary: str = "slip") -> Scene:
+    """Verification note #2a on the unit cube (square in 2D, plane strain): E = 1e4, nu = 0.3, rho0 = 1,
+    A = 0.05, c = sqrt(E / rho0) = 100 (period 2 / c = 0.02 s), driven by the ``body_force`` field
+    ``mms_axis_aligned`` (:mod:`mpmlab.boundaries.body_force`) for ``law`` (``fixed_corotated`` or
+    ``hencky`` = ``hencky_von_mises`` with a yield stress it never reaches).
+
+    Phases 0: U = 0 and F = I at t = 0, initial velocity A pi c sin(pi X_i).
+
+    ``boundary="slip"`` (the note's problem): the exact U_i vanishes on the faces X_i = 0, 1 and the
+    tangential displacement there is free with zero shear stress (F is diagonal), so the faces are slip
+    walls (odd mirror symmetry of U_i). Walls ``thickness`` cells thick put their innermost node on the
+    face (module docstring). With quadratic B-splines this boundary is only first-order-ish: the
+    normal stress at the face is not zero, and the node one cell inside the wall, whose stencil reaches
+    past the face, gets 1/8 of the face traction as an unbalanced force (a mirror image of the body
+    would balance it); the ghost node behind the face is held at v_n = 0 instead of the mirror value.
+    ``boundary="free"`` (needs nu = 0): U_i = A sin(pi (X_i + 1/2)) sin(pi c t), i.e. ``shift`` = 1/2,
+    so F_ii = 1 on every face and, with lambda = 0, the faces are traction free: a free-floating cube
+    with no wall, which measures the interior discretisation error. ``particles_per_axis`` k: k^dim regular
+    particles per cell; dt = t_end / ceil(t_end / (cfl dx / c_p)) so that t_end is reached exactly.
+    """
+    from ..boundaries.body_force import BodyForce, MMSAxisAligned
+
+    if law not in MMS_LAW_NAMES:
+        raise ValueError(f"law {law!r}: use one of {sorted(MMS_LAW_NAMES)}")
+    dx = 1.0 / cells
+    t = thickness
+    if boundary not in ("slip", "free"):
+        raise ValueError(f"boundary {boundary!r}: use 'slip' or 'free'")
+    if boundary == "free" and nu != 0.0:
+        raise ValueError("boundary='free' needs nu = 0 (traction-free faces need lambda = 0)")
+    values = {"A": amplitude, "c": c, "E": E, "nu": nu, "density": density, "law": law,
+              "shift": 0.5 if boundary == "free" else 0.0}
+    params = {"E": E, "nu": nu}
+    if law == "hencky":
+        params["yield_stress"] = 1.0e30
+    body = Body(shape={"kind": "box", "lo": [0.0] * dim, "hi": [1.0] * dim}, material=MMS_LAW_NAMES[law],
+                params=params, density=density, particles_per_cell=particles_per_axis**dim, name="cube")
+    faces = {f"{a}{s}": "slip" for a in "xyz"[:dim] for s in "-+"}
+    bf = BodyForce(field="mms_axis_aligned", values=values)
+    p = bf.packed(dim)
+    mu, lam = MMSAxisAligned.lame(E, nu)
+    c_p = math.sqrt((lam + 2.0 * mu) / density) + amplitude * math.pi * p[1]
+    steps = int(math.ceil(t_end / (cfl * dx / c_p)))
+    if boundary == "slip":
+        lo, hi, bcs = [-(t - 1) * dx] * dim, [1.0 + (t - 1) * dx] * dim, [_walls(dim, faces, t), bf]
+    else:   # room for A pi / 2 ... A motion of the faces (|U| <= A) plus the stencil
+        pad = int(math.ceil(amplitude / dx)) + 2
+        lo, hi, bcs = [-pad * dx] * dim, [1.0 + pad * dx] * dim, [bf]
+    return ProfiledScene(dim=dim, dx=dx, domain=(lo, hi), bodies=[body], gravity=None,
+                         boundaries=bcs, dt=t_end / steps, cfl=cfl, cfl_limit=0.6,
+                         name=f"mms_axis_aligned_{dim}d_{law}_{boundary}_{cells}",
+                         velocity_profile=lambda x: MMSAxisAligned.velocity(x, 0.0, p, dim))
+
+
+def mms_exact(scene: Scene, X: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact displacement U [N, D] and diagonal of F [N, D] of the scene's MMS at reference X, time t."""
+    from ..boundaries.body_force import BodyForce, MMSAxisAligned
+
+    bf = next(b for b in scene.boundaries if isinstance(b, BodyForce))
+    return MMSAxisAligned.exact(np, np.asarray(X, float), float(t), bf.packed(scene.dim), scene.dim)
+
+
+def mms_errors(scene: Scene, X0: np.ndarray, x: np.ndarray, t: float, F: np.ndarray | None = None) -> dict[str, float]:
+    """L2 (particle RMS; equal particle volumes) errors at time t, normalised by the amplitude A:
+    ``position_error`` = |x - X - U(X, t)|_2 / A, and with F the deformation-gradient error
+    ``F_error`` = |F - F_exact|_2 / (A pi) (F_exact diagonal, the strain amplitude is A pi)."""
+    from ..boundaries.body_force import BodyForce
+
+    bf = next(b for b in scene.boundaries if isinstance(b, BodyForce))
+    A = float(bf.packed(scene.dim)[0])
+    U, Fd = mms_exact(scene, X0, t)
+    out = {"position_error": float(np.sqrt(np.mean(np.sum((x - X0 - U) ** 2, axis=1))) / A)}
+    if F is not None:
+        Fe = np.zeros_like(F)
+        for d in range(scene.dim):
+            Fe[:, d, d] = Fd[:, d]
+        out["F_error"] = float(np.sqrt(np.mean(np.sum((F - Fe) ** 2, axis=(1, 2)))) / (A * math.pi))
+    return out
+
+
+def run_mms(backend: str = "jax", transfer: Any = "apic", precision: str = "fp64", t_end: float = 0.015,
+            **scene_kw) -> dict[str, Any]:
+    """Roll the manufactured solution out to ``t_end`` (one frame at the end) and score it (:func:`mms_errors`)."""
+    scene = mms_axis_aligned(t_end=t_end, **scene_kw)
+    dt = scene.resolve_dt()
+    steps = int(round(t_end / dt))
+    stepper, traj, timing = _rollout(scene, backend, transfer, precision, steps, steps, ("F",))
+    err = mms_errors(scene, traj.x[0], traj.x[-1], float(traj.time[-1]), np.asarray(traj.fields["F"][-1]))
+    return {"scene": scene, "traj": traj, "stepper": stepper, "every": steps, "dt": stepper.dt, "steps": steps,
+            "particles": traj.particle_count, **err, **timing}

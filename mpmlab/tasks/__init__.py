@@ -26,6 +26,7 @@ _TASKS: dict[str, Any] = {
     "simulate": "mpmlab.tasks.simulate:run",
     "replay": "mpmlab.tasks.replay:run",
     "inverse": "mpmlab.tasks.inverse:run",
+    "bench": "mpmlab.tasks.bench:run",
 }
 _entry_points_loaded = False
 

@@ -124,8 +124,10 @@ class JaxStepper(BaseStepper):
 
     def observe(self, controls, observation, steps, segment=None):
         """Observations [T, L, d] of the rollout from ``controls`` after each of ``steps``; pure JAX,
-        so ``jax.grad`` of any loss of it reaches every control (checkpointed segments)."""
+        so ``jax.grad`` of any loss of it reaches every control (checkpointed segments). Every step
+        uses the build-time dt (an adaptive ``dt: auto`` is not recomputed here; a warning says so)."""
         from . import differentiable
+        self._observe_dt_note()
         return differentiable.observe(self, controls, observation, steps, segment)
 
     @property
@@ -135,7 +137,7 @@ class JaxStepper(BaseStepper):
         return self._params
 
     # ---- the step ------------------------------------------------------------------------------
-    def step_fn(self, state, params):
+    def step_fn(self, state, params, dt=None):
         """One explicit MLS/APIC/PIC/FLIP/TPIC step (JAX-MPM Sec. 2.2; NCLaw Alg. 3), pure.
 
         Layout for speed on CPU (the math is the textbook one): each particle's 3^D stencil is one
@@ -145,9 +147,14 @@ class JaxStepper(BaseStepper):
         are separable products; the affine terms are folded into one per-particle matrix
         (``A = m C - 4 dt V / dx^2 tau`` for MLS). Both primitives are differentiable (their transposes
         are each other), so ``jax.grad`` runs through the step unchanged.
+
+        ``dt``: None bakes the build-time ``self.dt`` into the program as a constant (fixed-dt runs,
+        gradient rollouts); a traced scalar is the adaptive ``dt: auto`` step (one compiled program
+        for every dt value).
         """
         T = self.transfer
-        D, dx, dt = self.dim, self.scene.dx, self.dt
+        D, dx = self.dim, self.scene.dx
+        dt = self.dt if dt is None else dt
         inv_dx = 1.0 / dx
         x, v = state["x"], state["v"]
         dtype = x.dtype
@@ -316,17 +323,28 @@ class JaxStepper(BaseStepper):
         new["law"] = tuple(laws)
         return new
 
-    def _advance_impl(self, state, params, steps):
+    def _advance_impl(self, state, params, steps, dt=None):
         def body(s, _):
-            return self.step_fn(s, params), None
+            return self.step_fn(s, params, dt), None
 
         if steps == 1:
-            return self.step_fn(state, params)
+            return self.step_fn(state, params, dt)
         state, _ = jax.lax.scan(body, state, None, length=steps)
         return state
 
     def _advance(self, state, steps):
-        return self._jit_advance(state, self.params, steps)
+        # dt_arg None: the build-time dt is a compile-time constant (bit-identical fixed-dt runs);
+        # an array: the rollout's current dt: auto step, a runtime argument (no recompilation)
+        return self._jit_advance(state, self.params, steps, getattr(self, "_dt_arg", None))
+
+    def _set_dt(self, dt):
+        super()._set_dt(dt)
+        self._dt_arg = None if dt is None else jnp.asarray(self.dt, self.dtype)
+
+    def _max_speed(self, state) -> float:
+        if not hasattr(self, "_jit_speed"):
+            self._jit_speed = jax.jit(lambda v: jnp.sqrt(jnp.max(jnp.sum(v * v, axis=1), initial=0.0)))
+        return float(self._jit_speed(state["v"]))
 
     def _block(self, state):
         jax.block_until_ready(state)

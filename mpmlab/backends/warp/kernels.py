@@ -52,7 +52,26 @@ def stencil_funcs(dim: int, precision: str):
             DW[2, d] = f - scalar(0.5)
         return W, DW
 
-    return SimpleNamespace(locate=locate, bspline=bspline, wmat=wmat)
+    @wp.func
+    def in_grid(x: vec, origin: vec, inv_dx: scalar, strides: ivec, G: int):
+        """1 when the 3^D stencil of a particle at x lies on the grid of G nodes (row-major ``strides``),
+        else 0 -- also for a non-finite x. A particle that left the grid (a diverged run; the guard
+        reports it by step, particle and field) must never make a kernel touch memory outside the grid:
+        Warp's CPU kernels do not bounds-check (a 200 m/s particle segfaulted P2G), and a write wrapped
+        into another grid row is never cleared and poisons later rollouts. Per axis, in float64, so a
+        huge x cannot overflow the int index."""
+        Xp = (x - origin) * inv_dx
+        ok = int(1)
+        for d in range(dim):
+            n = G // strides[0]
+            if d > 0:
+                n = strides[d - 1] // strides[d]
+            b = wp.float64(wp.floor(Xp[d] - scalar(0.5)))
+            if not (b >= wp.float64(0.0) and b + wp.float64(2.0) < wp.float64(n)):
+                ok = 0
+        return ok
+
+    return SimpleNamespace(locate=locate, bspline=bspline, wmat=wmat, in_grid=in_grid)
 
 
 def grid_vec_type(dim: int, precision: str):
@@ -96,6 +115,8 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
         p = wp.tid() + start
         inv_dx = scalar(1.0) / dx
         OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))   # node offsets as scalars
+        if S.in_grid(x[p], origin, inv_dx, strides, grid_mm.shape[0] // (bbox.shape[0] // 2)) == 0:
+            return                     # off the grid: contributes nothing (G2P keeps it off; the guard names it)
         base, fx = S.locate(x[p], origin, inv_dx)
         W, DW = S.bspline(fx)
         bbox[2 * slot] = wp.min(bbox[2 * slot], base)
@@ -333,6 +354,10 @@ def g2p_law_kernel(law_cls, dim: int, precision: str, affine: str | None, grad_v
         inv_dx = scalar(1.0) / dx
         OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))   # node offsets as scalars
         xp = x[p]
+        if S.in_grid(xp, origin, inv_dx, strides, grid_v.shape[0]) == 0:
+            x_out[p] = xp + dt * v[p]  # off the grid: moves on ballistically, outside the domain, so the
+            v_out[p] = v[p]            # guard reports it (the other outputs are not used after that)
+            return
         base, fx = S.locate(xp, origin, inv_dx)
         W, DW = S.bspline(fx)
         nb = int(0)

@@ -274,7 +274,7 @@ class WarpStepper(BaseStepper):
             hi = np.minimum(used[1::2].max(axis=0) + 3, self.grid_shape)   # + the stencil of the last base node
         else:
             lo, hi = np.zeros(D, int), np.asarray(self.grid_shape)
-        ext = hi - lo
+        ext = np.maximum(hi - lo, 0)   # 0 when no particle is on the grid (all diverged off it): nothing to do
         lo_v, ext_v = self.T.ivec(*lo.tolist()), self.T.ivec(*ext.tolist())
         chunks = self._chunks(int(np.prod(ext)), len(cmds.grid))
         for c, (start, cnt) in zip(cmds.grid, chunks):
@@ -325,6 +325,15 @@ class WarpStepper(BaseStepper):
     def _block(self, state):
         wp.synchronize_device(self.device)
 
+    def _set_dt(self, dt):
+        # dt is a kernel argument: launches recorded by the next ``_advance`` pick up the new value
+        super()._set_dt(dt)
+        self.dt_s = self.T.scalar(self.dt)
+
+    def _max_speed(self, state) -> float:
+        v = state.v.numpy()             # a view on the CPU, one copy of [N, D] on a GPU
+        return float(np.sqrt(np.max(np.sum(v.astype(np.float64) ** 2, axis=1), initial=0.0)))
+
     # ---- guards -----------------------------------------------------------------------------------
     def _is_bad(self, state) -> bool:
         self.flag.zero_()
@@ -345,7 +354,11 @@ class WarpStepper(BaseStepper):
         return grad.controls(self)
 
     def observe(self, controls, observation, steps, segment=None):
+        """Differentiable observations (``grad.py``); every step uses the build-time dt (an adaptive
+        ``dt: auto`` is not recomputed here; a warning says so)."""
         from . import grad
+
+        self._observe_dt_note()
 
         return grad.observe(self, controls, observation, steps, segment)
 
