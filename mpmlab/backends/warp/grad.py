@@ -110,6 +110,8 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
             grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec)):
         p = wp.tid()
         inv_dx = scalar(1.0) / dx
+        if S.in_grid(x[p], origin, inv_dx, strides, grid_mm.shape[0]) == 0:
+            return                  # off the grid (a diverged rollout): no out-of-bounds writes; the check names it
         base, fx = S.locate(x[p], origin, inv_dx)
         W, DW = S.bspline(fx)
         m = mass[p]
