@@ -300,7 +300,7 @@ class Fit:
                     return r, (r, bad)
                 jf = jax.jit(jax.jacfwd(with_aux, has_aux=True))
 
-                def jacobian(x):
+                def jacobian(x, r_known=None):      # the primal comes with the tangents
                     J, (r, bad) = jf(self.ops.asarray(x))
                     return np.asarray(r, np.float64), np.asarray(J, np.float64), bool(bad)
                 return residual, jacobian
@@ -319,8 +319,8 @@ class Fit:
                 r = ((self.ops.numpy(pred).astype(np.float64) - ref) * mask[..., None]).ravel() * scale
                 return r if np.all(np.isfinite(r)) else None
 
-        def jacobian(x):
-            r = residual(x)
+        def jacobian(x, r_known=None):
+            r = residual(x) if r_known is None else r_known
             return r, (lm.central_jacobian(residual, x) if r is not None else None), r is None
         return residual, jacobian
 
@@ -345,13 +345,15 @@ class Fit:
             x, damping = np.asarray(ck["x"], np.float64), float(ck["damping"])
             self.epoch, self.history = ck["epoch"], ck["history"]
         self.lm_stop = None
+        r_known = None              # the residuals at the current x, once computed
         bar = self._bar(epochs, progress)
         t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)
         try:
             while self.epoch < epochs:
-                r, J, bad = jacobian(x)
+                r, J, bad = jacobian(x, r_known)
                 if bad or r is None:
                     raise self._diverged(self.epoch, float("nan"), "the rollout diverged at the current parameters")
+                r_known = r
                 val = float(r @ r)
                 if not np.isfinite(val) or not np.all(np.isfinite(J)):
                     raise self._diverged(self.epoch, val, "non-finite residuals or Jacobian")
@@ -361,7 +363,7 @@ class Fit:
                     trial = x + lm.propose(r, J, damping)
                     rt = residual(trial)
                     if rt is not None and float(rt @ rt) < val:
-                        x, damping = trial, max(damping / lm.decrease, lm.min_damping)
+                        x, damping, r_known = trial, max(damping / lm.decrease, lm.min_damping), rt
                         break
                     damping *= lm.increase
                 else:
@@ -375,7 +377,7 @@ class Fit:
                     break
         finally:
             bar.close()
-        r = residual(x)
+        r = r_known if r_known is not None else residual(x)
         self.final_loss = float(r @ r) if r is not None else float("nan")
         return to_raw(x)
 
