@@ -66,13 +66,21 @@ ELASTIC_PARAMS = {
     "hencky_von_mises": {"yield_stress": 1e9},             # elastic range only: the Hencky elastic part
     "hencky_drucker_prager": {"friction_angle": 30.0},
     "drucker_prager_jaumann": {"friction_angle": 30.0},
+    # fluids (--full): the same bulk modulus K = E / (3 (1 - 2 nu)) as the solids
+    "weakly_compressible": {},
+    "newtonian_fluid": {},
 }
 
 
 def _law_params(law: str, E: float, nu: float) -> dict:
     p = dict(ELASTIC_PARAMS.get(law, {}))
+    K = E / (3.0 * (1.0 - 2.0 * nu))
     if law == "drucker_prager_jaumann":
-        p.update(bulk_modulus=E / (3.0 * (1.0 - 2.0 * nu)), nu=nu)
+        p.update(bulk_modulus=K, nu=nu)
+    elif law == "weakly_compressible":
+        p.update(bulk_modulus=K)
+    elif law == "newtonian_fluid":
+        p.update(sound_speed=float(np.sqrt(K / 1000.0)))      # cube_scene's density 1000 kg/m^3
     else:
         p.update(E=E, nu=nu)
     return p
@@ -462,7 +470,8 @@ def main(argv=None):
     laws = {"vibrating_bar": ["fixed_corotated"], "falling_cube": ["fixed_corotated", "hencky_von_mises"]}
     if a.full:
         laws = {"vibrating_bar": ["fixed_corotated", "hencky_von_mises"],
-                "falling_cube": ["fixed_corotated", "hencky_von_mises", "hencky_drucker_prager", "drucker_prager_jaumann"]}
+                "falling_cube": ["fixed_corotated", "hencky_von_mises", "hencky_drucker_prager", "drucker_prager_jaumann",
+                                 "weakly_compressible", "newtonian_fluid"]}
     elif a.quick:
         laws = {"vibrating_bar": ["fixed_corotated"], "falling_cube": ["fixed_corotated"]}
     import mpmlab
