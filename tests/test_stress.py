@@ -167,3 +167,26 @@ def test_dt_auto_time_is_the_sum_of_steps_and_fixed_dt_is_unchanged(backend):
     a = mpmlab.build_stepper(square(dt=1e-3, dt_every=3), backend, "apic", "fp32").rollout(steps=20, every=10)
     b = mpmlab.build_stepper(square(dt=1e-3, dt_every=0), backend, "apic", "fp32").rollout(steps=20, every=10)
     assert np.array_equal(a.x, b.x) and np.array_equal(a.time, b.time) and np.allclose(a.time, [0, 0.01, 0.02])
+
+
+def _thrown_granular_square(dt):
+    """benchmarks/stress.py's C* scene with Drucker-Prager-Jaumann (K = E / (3 (1 - 2 nu)), E = 1e4)."""
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.35, 0.4], "hi": [0.65, 0.7]}, material="drucker_prager_jaumann",
+                       params={"bulk_modulus": 1e4 / 1.2, "nu": 0.3, "friction_angle": 30.0}, density=1000.0,
+                       particles_per_cell=4, velocity=[1.0, -2.0], angular_velocity=2.0)
+    return mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
+                        boundaries=[mpmlab.boundaries.Walls(default="slip", thickness=2)], dt=dt, cfl_limit=1.0,
+                        name="thrown_granular")
+
+
+def test_dt_auto_respects_a_law_with_a_low_measured_cstar():
+    """drucker_prager_jaumann declares stable_cfl (C* = 0.19-0.20 with APIC, stress.md): dt: auto caps C at
+    C*/2 and runs 1000 steps; the library-wide C = 0.3 as a fixed dt diverges (J <= 0) in the same scene."""
+    auto = _thrown_granular_square("auto")
+    assert auto.effective_cfl == pytest.approx(0.095)
+    traj = mpmlab.build_stepper(auto, "warp", "apic", "fp32").rollout(steps=1000, every=500)
+    assert np.all(np.isfinite(traj.x))
+    c, v0 = auto.wave_speed(), float(np.max(np.linalg.norm(auto.particles().v, axis=1)))
+    fixed = _thrown_granular_square(0.3 * auto.dx / (c + v0))
+    with pytest.raises(SimulationDiverged):
+        mpmlab.build_stepper(fixed, "warp", "apic", "fp32").rollout(steps=1000, every=500)

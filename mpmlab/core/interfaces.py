@@ -83,6 +83,10 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
     state_fields: ClassVar[tuple[str, ...]]
     plastic: ClassVar[bool] = False
     reference: ClassVar[Any]
+    #: the smallest stable CFL factor C* measured for this law over the transfers and both backends
+    #: (``benchmarks/stress.py --full``), where it is below the library-wide safety margin; ``dt: auto``
+    #: then uses at most C*/2 for scenes with this law (``Scene.effective_cfl``). None: no extra limit.
+    stable_cfl: ClassVar[float | None] = None
 
     @classmethod
     def param_names(cls) -> tuple[str, ...]:

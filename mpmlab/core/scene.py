@@ -112,8 +112,8 @@ class Scene:
     # Safety factor rule: cfl = min(0.3, C*_min / 2), C*_min = the smallest measured stable CFL factor
     # over transfers x laws x {vibrating bar, falling cube} on both backends (benchmarks/stress.md).
     # Elastic, elastoplastic-Hencky and fluid laws: C* >= 0.89 (PIC/FLIP on the bar), a margin of ~3.
-    # Known gap: drucker_prager_jaumann with APIC/MLS/TPIC has C* = 0.19-0.20 (J <= 0 after 400-900
-    # steps; stress.py --full), so 0.3 is above its C* -- give such scenes a fixed dt or cfl <= 0.1.
+    # drucker_prager_jaumann with APIC/MLS/TPIC has C* = 0.19-0.20 (J <= 0 after 400-900 steps;
+    # stress.py --full): the law declares stable_cfl, and effective_cfl caps dt: auto at C*/2 there.
     cfl: float = 0.3
     cfl_limit: float = 0.5
     substeps: int = 1
@@ -252,8 +252,16 @@ class Scene:
         falls several cells per step: c_p -> 0 gives dt -> inf). With g = 0: cfl dx / (c_p + speed)."""
         a = self.wave_speed_cached + speed
         gn = float(np.linalg.norm(self.gravity)) * max(int(self.dt_every), 1)
-        Cdx = self.cfl * self.dx
+        Cdx = self.effective_cfl * self.dx
         return 2.0 * Cdx / (a + math.sqrt(a * a + 4.0 * gn * Cdx))   # root of gn dt^2 + a dt - C dx = 0
+
+    @cached_property
+    def effective_cfl(self) -> float:
+        """The ``dt: auto`` safety factor: ``cfl``, capped at half the measured C* of any law in the scene
+        that declares one (``stable_cfl``; benchmarks/stress.md)."""
+        caps = [getattr(registry.laws.get(b.material), "stable_cfl", None) for b in self.bodies]
+        caps = [0.5 * c for c in caps if c is not None]
+        return min([float(self.cfl)] + caps)
 
     @cached_property
     def wave_speed_cached(self) -> float:
