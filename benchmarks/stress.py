@@ -409,9 +409,20 @@ def render(res: dict) -> str:
                     cells.append("–" if r is None else (f"<{C_LO}" if r["c_star"] is None else
                                  (f">={C_HI}" if r["bracket"][1] is None else f"{r['c_star']:.3g}")))
                 L.append(f"| {sc} | {law} | {b} | " + " | ".join(cells) + " |")
-        cs = [r["c_star"] for r in res["sweep"] if r["c_star"] is not None]
-        L.append(f"\nSmallest measured C*: **{min(cs):.3g}**; the `dt: auto` default safety factor is "
-                 f"`cfl` = {res['meta']['default_cfl']} (rule: at most C*_min / 2, see `mpmlab/core/scene.py`).\n")
+        from mpmlab.core import registry
+
+        cfl = res["meta"]["default_cfl"]
+        lines = []
+        for law in sorted({r["law"] for r in res["sweep"]}):
+            cs = [r["c_star"] for r in res["sweep"] if r["law"] == law and r["c_star"] is not None]
+            declared = getattr(registry.laws.get(law), "stable_cfl", None)
+            eff = min([cfl] + ([0.5 * declared] if declared is not None else []))
+            ok = bool(cs) and eff <= 0.5 * min(cs) + 1e-9
+            lines.append(f"`{law}` C*min {min(cs):.3g} -> dt: auto C = {eff:.3g}"
+                         + (f" (declared stable_cfl {declared})" if declared is not None else "")
+                         + ("" if ok else " **above C*min / 2**"))
+        L.append("\nSafety factor of `dt: auto` (rule: C <= C*min / 2, `mpmlab/core/scene.py`; a law with a low "
+                 "C* declares `stable_cfl`): " + "; ".join(lines) + ".\n")
     if res.get("cases"):
         L.append("### Stress cases\n")
         L.append("Library defaults (`dt: auto`, recomputed every `dt_every` steps) unless the case says otherwise; "
