@@ -259,7 +259,9 @@ class Fit:
             if p.form == "mlp":
                 raise ConfigError(f"{p.where()}: LevenbergMarquardt fits scalar and array parameters only (this one "
                                   f"is an MLP field); use a gradient optimiser such as optax.adam / torch.optim.Adam.")
-            shape = tuple(np.shape(self.ops.numpy(self.init_raw()[p.name])))
+        init = self.init_raw()
+        for p in self.parameters:
+            shape = tuple(np.shape(self.ops.numpy(init[p.name])))
             n = int(np.prod(shape)) if shape else 1
             layout.append((p.name, shape, slice(start, start + n)))
             start += n
