@@ -4,7 +4,7 @@ One command regenerates everything::
 
     python benchmarks/stress.py                    # default set, both backends (~15-25 min on 2 busy cores)
     python benchmarks/stress.py --quick            # a smoke-sized run (a few minutes)
-    python benchmarks/stress.py --full             # + every elastic/elastoplastic law in the sweep, 1000-step horizon
+    python benchmarks/stress.py --full             # + every registered law (solids and fluids) in the sweep, 1000-step horizon
     python benchmarks/stress.py --backends jax --parts sweep,cases
 
 and writes ``benchmarks/results/stress.json``, ``benchmarks/stress.md`` (C* table + outcomes table) and
@@ -468,7 +468,7 @@ def render(res: dict) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="smoke-sized: short horizons, fewer cases and scenes")
-    ap.add_argument("--full", action="store_true", help="every elastic/elastoplastic law in the sweep, 1000-step horizon")
+    ap.add_argument("--full", action="store_true", help="every registered law (solids and fluids) in the sweep, 1000-step horizon")
     ap.add_argument("--backends", default="jax,warp")
     ap.add_argument("--parts", default="sweep,cases,random,long")
     ap.add_argument("--long-steps", type=int, default=None, help="long-run steps (default 100000; --quick 5000)")
