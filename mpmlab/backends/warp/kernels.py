@@ -80,7 +80,8 @@ def grid_vec_type(dim: int, precision: str):
 
 
 @lru_cache(maxsize=None)
-def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_force: bool, has_ext: bool):
+def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_force: bool, has_ext: bool,
+               atomic: bool = False):
     """P2G: mass, momentum (+ affine), force (gradient or MLS form). ``split_force``: keep momentum and
     force apart (FLIP needs the old grid velocity); otherwise momentum += dt f as in MLS-MPM.
 
@@ -90,6 +91,10 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
     ``A = m C - 4 dt V / dx^2 tau``, the mpm3d form), and the loops over the 3^D nodes are unrolled.
     Also records the chunk's bounding box of base nodes (``bbox[2 slot]``, ``bbox[2 slot + 1]``), so
     the grid update visits only nodes particles can reach.
+
+    ``atomic`` (CUDA): all particles run concurrently into one grid, so the node sums are atomic adds
+    and no bounding box is kept (the grid update visits the whole grid). The plain read-add-write of
+    the CPU form would be a data race there.
     """
     T = warp_types(dim, precision)
     S = stencil_funcs(dim, precision)
@@ -107,6 +112,20 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
         else:
             return gvec(a[0], a[1], last)
 
+    @wp.func
+    def add_mm(a: wp.array(dtype=gvec), i: int, val: gvec):
+        if wp.static(atomic):
+            wp.atomic_add(a, i, val)
+        else:
+            a[i] = a[i] + val
+
+    @wp.func
+    def add_f(a: wp.array(dtype=vec), i: int, val: vec):
+        if wp.static(atomic):
+            wp.atomic_add(a, i, val)
+        else:
+            a[i] = a[i] + val
+
     @wp.kernel(module="unique")
     def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
             mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
@@ -119,8 +138,9 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
             return                     # off the grid: contributes nothing (G2P keeps it off; the guard names it)
         base, fx = S.locate(x[p], origin, inv_dx)
         W, DW = S.bspline(fx)
-        bbox[2 * slot] = wp.min(bbox[2 * slot], base)
-        bbox[2 * slot + 1] = wp.max(bbox[2 * slot + 1], base)
+        if wp.static(not atomic):
+            bbox[2 * slot] = wp.min(bbox[2 * slot], base)
+            bbox[2 * slot + 1] = wp.max(bbox[2 * slot + 1], base)
         m = mass[p]
         V = vol[p]
         q = m * v[p]
@@ -179,12 +199,12 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
                                 f = Tg @ vec(g0, g1, g2)
                                 if wp.static(has_ext):
                                     f = f + wgt * fext
-                                grid_f[nij + k] = grid_f[nij + k] + f
+                                add_f(grid_f, nij + k, f)
                             else:
                                 val = val + g0 * t40 + g1 * t41 + g2 * t42
                         if wp.static(split_force and mls_force):
-                            grid_f[nij + k] = grid_f[nij + k] + wgt * (fij + OFF[k] * Fd[2])
-                        grid_mm[nij + k] = grid_mm[nij + k] + val
+                            add_f(grid_f, nij + k, wgt * (fij + OFF[k] * Fd[2]))
+                        add_mm(grid_mm, nij + k, val)
         else:
             for i in range(3):
                 qi = q4 + OFF[i] * a40
@@ -200,12 +220,12 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
                             f = Tg @ vec(g0, g1)
                             if wp.static(has_ext):
                                 f = f + wgt * fext
-                            grid_f[ni + j] = grid_f[ni + j] + f
+                            add_f(grid_f, ni + j, f)
                         else:
                             val = val + g0 * t40 + g1 * t41
                     if wp.static(split_force and mls_force):
-                        grid_f[ni + j] = grid_f[ni + j] + wgt * (fi + OFF[j] * Fd[1])
-                    grid_mm[ni + j] = grid_mm[ni + j] + val
+                        add_f(grid_f, ni + j, wgt * (fi + OFF[j] * Fd[1]))
+                    add_mm(grid_mm, ni + j, val)
 
     return p2g
 

@@ -41,10 +41,12 @@ class WarpStepper(BaseStepper):
     backend_name = "warp"
 
     def __init__(self, scene, transfer, precision="fp32", check_every=None, device: str | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, p2g_atomic: bool | None = None):
         super().__init__(scene, transfer, precision, check_every)
         wp.init()
-        self.device = device or "cpu"
+        # backend.device wins; MPMLAB_WARP_DEVICE sets the default (e.g. cuda:0 to run the test suite
+        # on a GPU); otherwise the CPU
+        self.device = str(device or os.environ.get("MPMLAB_WARP_DEVICE") or "cpu")
         T = self.T = warp_types(self.dim, precision)
         D = self.dim
         tr = transfer
@@ -97,7 +99,11 @@ class WarpStepper(BaseStepper):
         #: measuring what this skip saves)
         self.limit_grid = True
         # kernels (cached per specialisation)
-        self.k_p2g = K.p2g_kernel(D, precision, tr.needs_affine, tr.force == "mls", self.split_force, bool(self.force_bcs))
+        #: P2G sums with atomic adds into one grid (CUDA: required, every particle runs at once; None =
+        #: by device) instead of plain adds into per-thread copies (CPU)
+        self.p2g_atomic = not self.device.startswith("cpu") if p2g_atomic is None else bool(p2g_atomic)
+        self.k_p2g = K.p2g_kernel(D, precision, tr.needs_affine, tr.force == "mls", self.split_force, bool(self.force_bcs),
+                                  atomic=self.p2g_atomic)
         self.k_grid = K.grid_update_kernel(D, precision, self.split_force)
         self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, tr.affine, tr.grad_v == "affine", self.split_force)
                       for g in self.groups]
@@ -116,7 +122,8 @@ class WarpStepper(BaseStepper):
         self.grid_v_old = wp.zeros(G if self.split_force else 1, dtype=T.vec, device=dev)
         self._grid_dirty = False
         self.bbox = wp.zeros(2 * self.copies, dtype=T.ivec, device=dev)
-        self._bbox_np = self.bbox.numpy() if dev == "cpu" else None
+        # the atomic P2G keeps no bounding box: the grid update then visits the whole grid
+        self._bbox_np = self.bbox.numpy() if (dev == "cpu" and not self.p2g_atomic) else None
         self.ext = wp.zeros(N if self.force_bcs else 1, dtype=T.vec, device=dev)
         self._empty_mat = wp.zeros(1, dtype=T.mat, device=dev)
         self._empty_scalar = wp.zeros(1, dtype=T.scalar, device=dev)
