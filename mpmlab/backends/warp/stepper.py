@@ -171,8 +171,12 @@ class WarpStepper(BaseStepper):
     def _sort_into(self, s: WarpState, d: WarpState) -> None:
         """d <- s with particles sorted by base node within each group (NumPy views of CPU arrays)."""
         x = s.x.numpy()
-        base = np.floor((x - np.asarray(self.scene.origin)) / self.scene.dx - 0.5).astype(np.int64)
-        key = base @ np.asarray(list(self.strides), dtype=np.int64)
+        cell = np.floor((x - np.asarray(self.scene.origin)) / self.scene.dx - 0.5)
+        # a diverged particle (NaN/inf or far off the grid; the next guard check names it) gets a clipped
+        # key instead of an invalid integer cast
+        shape = np.asarray(self.grid_shape, dtype=float)
+        cell = np.clip(np.where(np.isfinite(cell), cell, shape), -1.0, shape)
+        key = cell.astype(np.int64) @ np.asarray(list(self.strides), dtype=np.int64)
         p = np.concatenate([g.start + np.argsort(key[g.start:g.stop], kind="stable") for g in self.groups])
         take = lambda src, dst, idx: np.take(src.numpy(), idx, axis=0, out=dst.numpy())
         take(s.x, d.x, p)
