@@ -11,6 +11,7 @@ stand-alone update/stress kernels (initial stress, law conformance tests).
 
 from functools import lru_cache
 from types import SimpleNamespace
+from typing import Any
 
 import warp as wp
 
@@ -113,14 +114,8 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
             return gvec(a[0], a[1], last)
 
     @wp.func
-    def add_mm(a: wp.array(dtype=gvec), i: int, val: gvec):
-        if wp.static(atomic):
-            wp.atomic_add(a, i, val)
-        else:
-            a[i] = a[i] + val
-
-    @wp.func
-    def add_f(a: wp.array(dtype=vec), i: int, val: vec):
+    def add(a: wp.array(dtype=Any), i: int, val: Any):
+        """a[i] += val: atomic on CUDA, a plain add into this thread's private copy on the CPU."""
         if wp.static(atomic):
             wp.atomic_add(a, i, val)
         else:
@@ -199,12 +194,12 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
                                 f = Tg @ vec(g0, g1, g2)
                                 if wp.static(has_ext):
                                     f = f + wgt * fext
-                                add_f(grid_f, nij + k, f)
+                                add(grid_f, nij + k, f)
                             else:
                                 val = val + g0 * t40 + g1 * t41 + g2 * t42
                         if wp.static(split_force and mls_force):
-                            add_f(grid_f, nij + k, wgt * (fij + OFF[k] * Fd[2]))
-                        add_mm(grid_mm, nij + k, val)
+                            add(grid_f, nij + k, wgt * (fij + OFF[k] * Fd[2]))
+                        add(grid_mm, nij + k, val)
         else:
             for i in range(3):
                 qi = q4 + OFF[i] * a40
@@ -220,12 +215,12 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
                             f = Tg @ vec(g0, g1)
                             if wp.static(has_ext):
                                 f = f + wgt * fext
-                            add_f(grid_f, ni + j, f)
+                            add(grid_f, ni + j, f)
                         else:
                             val = val + g0 * t40 + g1 * t41
                     if wp.static(split_force and mls_force):
-                        add_f(grid_f, ni + j, wgt * (fi + OFF[j] * Fd[1]))
-                    add_mm(grid_mm, ni + j, val)
+                        add(grid_f, ni + j, wgt * (fi + OFF[j] * Fd[1]))
+                    add(grid_mm, ni + j, val)
 
     return p2g
 
