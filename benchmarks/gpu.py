@@ -328,6 +328,12 @@ def cmd_render(args):
                   "`tests/test_warp_cuda.py` runs that specialisation on the CPU against the default one (and, "
                   "where a GPU exists, CUDA against the CPU). The gradient path (`backends/warp/grad.py`) already "
                   "used atomics and matched from the start.", ""]
+        re = d / "gpu_recheck.json"
+        if re.exists():
+            r = json.loads(re.read_text())
+            lines += [f"The final form of the kernel (one generic `add()`, commit {r['commit']}) was rechecked on "
+                      f"an {r['device']}: " + ", ".join(f"{x['case']} {x['max_dx_vs_cpu']:.1e} cells"
+                                                     for x in r["rows"]) + " against the CPU.", ""]
     grd = d / "gpu_grad.json"
     if grd.exists():
         g = json.loads(grd.read_text())
