@@ -198,7 +198,18 @@ def table(results: dict, backends: list[str], resolution: str) -> str:
     if first is not None:
         head = (f"Resolution `{resolution}`; epochs and fit time per backend ({' / '.join(backends)}) on "
                 f"{os.cpu_count()} CPU cores shared by two to four processes (fits and tests), so times are upper bounds.\n\n")
-    return head + "\n".join(lines) + "\n"
+    foot = ""
+    if resolution == "cpu":         # point at the finer runs where they exist (1000 particles needs them)
+        notes = []
+        for r in ("mid", "paper"):
+            res = load_results(backends, r)
+            if res:
+                got = [f"{c.key} {c.label} on {b}: {verdict(c, s)[0]}{_mark(verdict(c, s)[1])}"
+                       for c in CASES for b in backends if (s := res.get((c.experiment, c.variant, b)))]
+                notes.append(f"At resolution `{r}` (`benchmarks/inverse_{r}.md`): " + "; ".join(got) + ".")
+        if notes:
+            foot = "\n" + "\n".join(notes) + "\n"
+    return head + "\n".join(lines) + "\n" + foot
 
 
 # ---- plots -------------------------------------------------------------------------------------------------
