@@ -13,10 +13,13 @@ the GPU by itself when its CUDA plugin is installed (``JAX_PLATFORMS=cpu`` force
 
 * ``reference`` / ``check``: every built-in law in one scene (``tests/scenes.py::all_laws_scene``: six
   bodies spinning onto walls) in 2D and 3D under every transfer, fp64, 40 steps of 1 ms, on each
-  backend; and the Ritter dam break (fp32, 400 steps). ``check`` reruns them on the GPU and reports
-  max |x_gpu - x_cpu| / dx per backend and between the backends on the GPU; plus the gradient of
-  L = sum(x_N^2) (N = 20 steps, segment 5) w.r.t. the initial velocities and every law parameter,
-  fp64, on both GPU backends beside the CPU reference (relative L2 difference per leaf).
+  backend; and the Ritter dam break (fp32, 400 steps, positions every 25). ``check`` reruns them on
+  the GPU and reports max |x_gpu - x_cpu| / dx per backend and between the backends on the GPU (the
+  dam break frame by frame; a divergence is recorded, not fatal), the time of each Warp case's first
+  call (the CUDA compile), and the gradient of L = sum(x_N^2) (``gradients.py``'s loss; N = 20 steps,
+  segment 5) w.r.t. the initial velocities and every law parameter, fp64, on both GPU backends beside
+  the CPU reference (relative L2 difference per leaf). ``gpu_check.json`` is rewritten after every
+  case, so a run cut short by a time limit keeps what it measured.
 * ``grad``: forward alone against forward+backward (N = 400 steps, segment n = 20) of the Ritter
   dam break at several particle counts, fp32, APIC, median of 5 after a warm-up, and the peak device
   memory of the gradient (JAX: XLA's buffer assignment of the compiled gradient program, temp bytes;
@@ -42,7 +45,10 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))          # tests.scenes
 TRANSFERS = ("pic", "flip", "apic", "mls", "tpic")
 LAW_STEPS, LAW_DT = 40, 1e-3
+LAW_DX = 0.05                                  # all_laws_scene's cell size
 GRAD_N, GRAD_SEG = 20, 5
+DAM_DX, DAM_STEPS, DAM_EVERY = 0.0125, 400, 25
+DAM_CASE = "ritter/apic_fp32"
 
 
 def _device_info() -> dict:
@@ -74,6 +80,7 @@ def law_cases():
 
 
 def run_forward(backend: str, dim: int, transfer: str) -> np.ndarray:
+    """[x, v] after LAW_STEPS steps of the six-law scene, fp64."""
     from mpmlab.simulator import build_stepper
     from tests.scenes import all_laws_scene
 
@@ -83,58 +90,60 @@ def run_forward(backend: str, dim: int, transfer: str) -> np.ndarray:
 
 
 def run_dam(backend: str) -> np.ndarray:
+    """Positions every DAM_EVERY steps of the fp32 Ritter dam break [frames, N, 2]; raises
+    SimulationDiverged (with the frames so far) where it blows up."""
     from mpmlab.scenes.validation import ritter_dam_break
     from mpmlab.simulator import build_stepper
 
-    st = build_stepper(ritter_dam_break(dx=0.0125), backend, "apic", "fp32")
-    traj = st.rollout(steps=400, every=400, progress=False)
-    return np.stack([traj.x[-1], traj.v[-1]])
+    st = build_stepper(ritter_dam_break(dx=DAM_DX), backend, "apic", "fp32")
+    return st.rollout(steps=DAM_STEPS, every=DAM_EVERY, progress=False).x
 
 
 def run_gradient(backend: str, dim: int) -> dict[str, np.ndarray]:
-    """d sum(x_N^2) / d (v0, law parameters), fp64, APIC, segment GRAD_SEG."""
-    from mpmlab.observations import Lagrangian
+    """d sum(x_N^2) / d (v0, law parameters), fp64, APIC, segment GRAD_SEG (the loss of gradients.py)."""
+    import gradients
     from mpmlab.simulator import build_stepper
     from tests.scenes import all_laws_scene
 
     st = build_stepper(all_laws_scene(dim, dt=LAW_DT), backend, "apic", "fp64")
-    obs = Lagrangian(quantity="x")
-    c = st.controls()
     if backend == "jax":
-        import jax
-        import jax.numpy as jnp
-
-        def loss(p):
-            y = st.observe({**c, "v": p[0], "law": p[1]}, obs, steps=[GRAD_N], segment=GRAD_SEG)
-            return jnp.sum(y * y)
-
-        _, g = jax.jit(jax.value_and_grad(loss))((c["v"], c["law"]))
-        gv, glaw = g
+        c = st.controls()
+        _, grad = gradients.jax_programs(st, GRAD_N, GRAD_SEG)
+        _, (gv, glaw) = grad((c["v"], c["law"]), c)
     else:
-        v = c["v"].detach().clone().requires_grad_(True)
-        law = tuple(a.detach().clone().requires_grad_(True) for a in c["law"])
-        y = st.observe({**c, "v": v, "law": law}, obs, steps=[GRAD_N], segment=GRAD_SEG)
-        (y * y).sum().backward()
-        gv, glaw = v.grad, [a.grad for a in law]
-    arr = lambda a: np.asarray(a.detach().cpu().numpy() if hasattr(a, "detach") else a, dtype=float)
-    out = {"v": arr(gv)}
-    for k, a in enumerate(glaw):
-        out[f"law{k}"] = arr(a)
-    return out
+        _, grad = gradients.warp_fns(st, GRAD_N, GRAD_SEG)
+        _, gv, glaw = grad()
+    to_np = lambda a: np.asarray(a.detach().cpu().numpy() if hasattr(a, "detach") else a, dtype=float)
+    return {"v": to_np(gv), **{f"law{k}": to_np(a) for k, a in enumerate(glaw)}}
 
 
-def compute_all(backends) -> dict[str, np.ndarray]:
+def compute_all(backends, on_result=None) -> dict[str, np.ndarray]:
+    """Every case on every backend: ``{"backend:case": array}``; ``on_result(key, array, seconds)``
+    after each (the check writes its JSON there, so a run cut short keeps what it measured)."""
+    from mpmlab.core.errors import SimulationDiverged
+
     res = {}
+
+    def put(key, value, t0):
+        res[key] = value
+        dt = time.perf_counter() - t0
+        print(f"[gpu] {key}: {dt:.1f} s", flush=True)
+        if on_result is not None:
+            on_result(key, value, dt)
+
     for b in backends:
         for name, dim, tr in law_cases():
             t0 = time.perf_counter()
-            res[f"{b}:{name}"] = run_forward(b, dim, tr)
-            print(f"[gpu] {b} {name}: {time.perf_counter() - t0:.1f} s", flush=True)
-        res[f"{b}:ritter/apic_fp32"] = run_dam(b)
+            put(f"{b}:{name}", run_forward(b, dim, tr), t0)
+        t0 = time.perf_counter()
+        try:
+            put(f"{b}:{DAM_CASE}", run_dam(b), t0)
+        except SimulationDiverged as e:      # recorded, not fatal: the other cases still run
+            put(f"{b}:{DAM_CASE}", str(e), t0)
         for dim in (2, 3):
+            t0 = time.perf_counter()
             for k, a in run_gradient(b, dim).items():
-                res[f"{b}:grad_{dim}d:{k}"] = a
-            print(f"[gpu] {b} gradient {dim}d done", flush=True)
+                put(f"{b}:grad_{dim}d:{k}", a, t0)
     return res
 
 
@@ -143,6 +152,9 @@ def cmd_reference(args):
     if os.environ.get("MPMLAB_WARP_DEVICE", "cpu") != "cpu":
         sys.exit("reference: run it on the CPU (unset MPMLAB_WARP_DEVICE).")
     res = compute_all(args.backends.split(","))
+    bad = [k for k, v in res.items() if isinstance(v, str)]
+    if bad:
+        sys.exit(f"reference: {bad} diverged on the CPU: {[res[k] for k in bad]}")
     Path(args.reference).parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(args.reference, **res)
     print(f"[gpu] wrote {args.reference}")
@@ -153,81 +165,77 @@ def _rel(a, b):
     return float(np.linalg.norm(a - b) / den) if den > 0 else float(np.linalg.norm(a - b))
 
 
+def _row(key, a, seconds, ref, gpu) -> dict:
+    """One row of gpu_check.json: the GPU result ``a`` against the CPU reference and the other backend."""
+    b, case = key.split(":", 1)
+    other = gpu.get(f"{'warp' if b == 'jax' else 'jax'}:{case}")
+    r = ref.get(key)
+    row = {"backend": b, "case": case, "seconds": seconds}
+    if isinstance(a, str):
+        return {**row, "error": a}
+    row["finite"] = bool(np.all(np.isfinite(a)))
+    if case.startswith("grad"):
+        row["rel_l2_vs_cpu"] = _rel(a, r) if r is not None else None
+        row["rel_l2_vs_other_gpu"] = _rel(a, other) if isinstance(other, np.ndarray) else None
+    elif case == DAM_CASE:             # frames every DAM_EVERY steps; the reference keeps them too
+        row["max_dx_vs_cpu"] = float(np.abs(a[-1] - r[-1]).max() / DAM_DX) if r is not None else None
+        if isinstance(other, np.ndarray):
+            row["dev_per_frame"] = [float(np.abs(p - q).max() / DAM_DX) for p, q in zip(a, other)]
+    else:
+        row["warp_first_call_s"] = seconds if b == "warp" else None     # CUDA compile + the steps
+        row["max_dx_vs_cpu"] = float(np.abs(a[0] - r[0]).max() / LAW_DX) if r is not None else None
+        row["max_dv_vs_cpu"] = float(np.abs(a[1] - r[1]).max()) if r is not None else None
+        row["max_dx_vs_other_gpu"] = float(np.abs(a[0] - other[0]).max() / LAW_DX) \
+            if isinstance(other, np.ndarray) else None
+    return row
+
+
 def cmd_check(args):
     ref = dict(np.load(args.reference))
-    info = _device_info()
-    backends = args.backends.split(",")
-    t0 = time.perf_counter()
-    gpu = compute_all(backends)
-    rows = []
-    for key, a in gpu.items():
-        b, case = key.split(":", 1)
-        r = ref.get(key)
-        row = {"backend": b, "case": case, "finite": bool(np.all(np.isfinite(a)))}
-        dx = 0.0125 if case.startswith("ritter") else 0.05
-        if case.startswith("grad"):
-            row["rel_l2_vs_cpu"] = _rel(a, r) if r is not None else None
-            other = gpu.get(f"{'warp' if b == 'jax' else 'jax'}:{case}")
-            row["rel_l2_vs_other_gpu"] = _rel(a, other) if other is not None else None
-        else:
-            row["max_dx_vs_cpu"] = float(np.abs(a[0] - r[0]).max() / dx) if r is not None else None
-            row["max_dv_vs_cpu"] = float(np.abs(a[1] - r[1]).max()) if r is not None else None
-            other = gpu.get(f"{'warp' if b == 'jax' else 'jax'}:{case}")
-            row["max_dx_vs_other_gpu"] = float(np.abs(a[0] - other[0]).max() / dx) if other is not None else None
-        rows.append(row)
-    out = {"info": info, "rows": rows, "wall_s": time.perf_counter() - t0}
-    Path(args.out).mkdir(parents=True, exist_ok=True)
-    (Path(args.out) / "gpu_check.json").write_text(json.dumps(out, indent=1))
-    for r in rows:
-        print(r)
+    info, gpu, seconds = _device_info(), {}, {}
+    path = Path(args.out) / "gpu_check.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    def on_result(key, value, dt):      # rows rebuilt each time: a JAX row gains Warp's comparison
+        gpu[key], seconds[key] = value, dt
+        rows = [_row(k, gpu[k], seconds[k], ref, gpu) for k in gpu]
+        path.write_text(json.dumps({"info": info, "rows": rows}, indent=1))
+
+    compute_all(args.backends.split(","), on_result)
+    print(path.read_text())
 
 
 # ---- gradient time and memory --------------------------------------------------------------------------
 def _grad_case(backend: str, dx: float, N: int, n: int, reps: int) -> dict:
-    from mpmlab.observations import Lagrangian
-    from mpmlab.scenes.validation import ritter_dam_break
-    from mpmlab.simulator import build_stepper
+    """Forward alone and forward+backward of gradients.py's loss (sum(x_N^2) w.r.t. v0 and the law
+    parameters) on the Ritter dam break; device memory of the gradient."""
+    import gradients
 
-    st = build_stepper(ritter_dam_break(dx=dx), backend, "apic", "fp32")
-    obs = Lagrangian(quantity="x")
-    c = st.controls()
+    st = gradients.build({"dx": dx, "transfer": "apic", "precision": "fp32"}, backend)
     res = {"backend": backend, "particles": st.particles.count, "dx": dx, "N": N, "n": n}
+    t0 = time.perf_counter()
     if backend == "jax":
         import jax
-        import jax.numpy as jnp
 
-        def loss(p, segment):
-            y = st.observe({**c, "v": p[0], "law": p[1]}, obs, steps=[N], segment=segment)
-            return jnp.sum(y * y)
-
+        c = st.controls()
         p = (c["v"], c["law"])
-        t0 = time.perf_counter()
-        fwd_c = jax.jit(lambda p: loss(p, N)).lower(p).compile()
-        grad_c = jax.jit(jax.value_and_grad(lambda p: loss(p, n))).lower(p).compile()
+        fwd_j, grad_j = gradients.jax_programs(st, N, n)
+        fwd_c, grad_c = fwd_j.lower(p, c).compile(), grad_j.lower(p, c).compile()
         res["compile_s"] = time.perf_counter() - t0
-        ma = grad_c.memory_analysis()
-        res["grad_temp_mib"] = getattr(ma, "temp_size_in_bytes", 0) / 2**20 if ma is not None else None
-        ma = fwd_c.memory_analysis()
-        res["fwd_temp_mib"] = getattr(ma, "temp_size_in_bytes", 0) / 2**20 if ma is not None else None
-        fwd = lambda: jax.block_until_ready(fwd_c(p))
-        grad = lambda: jax.block_until_ready(grad_c(p))
+        for name, comp in (("grad", grad_c), ("fwd", fwd_c)):
+            ma = comp.memory_analysis()
+            res[f"{name}_temp_mib"] = getattr(ma, "temp_size_in_bytes", 0) / 2**20 if ma is not None else None
+        fwd = lambda: jax.block_until_ready(fwd_c(p, c))
+        grad = lambda: jax.block_until_ready(grad_c(p, c))
     else:
-        import torch
         import warp as wp
 
-        def fwd():
-            with torch.no_grad():
-                y = st.observe(c, obs, steps=[N], segment=N)
-                float((y * y).sum())
+        fwd, grad_fn = gradients.warp_fns(st, N, n)
 
         def grad():
-            v = c["v"].detach().clone().requires_grad_(True)
-            law = tuple(a.detach().clone().requires_grad_(True) for a in c["law"])
-            y = st.observe({**c, "v": v, "law": law}, obs, steps=[N], segment=n)
-            (y * y).sum().backward()
+            grad_fn()
             wp.synchronize_device(st.device)
 
-        t0 = time.perf_counter()
         fwd()
         grad()
         res["compile_s"] = time.perf_counter() - t0
@@ -299,12 +307,16 @@ def cmd_render(args):
             lines.append(f"| {case} | {_fmt(j.get('max_dx_vs_cpu'))} | {_fmt(w.get('max_dx_vs_cpu'))} | "
                          f"{_fmt(j.get('max_dx_vs_other_gpu'))} | {j.get('finite', '-')} / {w.get('finite', '-')} | "
                          f"{_fmt(w.get('warp_first_call_s'), '{:.0f}')} |")
-        dev = rows.get((None, "ritter/apic_fp32/dev_per_25_steps"))
-        if dev:
-            e = dev["dev"]
-            lines += ["", f"The Ritter dam break (fp32, APIC, 2560 particles, 400 steps): JAX GPU against Warp CUDA, "
-                      f"max |dx| in cells after 100 / 200 / 400 steps: {e[4]:.1e} / {e[8]:.1e} / {e[-1]:.1e} "
-                      "(fp32 summation order only)."]
+        dam = rows.get(("warp", DAM_CASE), {})
+        e = dam.get("dev_per_frame")
+        if e:
+            at = [k for k in (100, 200, DAM_STEPS) if k // DAM_EVERY < len(e)]
+            lines += ["", f"The Ritter dam break (fp32, APIC, 2560 particles, {DAM_STEPS} steps): JAX GPU against Warp "
+                      f"CUDA, max |dx| in cells after {' / '.join(map(str, at))} steps: "
+                      + " / ".join(f"{e[k // DAM_EVERY]:.1e}" for k in at) + " (fp32 summation order only)."]
+        for b in ("jax", "warp"):
+            if rows.get((b, DAM_CASE), {}).get("error"):
+                lines += ["", f"The Ritter dam break on {b}: {rows[(b, DAM_CASE)]['error']}"]
         lines += ["", "## Gradients: GPU against CPU", "",
                   f"d sum(x_N^2) / d(v0, law parameters) of the six-law scene, APIC, fp64, N = {GRAD_N}, segment "
                   f"{GRAD_SEG}: relative L2 difference per leaf (`law5` = drucker_prager_jaumann).", "",
