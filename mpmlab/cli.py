@@ -52,12 +52,76 @@ class JobFailed(Exception):
         return self.message
 
 
+#: The sweep directory of a multirun started in this process (set by ``SweepRecorder``).
+_sweep_dir: Path | None = None
+JOBS_FILE = "jobs.jsonl"
+STOP_FILE = ".mpmlab-stop"   # a stopped parallel sweep: jobs that start after the signal do not run
+
+
+try:
+    from hydra.experimental.callback import Callback as _HydraCallback
+except ImportError:  # pragma: no cover - hydra-core < 1.1
+    _HydraCallback = object
+
+
+class SweepRecorder(_HydraCallback):
+    """Hydra callback (``hydra.callbacks`` in conf/config.yaml): remembers the sweep directory in the
+    process that launches the sweep, so ``main`` can read every job's outcome from ``jobs.jsonl``."""
+
+    def on_multirun_start(self, config, **kwargs) -> None:
+        global _sweep_dir
+        _sweep_dir = Path(str(config.hydra.sweep.dir))
+        (_sweep_dir / STOP_FILE).unlink(missing_ok=True)
+        if "joblib" in str(config.hydra.launcher.get("_target_", "")):
+            from .core.signals import forward_to
+
+            forward_to(_stop_sweep)
+
+
+def _stop_sweep(signum: int) -> None:
+    """First stop signal in the process running a parallel sweep: jobs not yet started are skipped
+    (STOP_FILE), running ones get the signal and close their outputs; the sweep then ends normally."""
+    import signal as _signal
+
+    import psutil
+
+    try:
+        (_sweep_dir / STOP_FILE).write_text(f"{_signal.Signals(signum).name}\n")
+    except OSError:
+        pass
+    children = psutil.Process().children(recursive=True)
+    for child in children:
+        try:
+            child.send_signal(signum)
+        except psutil.Error:
+            pass
+    print(f"mpmlab: {_signal.Signals(signum).name}: stopping the sweep; {len(children)} job process(es) are "
+          f"closing their outputs (send it again to stop at once, losing their last frames).",
+          file=sys.stderr, flush=True)
+
+
+def _record_job(sweep_dir: Path, entry: dict) -> None:
+    """Append one job's outcome to ``<sweep dir>/jobs.jsonl`` (one short line, O_APPEND: jobs of a
+    parallel or Slurm sweep append to the same file)."""
+    import json
+
+    try:
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(sweep_dir / JOBS_FILE, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(fd, (json.dumps(entry) + "\n").encode())
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        log.warning("could not record job %s in %s: %s", entry.get("job"), sweep_dir / JOBS_FILE, exc)
+
+
 def _task_function(cfg) -> dict:
     """The Hydra task: set up the run context and dispatch to the task registry."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    from .tasks import RunContext, run_task
+    from .tasks import RunContext
 
     logging.getLogger("jax").setLevel(logging.WARNING)  # no "Unable to initialize backend 'tpu'" lines
     hc = HydraConfig.get()
@@ -68,22 +132,82 @@ def _task_function(cfg) -> dict:
         job={"name": hc.job.name, "num": hc.job.get("num"), "override_dirname": hc.job.override_dirname,
              "overrides": list(hc.overrides.task)},
     )
+    job = {"job": hc.job.get("num"), "overrides": list(hc.overrides.task), "dir": str(ctx.output_dir)}
     try:
-        return run_task(cfg, ctx)
-    except BaseException as exc:
-        if isinstance(exc, (KeyboardInterrupt, SystemExit)):
-            raise
-        code, message = describe_error(exc)
-        if not multirun:
-            _log_to_files(message)
-            raise _Abort(exc) from None
-        log.error(message)
-        if not (cfg.debug or _debug_env()):
-            # launchers pickle job errors across processes; mpmlab errors with rich constructors do not
-            # survive that, so the sweep gets a plain picklable error with the same sentence
-            raise JobFailed(f"job {hc.job.get('num')} ({hc.job.override_dirname or 'no overrides'}): {message}",
-                            code) from None
-        raise
+        return _run_job(cfg, ctx, hc, multirun, job)
+    finally:
+        if multirun and "joblib" in str(hc.launcher.get("_target_", "")):
+            # a Ctrl-C reaches a joblib worker twice (the terminal's, and the one the sweep's parent
+            # passes on): the second must not kill the worker between jobs; the parent stops the sweep
+            import signal
+
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _run_job(cfg, ctx, hc, multirun: bool, job: dict) -> dict:
+    from .core.errors import ConfigError
+    from .core.signals import handle_stop_signals
+    from .io.files import OutputExistsError, handle_stale_temps
+    from .tasks import run_task
+
+    with handle_stop_signals():   # a sweep worker process gets its own handlers
+        if multirun and (Path(hc.sweep.dir) / STOP_FILE).exists():
+            reason = (Path(hc.sweep.dir) / STOP_FILE).read_text().strip()
+            _record_job(Path(hc.sweep.dir), {**job, "status": "skipped", "exit_code": 0,
+                                             "message": f"the sweep was stopped by {reason} before this job started"})
+            return {"status": "skipped"}
+        try:
+            from .config import check_known_keys
+
+            check_known_keys(cfg)   # every task: a `+key` that nothing reads is refused before any work
+            for line in handle_stale_temps(ctx.output_dir):   # what a run killed with SIGKILL left
+                log.warning("%s", line)
+            summary = run_task(cfg, ctx)
+            if multirun:
+                _record_job(Path(hc.sweep.dir), {**job, "status": "ok", "exit_code": 0})
+            return summary
+        except BaseException as exc:
+            if isinstance(exc, SystemExit):
+                raise
+            code, message = describe_error(exc)
+            if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "mpmlab_detail"):
+                from .core.signals import stop_reason
+
+                _log_to_files(f"run {stop_reason(exc)} before its first step; nothing was written but config.yaml.")
+            elif not isinstance(exc, (OutputExistsError, KeyboardInterrupt)):
+                # how the run ended, in its log; a refused rerun leaves the earlier run's log alone
+                _log_to_files(f"run {'refused' if isinstance(exc, ConfigError) else 'ended'}: {message}")
+            if not multirun:
+                if isinstance(exc, KeyboardInterrupt):
+                    raise
+                raise _Abort(exc) from None
+            status = _status_of(exc)
+            _record_job(Path(hc.sweep.dir), {**job, "status": status, "exit_code": code, "message": message})
+            if isinstance(exc, KeyboardInterrupt) and hc.launcher.get("_target_", "").endswith("BasicLauncher"):
+                raise                  # one process runs the whole sweep: Ctrl-C stops all of it
+            if not isinstance(exc, KeyboardInterrupt):
+                log.error(message)
+            if cfg.debug or _debug_env():
+                import traceback
+
+                traceback.print_exception(exc)
+            # the sweep goes on; main() reads jobs.jsonl and reports every failed job at the end
+            return {"status": status, "exit_code": code, "error": message}
+
+
+def _status_of(exc: BaseException) -> str:
+    from .core.errors import ConfigError, SimulationDiverged
+    from .io.files import OutputExistsError
+
+    if isinstance(exc, SimulationDiverged):
+        return "diverged"
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted"
+    if isinstance(exc, OutputExistsError):
+        return "refused (outputs exist)"
+    if isinstance(exc, ConfigError):
+        return "refused"
+    return "failed"
 
 
 def _log_to_files(message: str) -> None:
@@ -135,7 +259,8 @@ def _composition_message(exc) -> str:
     if isinstance(cause, (ConfigAttributeError, ConfigKeyError)):
         key = getattr(cause, "full_key", "") or head
         return (f"unknown option '{key}' ({_omegaconf_detail(cause)}); check the spelling "
-                f"(`mpmlab --cfg job` lists every option) or add a new key with +{key}=VALUE.")
+                f"(`mpmlab --cfg job` lists every option); `+{key}=VALUE` adds a key only where entries "
+                f"are open (scene.vars, a law's params, a plugin boundary's options).")
     if isinstance(cause, OmegaConfBaseException):
         return f"{head.rstrip('.')}: {_omegaconf_detail(cause)}; fix the value (`mpmlab --cfg job` shows the options and types)."
     if "Could not override" in text and "No match in the defaults list" in text:
@@ -155,11 +280,24 @@ def describe_error(exc: BaseException) -> tuple[int, str]:
     from omegaconf.errors import OmegaConfBaseException
 
     from .core.errors import ConfigError, MpmlabError, SimulationDiverged
+    from .core.signals import RunInterrupted, stop_reason
+    from .io.files import OutputError, OutputExistsError
 
+    detail = getattr(exc, "mpmlab_detail", "")
     if isinstance(exc, JobFailed):
         return exc.code, exc.message
+    if isinstance(exc, KeyboardInterrupt):
+        code = exc.exit_code if isinstance(exc, RunInterrupted) else EXIT_INTERRUPTED
+        return code, f"{stop_reason(exc)}" + (f" {detail}" if detail else "") + "."
     if isinstance(exc, SimulationDiverged):
-        return EXIT_DIVERGED, str(exc)
+        return EXIT_DIVERGED, str(exc) + (f" ({detail.split('; ', 1)[1]})" if "; " in detail else "")
+    if isinstance(exc, OutputExistsError):
+        return EXIT_CONFIG, (f"'{exc.path}' already exists (an earlier run's output); rerun with "
+                             f"output.overwrite=true to replace it, or choose another directory with hydra.run.dir=PATH.")
+    if isinstance(exc, OutputError):
+        return EXIT_OUTPUT, (f"{exc}" + (f"; {detail.split('; ', 1)[1]}" if "; " in detail else "")
+                             + "; free space there or choose another directory with hydra.run.dir=PATH "
+                               "(sweeps: hydra.sweep.dir=PATH).")
     if isinstance(exc, ConfigError):
         return EXIT_CONFIG, str(exc)
     if isinstance(exc, MpmlabError):
@@ -173,10 +311,9 @@ def describe_error(exc: BaseException) -> tuple[int, str]:
         return EXIT_CONFIG, f"invalid configuration: {_omegaconf_detail(exc)}; fix the value (`mpmlab --cfg job` shows the options)."
     if isinstance(exc, ValueError) and "can be specified" in str(exc):  # Hydra's flag conflicts
         return EXIT_CONFIG, f"{_first_line(str(exc))} (e.g. `mpmlab --cfg job scene=...`, without -m)."
-    if isinstance(exc, OSError):
-        where = exc.filename or ""
-        what = exc.strerror or type(exc).__name__
-        return EXIT_OUTPUT, (f"cannot write '{where}' ({what}); choose a writable output directory with "
+    if isinstance(exc, OSError) and exc.filename:
+        what = (exc.strerror or type(exc).__name__).lower()
+        return EXIT_OUTPUT, (f"cannot write '{exc.filename}' ({what}); choose a writable output directory with "
                              f"hydra.run.dir=PATH (sweeps: hydra.sweep.dir=PATH).")
     return EXIT_INTERNAL, (f"internal error: {type(exc).__name__}: {_first_line(str(exc))} "
                            f"(run again with MPMLAB_DEBUG=1 for the traceback, and please report it).")
@@ -206,12 +343,18 @@ def main(argv: list[str] | None = None) -> int:
 
     register_configs()
     register_search_path_plugin()
+    from .core.signals import handle_stop_signals
+
+    global _sweep_dir
+    _sweep_dir = None
     app = _hydra_app()
     saved = sys.argv
     sys.argv = [saved[0] if saved else "mpmlab"] + argv
+    stop_signals = handle_stop_signals()
     try:
+        stop_signals.__enter__()
         app()
-        code = 0
+        code = _sweep_outcome() if _sweep_dir is not None else 0
     except SystemExit as exc:  # argparse (--help, bad flags) and Hydra's own exits
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     except BrokenPipeError:  # `mpmlab --help | head`
@@ -224,10 +367,13 @@ def main(argv: list[str] | None = None) -> int:
 
             traceback.print_exception(abort.error)
         print(f"mpmlab: error: {message}", file=sys.stderr)
-    except KeyboardInterrupt:
-        print("mpmlab: interrupted; outputs written so far are complete files (trajectory.h5 is marked incomplete).",
-              file=sys.stderr)
-        code = EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        code, message = describe_error(exc)
+        if _sweep_dir is not None:
+            message += " " + _sweep_interrupted_note()
+        elif not hasattr(exc, "mpmlab_detail"):
+            message += " Nothing was written but config.yaml (if the run had begun)."
+        print(f"mpmlab: {message}", file=sys.stderr)
     except BaseException as exc:  # noqa: BLE001 - the CLI's single error exit
         code, message = describe_error(exc)
         if debug:
@@ -236,12 +382,61 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exception(exc)
         print(f"mpmlab: error: {message}", file=sys.stderr)
     finally:
+        stop_signals.__exit__(None, None, None)
         sys.argv = saved
         if saved_env is None:
             os.environ.pop("HYDRA_FULL_ERROR", None)
         else:
             os.environ["HYDRA_FULL_ERROR"] = saved_env
     return code
+
+
+def _read_jobs() -> list[dict]:
+    import json
+
+    path = _sweep_dir / JOBS_FILE
+    if not path.is_file():
+        return []
+    jobs = {}
+    for line in path.read_text().splitlines():
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue
+        jobs[entry.get("job")] = entry   # a requeued job's last word counts
+    return [jobs[k] for k in sorted(jobs, key=lambda k: (k is None, k))]
+
+
+def _sweep_outcome() -> int:
+    """After a sweep: one closing line that counts every job by how it ended and names each one that
+    did not complete (exit code: that of the first such job)."""
+    jobs = _read_jobs()
+    (_sweep_dir / STOP_FILE).unlink(missing_ok=True)
+    bad = [j for j in jobs if j.get("status") != "ok"]
+    if not bad:
+        return 0
+    counts: dict[str, int] = {}
+    for j in jobs:
+        counts[j.get("status", "?")] = counts.get(j.get("status", "?"), 0) + 1
+    tally = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
+    parts = [f"job {j.get('job')} ({','.join(j.get('overrides', [])) or 'no overrides'}): {j.get('status')}: "
+             f"{j.get('message', '')}" for j in bad if j.get("status") != "skipped"]
+    stopped = any(j.get("status") in ("interrupted", "skipped") for j in bad)
+    head = "the sweep was stopped" if stopped else f"{len(bad)} of {len(jobs)} jobs failed"
+    print(f"mpmlab: error: {head} ({len(jobs)} jobs: {tally})" + ("; " + " | ".join(parts) if parts else "")
+          + f" (every job's outcome: {_sweep_dir / JOBS_FILE}).", file=sys.stderr)
+    return int(next((j.get("exit_code") for j in bad if j.get("exit_code")), EXIT_INTERRUPTED))
+
+
+def _sweep_interrupted_note() -> str:
+    """What an interrupted sweep left, from the jobs that recorded their end."""
+    jobs = _read_jobs()
+    counts: dict[str, int] = {}
+    for j in jobs:
+        counts[j.get("status", "?")] = counts.get(j.get("status", "?"), 0) + 1
+    done = ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) or "no job had recorded its end"
+    return (f"Sweep {_sweep_dir}: {done}; an interrupted job's trajectory.h5 keeps its frames so far, marked "
+            f"incomplete (every job's outcome: {_sweep_dir / JOBS_FILE}).")
 
 
 def console_main() -> None:

@@ -30,8 +30,10 @@ Python use (no Hydra app needed)::
 from __future__ import annotations
 
 import dataclasses
+import difflib
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Union
@@ -187,8 +189,9 @@ class SceneConfig:
     dx: float = MISSING
     domain: DomainConfig = field(default_factory=DomainConfig)
     gravity: Optional[List[float]] = None
-    #: time step [s], or ``auto`` (CFL number ``cfl``)
-    dt: Union[float, str] = "auto"
+    #: time step [s], or ``auto`` (CFL number ``cfl``); an integer (``scene.dt=0`` on the command line)
+    #: is a number of seconds too
+    dt: Union[float, int, str] = "auto"
     cfl: float = 0.3
     #: largest CFL number accepted for a fixed dt
     cfl_limit: float = 0.5
@@ -493,6 +496,12 @@ def _body(cfg: DictConfig, name: str, b: DictConfig):
         raise ConfigError(f"{where}: no material; choose one with material=<name> or set scene.bodies.{name}.material.law.")
     mat = _plain(mat_node)
     registry.laws.get(mat["law"])  # unknown law -> the list of known laws
+    density = mat.get("density")
+    if isinstance(density, bool) or not isinstance(density, (int, float)) or not density > 0 \
+            or not math.isfinite(density):
+        key = f"scene.bodies.{name}.material.density" if b.material is not None else "material.density"
+        raise ConfigError(f"{where}: {key} = {density} must be > 0 kg/m^3; set {key} to the material's "
+                          f"rest density (water: 1000).")
     return Body(
         shape=_shape_dict(b.shape), material=mat["law"], params=dict(mat["params"]), density=float(mat["density"]),
         velocity=_plain(b.velocity), angular_velocity=_plain(b.angular_velocity),
@@ -576,17 +585,219 @@ def build_scene(cfg: DictConfig, validate: bool = True):
                 dt = float(dt)
             except ValueError:
                 raise ConfigError(f"scene '{sc.name}': scene.dt = '{dt}' must be a number of seconds or 'auto'.") from None
+        if dt != "auto":
+            dt = float(dt)
+            if not dt > 0 or not math.isfinite(dt):
+                raise ConfigError(f"scene '{sc.name}': scene.dt = {dt:g} must be > 0 (seconds) or auto; "
+                                  f"set scene.dt to a positive time step or scene.dt=auto.")
         scene = Scene(
             dim=int(sc.dim), dx=float(sc.dx), domain=([a - pad for a in lo], [b + pad for b in hi]), bodies=bodies,
             gravity=_plain(sc.gravity), boundaries=boundaries, dt=dt, cfl=float(sc.cfl),
             cfl_limit=float(sc.cfl_limit), name=sc.name, seed=seed, dt_every=int(sc.dt_every),
         )
     if validate:
+        from .core.budget import memory_preflight
+
+        memory_preflight(cfg, scene)   # before sampling: refuse what cannot fit (issue #12 item 5)
         scene.particles()
         for b in scene.boundaries:
             b.validate(scene)
         scene.resolve_dt()
     return scene
+
+
+# ---------------------------------------------------------------------------------------------
+# keys that nothing reads
+# ---------------------------------------------------------------------------------------------
+# Hydra's ``+key=value`` (and ``++``) adds a key even where the schema is closed, so a typo such as
+# ``+scene.bodies.cube.velocty=[1,2,3]`` composes; ``check_known_keys`` refuses such keys before a run.
+_VARS_REF = re.compile(r"scene\.vars\.([A-Za-z_][\w-]*)")
+_RESOLUTION_REF = re.compile(r"scene\.resolutions\.(?:\$\{[^}]*\}|[\w-]+)\.([A-Za-z_][\w-]*)")
+
+
+def _schema_fields(node: Any) -> Optional[list[str]]:
+    """Field names of a structured (dataclass-typed) node, None for an open dict or a non-dict."""
+    if not isinstance(node, DictConfig) or node._is_none() or node._is_missing() or node._is_interpolation():
+        return None
+    t = OmegaConf.get_type(node)
+    return [f.name for f in dataclasses.fields(t)] if t is not None and dataclasses.is_dataclass(t) else None
+
+
+def _children(node: DictConfig):
+    """(key, child node) without resolving interpolations."""
+    for key in node.keys():
+        yield str(key), node._get_node(key)
+
+
+def _boundary_options(node: DictConfig) -> Optional[list[str]]:
+    """The options the boundary kind of a ``BoundaryConfig`` node declares (dataclass fields), or None
+    when the kind is unknown (``build_scene`` reports it) or its class declares none."""
+    kind = node._get_node("kind")
+    kind = None if kind is None or kind._is_missing() or kind._is_interpolation() else kind._value()
+    if not isinstance(kind, str) or kind not in registry.boundaries:
+        return None
+    try:
+        cls = registry.boundaries.get(kind)
+    except Exception:  # noqa: BLE001 - a broken plugin is reported when the scene is built
+        return None
+    return [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else None
+
+
+def _interpolations(node: Any, out: list[str]) -> list[str]:
+    """Every interpolation string in the config (unresolved), for the keys only interpolations read."""
+    if isinstance(node, (DictConfig, ListConfig)) and node._is_interpolation():
+        out.append(str(node._value()))
+    elif isinstance(node, DictConfig) and not node._is_none() and not node._is_missing():
+        for _, child in _children(node):
+            _interpolations(child, out)
+    elif isinstance(node, ListConfig) and not node._is_none() and not node._is_missing():
+        for i in range(len(node)):
+            _interpolations(node._get_node(i), out)
+    elif node is not None and not isinstance(node, (DictConfig, ListConfig)):
+        v = node._value()
+        if isinstance(v, str) and "${" in v:
+            out.append(v)
+    return out
+
+
+def unknown_keys(cfg: DictConfig) -> list[tuple[str, list[str]]]:
+    """Keys of a composed config that no schema and no code reads, each with the keys it could have
+    meant (full keys of its siblings): ``[(full_key, candidates), ...]``.
+
+    Checked: every structured node (a key that is not a field of its dataclass); a boundary's options
+    (the schema's fields plus those its kind declares, also under ``extra``); ``scene.vars`` and
+    ``scene.resolutions.<name>`` entries added with ``+`` (only interpolations read them, so one that
+    no interpolation names is read by nothing; entries written in a scene's YAML may be there for
+    the tasks that use the scene and are left alone). Open dicts that their readers check themselves
+    (a law's ``params``, observation options, ``_target_`` objects, ``builder_args``) are left to them.
+    """
+    found: list[tuple[str, list[str]]] = []
+
+    def walk(node: DictConfig, path: str) -> None:
+        fields = _schema_fields(node)
+        prefix = f"{path}." if path else ""
+        if fields is not None:
+            allowed = list(fields)
+            options = _boundary_options(node) if OmegaConf.get_type(node) is BoundaryConfig else None
+            if options is not None:
+                allowed += [o for o in options if o not in allowed]
+            for key, child in _children(node):
+                if not path and key == "hydra":  # compose(return_hydra_config=True): Hydra's own node
+                    continue
+                if key not in allowed:
+                    near = fields if options is None else ["kind", "enabled"] + options
+                    found.append((prefix + key, [prefix + k for k in near]))
+                    continue
+                if options is not None and key == "extra" and isinstance(child, DictConfig) \
+                        and not child._is_none() and not child._is_interpolation():
+                    for k, _ in _children(child):
+                        if k not in options:
+                            found.append((f"{prefix}extra.{k}", [f"{prefix}extra.{o}" for o in options]))
+                    continue
+                if isinstance(child, DictConfig):
+                    walk(child, prefix + key)
+        elif isinstance(node, DictConfig) and not node._is_none() and not node._is_missing() \
+                and not node._is_interpolation():
+            for key, child in _children(node):  # an open dict: only its structured values are checked
+                if isinstance(child, DictConfig):
+                    walk(child, prefix + key)
+
+    walk(cfg, "")
+    scene = cfg._get_node("scene") if isinstance(cfg, DictConfig) and "scene" in cfg else None
+    if _schema_fields(scene) is not None:
+        refs = " ".join(_interpolations(cfg, []))
+        read_vars = set(_VARS_REF.findall(refs))
+        vars_node = scene._get_node("vars")
+        if isinstance(vars_node, DictConfig) and not vars_node._is_none() and not vars_node._is_interpolation():
+            for key, _ in _children(vars_node):
+                if key not in read_vars and _added_with_plus(f"scene.vars.{key}"):
+                    found.append((f"scene.vars.{key}", [f"scene.vars.{k}" for k in sorted(read_vars)]))
+        read_res = set(_RESOLUTION_REF.findall(refs))
+        res_node = scene._get_node("resolutions")
+        if isinstance(res_node, DictConfig) and not res_node._is_none() and not res_node._is_interpolation():
+            for name, entry in _children(res_node):
+                if isinstance(entry, DictConfig) and not entry._is_none() and not entry._is_interpolation():
+                    for key, _ in _children(entry):
+                        if key not in read_res and _added_with_plus(f"scene.resolutions.{name}.{key}"):
+                            found.append((f"scene.resolutions.{name}.{key}",
+                                          [f"scene.resolutions.{name}.{k}" for k in sorted(read_res)]))
+    return found
+
+
+def _all_keys(cfg: DictConfig) -> list[str]:
+    """Full keys of every schema field in the config (the candidates of a did-you-mean)."""
+    out: list[str] = []
+
+    def walk(node: Any, path: str) -> None:
+        if not isinstance(node, DictConfig) or node._is_none() or node._is_missing() or node._is_interpolation():
+            return
+        fields = _schema_fields(node)
+        for key, child in _children(node):
+            full = f"{path}.{key}" if path else key
+            if fields is None or key in fields:
+                out.append(full)
+                walk(child, full)
+
+    walk(cfg, "")
+    return out
+
+
+def _closest(key: str, siblings: list[str], everything: list[str]) -> Optional[str]:
+    """The closest real key: a sibling with a similar name, else any key whose last part is similar
+    (``overwrite`` -> ``output.overwrite``)."""
+    name = key.rsplit(".", 1)[-1]
+    near = difflib.get_close_matches(name, [k.rsplit(".", 1)[-1] for k in siblings], n=1, cutoff=0.6)
+    if near:
+        return next(k for k in siblings if k.rsplit(".", 1)[-1] == near[0])
+    lasts = {}
+    for k in everything:
+        if k != key:
+            lasts.setdefault(k.rsplit(".", 1)[-1], []).append(k)
+    near = difflib.get_close_matches(name, list(lasts), n=1, cutoff=0.75)
+    if not near:
+        return None
+    return max(lasts[near[0]], key=lambda k: difflib.SequenceMatcher(None, key, k).ratio())
+
+
+def _added_with_plus(key: str) -> bool:
+    """Whether a ``+KEY=``/``++KEY=`` override of this run added ``key`` (or a node above it)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        if not HydraConfig.initialized():
+            return False
+        overrides = list(HydraConfig.get().overrides.task)
+    except Exception:  # noqa: BLE001 - no Hydra run context (Python use)
+        return False
+    for o in overrides:
+        if o.startswith("+"):
+            k = o.lstrip("+").split("=", 1)[0].strip()
+            if key == k or key.startswith(k + "."):
+                return True
+    return False
+
+
+def unknown_key_message(key: str, candidates: list[str], everything: list[str] = (),
+                        added_with_plus: bool = False) -> str:
+    """One sentence for an unknown key: the key, how it got there, the closest real key, what to do."""
+    how = "added with +" if added_with_plus else "not a key of the schema"
+    best = _closest(key, list(candidates), list(everything))
+    hint = f"; did you mean '{best}'? Nothing" if best else "; nothing"
+    return (f"unknown key '{key}' ({how}){hint} reads it: fix the name or remove it "
+            f"(`mpmlab --cfg job` lists the keys).")
+
+
+def check_known_keys(cfg: DictConfig) -> None:
+    """Refuse a key of the composed config that no schema reads (e.g. added with ``+``), naming the
+    full key and the closest real one; ``ConfigError`` (exit code 2 on the CLI)."""
+    found = unknown_keys(cfg)
+    if not found:
+        return
+    key, candidates = found[0]
+    msg = unknown_key_message(key, candidates, _all_keys(cfg), _added_with_plus(key))
+    if len(found) > 1:
+        msg = msg[:-1] + f"; also unknown: {', '.join(k for k, _ in found[1:])}."
+    raise ConfigError(msg)
 
 
 def make_transfer_from_config(cfg: DictConfig):
@@ -597,7 +808,9 @@ def make_transfer_from_config(cfg: DictConfig):
 
 
 def check_run_options(cfg: DictConfig) -> None:
-    """Top-level options that no class downstream checks with a clear message."""
+    """Top-level options that no class downstream checks with a clear message, and keys that no
+    schema reads (:func:`check_known_keys`)."""
+    check_known_keys(cfg)
     if cfg.steps < 0:
         raise ConfigError(f"steps = {cfg.steps} must be >= 0.")
     if cfg.frame_every < 1:
@@ -606,6 +819,12 @@ def check_run_options(cfg: DictConfig) -> None:
         raise ConfigError(f"output.record_every = {cfg.output.record_every} must be >= 1.")
     if cfg.precision.name not in ("fp32", "fp64"):
         raise ConfigError(f"precision '{cfg.precision.name}' unknown; use precision=fp32 or precision=fp64.")
+    if cfg.seed < 0:  # numpy's generators (particle sampling, observation noise) take seeds >= 0
+        raise ConfigError(f"seed = {cfg.seed} must be >= 0; use seed=0 or another non-negative integer.")
+    if cfg.backend.name == "warp" and cfg.backend.device is not None:
+        from .backends.warp import check_device
+
+        check_device(str(cfg.backend.device), "backend.device")
 
 
 def describe_scene(scene) -> dict:

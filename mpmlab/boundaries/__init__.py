@@ -32,6 +32,11 @@ class Walls(AbstractBoundary):
     ``sticky``: v = 0; ``slip``: normal component zeroed; ``separate``: normal component zeroed only
     when moving into the wall (the Taichi mpm3d / NCLaw App. D free-slip box); ``none``: open.
     ``faces`` overrides ``default`` per face, keys ``x-``, ``x+``, ``y-``, ``y+``, ``z-``, ``z+``.
+
+    Walls constrain grid nodes, not particles: a particle moves with its stencil's velocity, which
+    includes free nodes, so it may end beyond the face (the innermost constrained node, origin +
+    (thickness - 1) dx) until the material pushes it back; for thickness >= 2 by less than 0.5 dx
+    (dam_break_2d, cpu, fp64: 12-13 of 4000 particles, <= 0.075 dx, none with PIC; benchmarks/walls.md).
     """
 
     name: ClassVar[str] = "walls"

@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from . import signals
 from .errors import ConfigError, SimulationDiverged
 from .interfaces import AbstractStepper, AbstractTransfer
 from .scene import Scene
@@ -151,7 +152,8 @@ class BaseStepper(AbstractStepper):
                                  trajectory=traj_so_far())
 
     def rollout(self, state=None, steps: int = 100, every: int | None = None, fields: tuple[str, ...] = (),
-                progress: bool | None = None, on_frame: Callable | None = None) -> Trajectory:
+                progress: bool | None = None, on_frame: Callable | None = None,
+                keep_frames: bool = True) -> Trajectory:
         """Run ``steps`` steps keeping every ``every``-th frame (frame 0 = the initial state) and the last.
 
         ``every`` defaults to the scene's ``substeps`` (time steps per output frame).
@@ -165,7 +167,14 @@ class BaseStepper(AbstractStepper):
             state: start state (default ``init()``).
             fields: extra per-particle fields to keep per frame (``F``, ``C``, ``J``, ``sigma``, ``eps_p``).
             progress: show a tqdm bar (None: only when stderr is a terminal).
-            on_frame: called as ``on_frame(frame_index, numpy_state)`` after each kept frame.
+            on_frame: called as ``on_frame(frame_index, numpy_state)`` after each kept frame; the
+                state carries its ``step`` and ``time`` (the last frame's step is ``steps`` itself
+                when ``steps`` is not a multiple of ``every``).
+            keep_frames: False: hand the frames to ``on_frame`` only, and return a trajectory with
+                their steps and times but no frames (memory stays bounded on any horizon; the
+                ``TrajectoryWriter`` streams them to disk).
+
+        A stop signal (``mpmlab.core.signals``) is checked between chunks.
         """
         every = self.scene.substeps if every is None else every
         if steps < 0 or every < 1:
@@ -182,13 +191,16 @@ class BaseStepper(AbstractStepper):
         t_now = 0.0                      # simulated time (float64 sum of the steps taken; adaptive dt)
 
         def keep(npstate, step_id):
-            frames.append({k: npstate[k] for k in ("x", "v", *fields) if k in npstate})
+            if keep_frames:
+                frames.append({k: npstate[k] for k in ("x", "v", *fields) if k in npstate})
             step_ids.append(step_id)
+            t = t_now if times is not None else step_id * self.dt
             if times is not None:
                 times.append(t_now)
-                npstate["time"], npstate["step"] = t_now, step_id   # for on_frame consumers (TrajectoryWriter)
+            npstate["time"], npstate["step"] = t, step_id   # the real labels, for on_frame consumers
             if on_frame is not None:
-                on_frame(len(frames) - 1, npstate)
+                with signals.deferred():       # a frame reaches all of on_frame's outputs or none
+                    on_frame(len(step_ids) - 1, npstate)
 
         def partial():
             return self._trajectory(frames, step_ids, fields, times)
@@ -204,6 +216,7 @@ class BaseStepper(AbstractStepper):
         t_first = None
         try:
             while done < steps:
+                signals.check()
                 if adaptive and done % dt_every == 0:
                     speed = self._max_speed(state)
                     if np.isfinite(speed):   # a non-finite state is left to the guard to report

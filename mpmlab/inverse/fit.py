@@ -14,6 +14,7 @@ Checkpoints (every ``checkpoint_every`` epochs, atomic) let an interrupted fit r
 """
 from __future__ import annotations
 
+import logging
 import os
 import pickle
 import time
@@ -22,9 +23,12 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..core import signals
 from ..core.errors import ConfigError, MpmlabError, SimulationDiverged
 from ..observations import ObservationSchedule
 from .parameters import FitParameter, ops_for
+
+log = logging.getLogger("mpmlab")
 
 
 class FitDiverged(MpmlabError):
@@ -169,8 +173,11 @@ class Fit:
                       tolerance)
 
     def _bar(self, epochs, progress):
+        """The progress bar, once the checkpoint (if any) is loaded; a resume is said in the run's log."""
         from tqdm.auto import tqdm
 
+        if self.epoch:
+            log.info("fit resumed at epoch %d of %d from its checkpoint.", self.epoch, epochs)
         return tqdm(total=epochs, initial=self.epoch, disable=None if progress is None else not progress,
                     unit="epoch", leave=False, mininterval=0.5)
 
@@ -184,7 +191,9 @@ class Fit:
         return entry
 
     def _epoch_done(self, bar, loss, on_epoch):
-        """Count the epoch, show it on the progress bar and report it to ``on_epoch``."""
+        """Count the epoch, show it on the progress bar and report it to ``on_epoch``; a stop signal
+        (SIGINT/SIGTERM) ends the fit here, after the last checkpoint."""
+        signals.check()
         self.epoch += 1
         bar.update(1)
         bar.set_postfix(loss=f"{loss:.3e}")

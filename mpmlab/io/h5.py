@@ -21,9 +21,9 @@ file is replaced only with ``overwrite=True``.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
@@ -42,81 +42,9 @@ _RESERVED_ATTRS = {"schema", "schema_version", "dim", "dt", "substeps_per_frame"
                    "diverged_message", "error"}
 
 
-# ---- atomic publication (shared with mpmlab.io.rerun) --------------------------------------------
-def _exists_error(path: Path) -> ConfigError:
-    return ConfigError(f"'{path}' already exists; pass overwrite=True to replace it, or choose another path.")
-
-
-def check_target(path: str | os.PathLike, overwrite: bool) -> Path:
-    """The target as a ``Path`` (parent folders created); refuses an existing file unless ``overwrite``."""
-    path = Path(path)
-    if path.is_dir():
-        raise ConfigError(f"'{path}' is a directory; give a file path to write to.")
-    if path.exists() and not overwrite:
-        raise _exists_error(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path
-
-
-def temp_path(path: Path) -> Path:
-    """A fresh empty temporary file next to ``path`` (same file system, so the rename is atomic)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    return Path(tmp)
-
-
-def _umask() -> int:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    return 0o022
-
-
-def publish(tmp: Path, path: Path, overwrite: bool) -> None:
-    """Move the finished ``tmp`` onto ``path`` in one step; ``tmp`` is gone afterwards in every case.
-
-    Without ``overwrite`` the move is a hard link, which fails atomically if ``path`` appeared meanwhile.
-    """
-    try:
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600
-        if overwrite:
-            os.replace(tmp, path)
-            return
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            raise _exists_error(path) from None
-        except OSError:  # a file system without hard links
-            if path.exists():
-                raise _exists_error(path) from None
-            os.replace(tmp, path)
-    finally:
-        discard(tmp)
-
-
-def discard(tmp: Path | None) -> None:
-    if tmp is not None:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-
-
-def write_atomically(path: str | os.PathLike, write: Callable[[Path], None], overwrite: bool = False) -> Path:
-    """Call ``write(tmp)`` on a temporary file next to ``path``, then publish it as ``path``."""
-    path = check_target(path, overwrite)
-    tmp = temp_path(path)
-    try:
-        write(tmp)
-        publish(tmp, path, overwrite)
-    except BaseException:
-        discard(tmp)
-        raise
-    return path
+# ---- atomic publication: mpmlab.io.files (re-exported here for the callers that import it from h5)
+from .files import (OutputError, OutputExistsError, check_target, discard, ensure_space,  # noqa: E402,F401
+                    is_disk_full, publish, temp_path, write_atomically)
 
 
 # ---- JSON helpers ------------------------------------------------------------------------------
@@ -248,7 +176,9 @@ def _finish(f, frame_count: int, complete: bool, exc: BaseException | None = Non
         a["diverged_field"] = str(exc.field)
         a["diverged_message"] = str(exc)
     elif exc is not None:
-        a["error"] = f"{type(exc).__name__}: {exc}"
+        from ..core.signals import stop_reason
+
+        a["error"] = stop_reason(exc)
     if complete:
         a["complete"] = True  # last: a file with complete=True has everything
     f.flush()
@@ -322,8 +252,15 @@ class TrajectoryWriter:
             its frames are ignored. Give this or ``stepper``.
         stepper: a built stepper to take the static data from.
         fields: per-particle fields to store besides x and v (``F``, ``C``, ``J``, ``sigma``, ``eps_p``).
-        every: the rollout's frame spacing in steps; frame k then has step ``k * every`` (exactly as
-            ``rollout`` numbers them). Without it the step is ``round(t / dt)`` from the state's time.
+        every: the rollout's frame spacing in steps, used only for a state that does not say its
+            step (``rollout`` states carry ``step`` and ``time``: the last frame of a rollout whose
+            ``steps`` is not a multiple of ``every`` is labelled with its real step). Without either,
+            the step is ``round(t / dt)`` from the state's time.
+
+    Each frame is flushed to disk as it is written, so that even a run killed with SIGKILL leaves a
+    readable temporary file (``mpmlab.io.files.handle_stale_temps`` recovers it), and each frame first
+    checks that it fits on the disk: a full disk ends the stream with ``OutputError`` ("no space
+    left on device") and the frames before it published, marked incomplete.
         config_yaml, extra_attrs, compression, overwrite: as for ``write_trajectory``.
     """
 
@@ -353,6 +290,7 @@ class TrajectoryWriter:
         self._f = None
         self._steps: list[int] = []
         self._closed = False
+        self._published: Path | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------
     def open(self) -> "TrajectoryWriter":
@@ -382,7 +320,7 @@ class TrajectoryWriter:
         """Finalise and publish (``complete`` unless ``exc`` is given); returns the path, or None if
         an exception ended a stream that had no frame (then nothing is written)."""
         if self._closed:
-            return self.path
+            return self._published
         self._closed = True
         if self._f is None:
             if exc is not None:
@@ -408,27 +346,28 @@ class TrajectoryWriter:
             _finish(f, self.frame_count, complete=exc is None, exc=exc)
             f.close()
             publish(tmp, self.path, self.overwrite)
-        except BaseException:
-            try:
-                f.close()
-            except Exception:
-                pass
-            discard(tmp)
+        except BaseException as err:
+            self._f = f
+            self._abandon()
+            if is_disk_full(err):
+                raise OutputError(self.path, "no space left on device", "while closing it; the partial file "
+                                  "was removed") from None
             raise
+        self._published = self.path
         return self.path
 
     # ---- frames ----------------------------------------------------------------------------
     def __call__(self, frame_index: int, npstate: dict) -> None:
         """The rollout ``on_frame`` callback: store the kept frame ``npstate``."""
-        if self.every is not None:
-            step = int(frame_index) * self.every
-        elif "step" in npstate:                  # adaptive dt: the rollout says which step this is
+        if "step" in npstate:                    # a rollout says which step this is
             step = int(npstate["step"])
+        elif self.every is not None:
+            step = int(frame_index) * self.every
         elif "t" in npstate and np.isfinite(self.dt):
             step = int(round(float(npstate["t"]) / self.dt))
         else:
             step = int(frame_index)
-        if "time" in npstate:                    # adaptive dt (dt: auto with scene.dt_every): the summed steps
+        if "time" in npstate:                    # a rollout's time: the sum of the steps taken (adaptive dt too)
             time = float(npstate["time"])
         else:
             time = step * self.dt if np.isfinite(self.dt) else float(npstate.get("t", np.nan))
@@ -466,18 +405,78 @@ class TrajectoryWriter:
                     idx = self.static.field_particles.get(name, np.arange(arrays[name].shape[0]))
                 fp.create_dataset(name, data=np.asarray(idx, dtype=np.int64))
         k = self.frame_count
-        for name, arr in {**arrays, "time": np.float64(time), "step": np.int64(step)}.items():
-            ds = fr[name]
-            if arr.shape != ds.shape[1:]:
+        row = {**arrays, "time": np.float64(time), "step": np.int64(step)}
+        for name, arr in row.items():
+            if arr.shape != fr[name].shape[1:]:
                 raise ConfigError(f"TrajectoryWriter: frame {k} has {name} of shape {arr.shape}, "
-                                  f"earlier frames {ds.shape[1:]}; the particle set cannot change.")
-            ds.resize(k + 1, axis=0)
-            ds[k] = arr
+                                  f"earlier frames {fr[name].shape[1:]}; the particle set cannot change.")
+        # HDF5 cannot recover from a failed write: refuse the frame while the disk still has room
+        ensure_space(self.path, 2 * sum(a.nbytes for a in row.values()), f"frame {k}")
+        try:
+            for name, arr in row.items():
+                ds = fr[name]
+                ds.resize(k + 1, axis=0)
+                ds[k] = arr
+            self._f.flush()    # on disk now: a SIGKILL later leaves a readable file
+        except (OSError, RuntimeError) as exc:
+            if is_disk_full(exc):
+                self._abandon()
+                raise OutputError(self.path, "no space left on device",
+                                  f"at frame {k}; the partial file was removed") from None
+            raise
         self._steps.append(int(step))
         self.frame_count = k + 1
 
+    def _abandon(self) -> None:
+        """Drop the stream after a failed write: free the disk first (truncating the temporary file),
+        so that HDF5's closing flush succeeds instead of failing over and over, then remove it."""
+        f, tmp = self._f, self._tmp
+        self._f, self._closed = None, True
+        try:
+            os.truncate(tmp, 0)
+        except OSError:
+            pass
+        try:
+            f.close()
+        except Exception:
+            pass
+        discard(tmp)
+
+
+def recover_stream(tmp: Path, target: Path, reason: str) -> int | None:
+    """Publish the streamed temporary file ``tmp`` of a killed writer as ``target``, marked incomplete
+    with ``reason``, keeping the frames that all frame datasets hold; None (nothing published) when it
+    is not a readable ``mpmlab.trajectory`` stream with at least one frame."""
+    import h5py
+
+    try:
+        with h5py.File(tmp, "r+") as f:
+            if _py(f.attrs.get("schema", None)) != SCHEMA or "frames" not in f:
+                return None
+            fr = f["frames"]
+            if any(k not in fr for k in _FRAME_CORE):
+                return None
+            T = min(fr[k].shape[0] for k in fr)
+            if T == 0:
+                return None
+            for k in fr:
+                if fr[k].shape[0] != T:
+                    fr[k].resize(T, axis=0)
+            f.attrs["frame_count"] = int(T)
+            f.attrs["complete"] = False
+            f.attrs["error"] = reason
+        publish(tmp, target, overwrite=False)
+    except Exception:
+        return None
+    return int(T)
+
 
 # ---- reading -----------------------------------------------------------------------------------
+def _unreadable(path: Path, what: str) -> ConfigError:
+    return ConfigError(f"trajectory file '{path}' is damaged: {what}; it may have been truncated or partly overwritten "
+                       f"(rewrite it with the run that made it, or give another file).")
+
+
 def _open_checked(path: str | os.PathLike):
     import h5py
 
@@ -486,10 +485,18 @@ def _open_checked(path: str | os.PathLike):
         raise ConfigError(f"trajectory file '{path}' does not exist; check the path.")
     if path.is_dir():
         raise ConfigError(f"'{path}' is a directory, not a trajectory file; give the .h5 file inside it.")
-    if not h5py.is_hdf5(path):
+    try:
+        is_h5 = h5py.is_hdf5(path)
+    except OSError as exc:
+        raise ConfigError(f"trajectory file '{path}' cannot be read ({(exc.strerror or str(exc)).lower()}); "
+                          f"check its permissions.") from None
+    if not is_h5:
         raise ConfigError(f"'{path}' is not an HDF5 file, so it cannot be an {SCHEMA} file; "
                           f"give a file written by mpmlab.io.write_trajectory.")
-    f = h5py.File(path, "r")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:  # a truncated file: the HDF5 signature is there, its end is not
+        raise _unreadable(path, f"HDF5 cannot open it ({_first_line(str(exc))})") from None
     schema = _py(f.attrs.get("schema", None))
     version = _py(f.attrs.get("schema_version", None))
     if schema != SCHEMA:
@@ -518,27 +525,85 @@ def read_trajectory(path: str | os.PathLike, require_complete: bool = False) -> 
     or refused with ``require_complete=True``. A missing file, a file that is not HDF5, or an HDF5 file
     of another schema or version raises ``ConfigError``.
     """
+    path = Path(path)
     with _open_checked(path) as f:
-        attrs = f.attrs
-        if not bool(attrs.get("complete", False)):
-            why = _py(attrs.get("diverged_message", None)) or _py(attrs.get("error", None)) or "writing stopped early"
-            msg = f"'{path}' is incomplete ({why}); it holds the {f['frames/x'].shape[0]} frames written before."
-            if require_complete:
-                raise ConfigError(msg)
-            warnings.warn(msg, stacklevel=2)
-        meta = json.loads(_py(attrs["metadata_json"]))
-        materials = json.loads(_py(f["materials"].attrs["laws_json"]))
-        p = f["particles"]
-        fr = f["frames"]
-        fields = {k: fr[k][()] for k in fr if k not in _FRAME_CORE}
-        fp = f["field_particles"]
-        field_particles = {k: fp[k][()] for k in fields if k in fp}
-        return Trajectory(
-            x=fr["x"][()], v=fr["v"][()], time=fr["time"][()], step=fr["step"][()],
-            mass=p["mass"][()], volume=p["volume"][()],
-            material_id=p["material_id"][()].astype(np.int64), body_id=p["body_id"][()].astype(np.int64),
-            materials=materials, params=p["params"][()], meta=meta, fields=fields, field_particles=field_particles,
-        )
+        try:
+            return _read(f, path, require_complete)
+        except (OSError, RuntimeError, KeyError, ValueError) as exc:   # h5py's errors on damaged data
+            if isinstance(exc, ConfigError):
+                raise
+            raise _unreadable(path, f"reading it failed ({type(exc).__name__}: {_first_line(str(exc))})") from None
+
+
+_REQUIRED = ("particles/mass", "particles/volume", "particles/material_id", "particles/body_id", "particles/params",
+             "frames/x", "frames/v", "frames/time", "frames/step", "field_particles")
+
+
+@contextlib.contextmanager
+def open_trajectory(path: str | os.PathLike, require_complete: bool = False):
+    """A ``Trajectory`` whose frame arrays (``x``, ``v``, ``fields``) are the file's h5py datasets,
+    read frame by frame on indexing (``traj.x[i]``): a trajectory of any length in bounded memory.
+    Valid inside the ``with`` block only; checks as ``read_trajectory``."""
+    path = Path(path)
+    with _open_checked(path) as f:
+        yield _read(f, path, require_complete, lazy=True)
+
+
+def _read(f, path: Path, require_complete: bool, lazy: bool = False) -> Trajectory:
+    """Check the layout of an opened file against the schema, then read it (``lazy``: frames as the
+    h5py datasets; the static data, times and steps are read)."""
+    attrs = f.attrs
+    missing = [k for k in _REQUIRED if k not in f]
+    if "materials" not in f or "laws_json" not in f["materials"].attrs:
+        missing.append("materials (attribute laws_json)")
+    if "metadata_json" not in attrs:
+        missing.append("the root attribute metadata_json")
+    if missing:
+        raise _unreadable(path, f"the {SCHEMA} dataset(s) {', '.join(missing)} are missing")
+    fr, p = f["frames"], f["particles"]
+    T, N = fr["x"].shape[0], p["mass"].shape[0]
+    for k in fr:
+        if fr[k].shape[0] != T:
+            raise _unreadable(path, f"frames/{k} has {fr[k].shape[0]} frames but frames/x has {T}")
+    for k in ("x", "v"):
+        if fr[k].ndim != 3 or fr[k].shape[1] != N:
+            raise _unreadable(path, f"frames/{k} has shape {fr[k].shape}, expected [T, {N}, D] for {N} particles")
+    for k in ("volume", "material_id", "body_id", "params"):
+        if p[k].shape[0] != N:
+            raise _unreadable(path, f"particles/{k} has {p[k].shape[0]} entries but particles/mass has {N}")
+    fp = f["field_particles"]
+    for k in fr:
+        if k not in _FRAME_CORE and k in fp and fr[k].shape[1] != fp[k].shape[0]:
+            raise _unreadable(path, f"frames/{k} covers {fr[k].shape[1]} particles but field_particles/{k} "
+                                    f"lists {fp[k].shape[0]}")
+    if not bool(attrs.get("complete", False)):
+        why = _py(attrs.get("diverged_message", None)) or _py(attrs.get("error", None)) or "writing stopped early"
+        msg = f"'{path}' is incomplete ({why}); it holds the {T} frames written before."
+        if require_complete:
+            raise ConfigError(msg)
+        warnings.warn(msg, stacklevel=3)
+    meta = json.loads(_py(attrs["metadata_json"]))
+    materials = json.loads(_py(f["materials"].attrs["laws_json"]))
+
+    def load(ds):
+        try:
+            return ds[()]
+        except (OSError, RuntimeError, ValueError) as exc:
+            raise _unreadable(path, f"{ds.name.lstrip('/')} cannot be read ({_first_line(str(exc))})") from None
+
+    frames = (lambda k: fr[k]) if lazy else (lambda k: load(fr[k]))
+    fields = {k: frames(k) for k in fr if k not in _FRAME_CORE}
+    field_particles = {k: load(fp[k]) for k in fields if k in fp}
+    return Trajectory(
+        x=frames("x"), v=frames("v"), time=load(fr["time"]), step=load(fr["step"]),
+        mass=load(p["mass"]), volume=load(p["volume"]),
+        material_id=load(p["material_id"]).astype(np.int64), body_id=load(p["body_id"]).astype(np.int64),
+        materials=materials, params=load(p["params"]), meta=meta, fields=fields, field_particles=field_particles,
+    )
+
+
+def _first_line(text: str) -> str:
+    return next((l.strip() for l in str(text).splitlines() if l.strip()), "")
 
 
 # ---- LagrangeBench export ----------------------------------------------------------------------

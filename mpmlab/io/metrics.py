@@ -144,3 +144,25 @@ def state_metrics(static: Trajectory, npstate: dict) -> dict[str, np.ndarray]:
         C=one("C"), C_particles=npstate.get("C_particles"), F=one("F"), F_particles=npstate.get("F_particles"),
         materials=static.materials, params=static.params,
     )
+
+
+class MetricSeries:
+    """Rollout ``on_frame`` companion: the metrics of each kept frame as it is produced, so a run that
+    streams its frames to disk never holds them (``result()``: ``{name: array [T, ...]}``, as
+    ``compute_metrics`` of the whole trajectory)."""
+
+    def __init__(self, static: Trajectory):
+        self.static = static
+        self._rows: list[dict[str, np.ndarray]] = []
+
+    def __call__(self, frame_index: int, npstate: dict) -> None:
+        self._rows.append(state_metrics(self.static, npstate))
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def result(self) -> dict[str, np.ndarray]:
+        if not self._rows:
+            return {}
+        keys = [k for k in self._rows[0] if all(k in r for r in self._rows)]
+        return {k: np.concatenate([r[k] for r in self._rows]) for k in keys}

@@ -25,7 +25,8 @@ import numpy as np
 
 from ..core.errors import ConfigError, SimulationDiverged
 from ..core.state import Trajectory
-from .h5 import check_target, discard, publish, temp_path, to_json
+from .files import SPACE_MARGIN, OutputError, check_target, discard, ensure_space, free_bytes, publish, temp_path
+from .h5 import to_json
 
 #: Material / body colours (Tableau 10), cycled.
 PALETTE = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
@@ -147,6 +148,7 @@ class RecordingWriter:
         self._tmp: Path | None = None
         self._closed = False
         self._fields_checked = False
+        self._logged_bytes = 0
 
     # ---- lifecycle -------------------------------------------------------------------------
     def _points(self):
@@ -193,7 +195,9 @@ class RecordingWriter:
             self._rec = None
 
     def close(self, exc: BaseException | None = None) -> Path | None:
-        """Flush and publish the recording; with ``exc`` and no frame logged, nothing is published."""
+        """Flush and publish the recording; with ``exc`` and no frame logged (or a full disk, which
+        ``OutputError`` reports), nothing is published: the recording can be made again from the
+        trajectory with ``task=replay``."""
         import rerun as rr
 
         if self._closed:
@@ -205,21 +209,31 @@ class RecordingWriter:
             self.open()
         try:
             if exc is not None:
-                if not self.frames_logged:
+                if not self.frames_logged or isinstance(exc, OutputError):  # a full disk: keep nothing
                     self._shutdown()
                     discard(self._tmp)
                     return None
-                what = "diverged" if isinstance(exc, SimulationDiverged) else f"stopped by {type(exc).__name__}"
+                from ..core.signals import stop_reason
+
+                what = "diverged" if isinstance(exc, SimulationDiverged) else stop_reason(exc)
                 self._rec.log("scene/status", rr.TextDocument(f"**Run {what}** after frame {self.frames_logged[-1]}: "
                                                               f"{exc}", media_type=rr.MediaType.MARKDOWN),
                               static=True)
             self._shutdown()
             publish(self._tmp, self.path, self.overwrite)
-        except BaseException:
+        except BaseException as err:
             self._rec = None
+            full = self._disk_full(err)
             discard(self._tmp)
+            if full:
+                raise OutputError(self.path, "no space left on device", "the partial recording was removed") from None
             raise
         return self.path
+
+    def _disk_full(self, err: BaseException) -> bool:
+        """rerun's file sink reports a full disk only as "File-writer thread shut down prematurely"."""
+        return isinstance(err, (OSError, RuntimeError)) and not isinstance(err, OutputError) \
+            and free_bytes(self.path) < SPACE_MARGIN
 
     # ---- static data -----------------------------------------------------------------------
     def _static_colors(self) -> np.ndarray | None:
@@ -295,8 +309,6 @@ class RecordingWriter:
 
         ``metrics`` maps a name to a scalar or a vector (one entry per component) for this frame.
         """
-        import rerun as rr
-
         if self._closed:
             raise ConfigError("RecordingWriter is closed; open a new writer to log more frames.")
         self.open()
@@ -305,10 +317,27 @@ class RecordingWriter:
             _check_color_by(self.color_by, list(fields))
             self._fields_checked = True
         rec = self._rec
+        log_particles = force or int(frame_index) % self.every == 0
+        # what this frame adds to the file, uncompressed: positions f32, colours u8x4 (rerun compresses)
+        nbytes = (np.size(x) * 4 + (len(x) * 4 if self.color_by not in ("material", "body") else 0)) \
+            if log_particles else 0
+        # rerun writes from a background thread, in batches: what was logged may not be on disk yet
+        self._logged_bytes += nbytes + 64 * len(metrics or {})
+        ensure_space(self.path, self._logged_bytes - os.path.getsize(self._tmp), f"frame {frame_index}")
+        try:
+            self._log_frame(rec, frame_index, x, v, time, fields, field_particles, metrics, log_particles)
+        except BaseException as err:
+            if self._disk_full(err):
+                raise OutputError(self.path, "no space left on device", f"at frame {frame_index}") from None
+            raise
+
+    def _log_frame(self, rec, frame_index, x, v, time, fields, field_particles, metrics, log_particles) -> None:
+        import rerun as rr
+
         rec.set_time("frame", sequence=int(frame_index))
         if np.isfinite(time):
             rec.set_time("sim_time", duration=float(time))
-        if force or int(frame_index) % self.every == 0:
+        if log_particles:
             P = self._points()
             x = np.asarray(x)
             if self.color_by in ("material", "body"):

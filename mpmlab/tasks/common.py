@@ -56,20 +56,43 @@ class FrameClock:
     """``on_frame`` companion: wall-clock time of every kept frame, for steady-state throughput.
 
     Frame 0 is logged before the first step; the first chunk (frame 0 -> 1) pays the compilation
-    (JAX tracing/XLA, Warp module loads); frames 1..T are the steady state.
+    (JAX tracing/XLA, Warp module loads); frames 1..T are the steady state. The time a run spends on
+    its outputs in ``on_frame`` (streaming the trajectory, per-frame metrics: ``output(seconds)``) is
+    taken out of the throughput and reported as ``output_time_s``.
     """
 
     def __init__(self):
-        self.times: list[float] = []
+        self.times: list[float] = []     # wall clock [s]
         self.steps: list[int] = []
+        self.times_s: list[float] = []   # simulated time of each kept frame [s]
+        self.output_s: list[float] = []  # wall time spent on each frame's outputs [s]
 
     def __call__(self, frame_index: int, npstate: dict, step: int) -> None:
         self.times.append(time.perf_counter())
         self.steps.append(int(step))
+        self.times_s.append(float(npstate.get("time", np.nan)))
+
+    @property
+    def count(self) -> int:
+        return len(self.steps)
+
+    def output(self, seconds: float) -> None:
+        """The wall time the outputs of the frame just stamped took."""
+        self.output_s.append(float(seconds))
+
+    def _stepping(self) -> np.ndarray:
+        """Wall times of the stamps with the outputs of earlier frames taken out."""
+        t = np.asarray(self.times, dtype=np.float64)
+        out = np.zeros(len(t))
+        o = np.asarray(self.output_s[: len(t)], dtype=np.float64)
+        out[1: len(o) + 1] = np.cumsum(o)[: len(t) - 1]
+        return t - out
 
     def timing(self, particles: int) -> dict:
-        t, s = np.asarray(self.times), np.asarray(self.steps)
-        out: dict[str, Any] = {"rollout_time_s": float(t[-1] - t[0]) if len(t) > 1 else 0.0}
+        wall, s = np.asarray(self.times), np.asarray(self.steps)
+        t = self._stepping()
+        out: dict[str, Any] = {"rollout_time_s": float(wall[-1] - wall[0]) if len(wall) > 1 else 0.0,
+                               "output_time_s": float(np.sum(self.output_s))}
         if len(t) >= 3 and s[-1] > s[1]:
             per_step = (t[-1] - t[1]) / (s[-1] - s[1])
             out["steady_steps"] = int(s[-1] - s[1])
@@ -91,8 +114,9 @@ class FrameClock:
         return out
 
     def step_time_per_frame(self) -> np.ndarray:
-        """Mean wall time per step [s] of the chunk ending at each frame (NaN at frame 0)."""
-        t, s = np.asarray(self.times), np.asarray(self.steps)
+        """Mean wall time per step [s] of the chunk ending at each frame (NaN at frame 0; outputs not
+        counted)."""
+        t, s = self._stepping(), np.asarray(self.steps)
         out = np.full(len(t), np.nan)
         if len(t) > 1:
             ds = np.diff(s)
@@ -125,7 +149,8 @@ def drift(metrics: dict, time_s: np.ndarray, gravity: Any) -> dict:
 
 
 def energy_series(metrics: dict) -> dict[str, np.ndarray]:
-    """Kinetic, gravitational (relative to frame 0), elastic and total energy per frame [J]."""
+    """Kinetic, gravitational (relative to frame 0), elastic and total energy per frame [J; J/m in 2D,
+    where masses are per unit depth]."""
     out = {}
     if "kinetic_energy" in metrics:
         out["kinetic"] = np.asarray(metrics["kinetic_energy"], float)
@@ -139,8 +164,10 @@ def energy_series(metrics: dict) -> dict[str, np.ndarray]:
     return out
 
 
-def plot_energy(path: Path, time_s: np.ndarray, metrics: dict, title: str, overwrite: bool = False) -> Path | None:
-    """Energy over time as a PNG (matplotlib, Agg backend), written atomically."""
+def plot_energy(path: Path, time_s: np.ndarray, metrics: dict, title: str, overwrite: bool = False,
+                dim: int = 3) -> Path | None:
+    """Energy over time as a PNG (matplotlib, Agg backend), written atomically; in 2D the energies are
+    per unit depth (J/m)."""
     series = energy_series(metrics)
     if not series or len(time_s) == 0:
         return None
@@ -153,12 +180,13 @@ def plot_energy(path: Path, time_s: np.ndarray, metrics: dict, title: str, overw
     for name, y in series.items():
         ax.plot(time_s, y, label=name, lw=2.2 if name == "total" else 1.4, color="k" if name == "total" else None)
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("energy [J]")
+    ax.set_ylabel("energy per unit depth [J/m]" if dim == 2 else "energy [J]")
     ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    return write_atomically(path, lambda tmp: fig.savefig(tmp, format="png"), overwrite)
+    # the title also as PNG metadata (tEXt "Title"): readable without looking at the picture
+    return write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", metadata={"Title": title}), overwrite)
 
 
 def fmt_rate(x: float | None) -> str:

@@ -193,14 +193,18 @@ def run(cfg, ctx) -> dict:
 
 def _levenberg_marquardt_class(opt_node):
     """The optimiser's class when it is mpmlab's LevenbergMarquardt (or a subclass), else None."""
-    from hydra.utils import get_class
-
     from ..inverse.lm import LevenbergMarquardt
 
     target = opt_node.get("_target_") if hasattr(opt_node, "get") else None
+    # hydra.utils.get_class logs "[hydra.utils][ERROR] Error getting class" for a function such as
+    # optax.adam before raising; look the target up quietly (as instantiate() does) and test its type
     try:
-        cls = get_class(str(target)) if target else None
-    except Exception:       # not a class (e.g. optax.adam is a function): instantiate() reports real mistakes
+        from hydra._internal.utils import _locate
+    except ImportError:     # pragma: no cover - a Hydra without it: the same lookup by import
+        from ..core.registry import load_object as _locate
+    try:
+        cls = _locate(str(target)) if target else None
+    except Exception:       # a misspelled target: instantiate() reports it with Hydra's message
         return None
     return cls if isinstance(cls, type) and issubclass(cls, LevenbergMarquardt) else None
 

@@ -25,6 +25,8 @@ def run(cfg, ctx) -> dict:
 
     t0 = time.perf_counter()
     out = Path(ctx.output_dir)
+    names = [CONFIG, SUMMARY, RECORDING] + ([ENERGY_PLOT] if cfg.output.plots else [])
+    check_outputs(out, names, ctx.overwrite)   # first: a refused rerun changes nothing
     if not cfg.input:
         raise ConfigError("task=replay needs the trajectory to replay: add input=PATH/trajectory.h5.")
     src = Path(str(cfg.input)).expanduser()
@@ -35,8 +37,6 @@ def run(cfg, ctx) -> dict:
     if cfg.output.color_by not in color_choices(list(traj.fields)):
         raise ConfigError(f"output.color_by='{cfg.output.color_by}' is not possible for '{src}' (fields "
                           f"{sorted(traj.fields) or 'none'}); choose one of {', '.join(color_choices(list(traj.fields)))}.")
-    names = [CONFIG, SUMMARY, RECORDING] + ([ENERGY_PLOT] if cfg.output.plots else [])
-    check_outputs(out, names, ctx.overwrite)
     write_config(out, cfg, ctx.overwrite)
     metrics = compute_metrics(traj) if traj.frame_count else {}
     meta = traj.meta or {}
@@ -45,7 +45,8 @@ def run(cfg, ctx) -> dict:
     outputs = {"config": CONFIG, "summary": SUMMARY, "recording": RECORDING}
     if cfg.output.plots and metrics:
         title = f"{meta.get('scene', src.name)} (replay of {src.name})"
-        if plot_energy(out / ENERGY_PLOT, traj.time, metrics, title, ctx.overwrite) is not None:
+        dim = int(meta.get("dim", traj.x.shape[-1]))
+        if plot_energy(out / ENERGY_PLOT, traj.time, metrics, title, ctx.overwrite, dim=dim) is not None:
             outputs["energy_plot"] = ENERGY_PLOT
     summary = {
         "task": "replay",

@@ -1,10 +1,14 @@
 """``task=simulate``: build the scene, roll it out, write the run's outputs.
 
 Outputs in the run directory: ``config.yaml`` (composed config, resolved), ``trajectory.h5``
-(streamed frame by frame; after a divergence it holds the frames before it, ``complete = False``),
-``recording.rrd``, ``energy.png`` and ``summary.json`` (timings, throughput on the steady-state steps,
-mass/momentum drift). Every check that can fail is done before the first step, and an output that
-already exists is refused unless ``output.overwrite=true``.
+(streamed frame by frame; a run that diverged, was interrupted (SIGINT or SIGTERM) or ran out of disk
+keeps the frames before it, ``complete = False`` and the reason recorded), ``recording.rrd`` (made
+from trajectory.h5 after the rollout, frame by frame), ``energy.png`` and ``summary.json`` (status
+``ok | diverged | interrupted | failed``, the last frame's real step and time, timings, throughput on
+the steady-state steps, mass/momentum drift, particles beyond the walls). Every check that can fail is
+done before the first step (outputs already there, sizes that cannot fit), and an output that already
+exists is refused unless ``output.overwrite=true``; memory stays bounded on any horizon (only
+per-frame scalars are kept).
 """
 from __future__ import annotations
 
@@ -15,9 +19,13 @@ import time
 from pathlib import Path
 
 
+import numpy as np
+
 from ..config import build_scene, check_run_options, make_transfer_from_config
 from ..core.errors import ConfigError, SimulationDiverged
 from ..core.interfaces import STATE_FIELDS
+from ..core.signals import stop_reason
+from ..io.containment import WallPenetration
 from .common import (CONFIG, ENERGY_PLOT, RECORDING, SUMMARY, TRAJECTORY, FrameClock, check_outputs, drift,
                      fmt_rate, plot_energy, write_config, write_json)
 
@@ -37,39 +45,43 @@ def stored_fields(requested, scene, transfer) -> tuple[str, ...]:
     return tuple(f for f in requested if f in carried)
 
 
+def _output_names(cfg) -> list[str]:
+    names = [CONFIG, SUMMARY]
+    names += [TRAJECTORY] if cfg.output.trajectory else []
+    names += [RECORDING] if cfg.output.recording else []
+    names += [ENERGY_PLOT] if cfg.output.plots else []
+    return names
+
+
 def run(cfg, ctx) -> dict:
     from .. import __version__
-    from ..io.metrics import compute_metrics
+    from ..io.metrics import MetricSeries
     from ..simulator import build_stepper
 
     t_task = time.perf_counter()
     out = Path(ctx.output_dir)
+    check_outputs(out, _output_names(cfg), ctx.overwrite)   # first: a refused rerun changes nothing
     check_run_options(cfg)
     scene = build_scene(cfg)
     transfer = make_transfer_from_config(cfg)
     backend, precision = cfg.backend.name, cfg.precision.name
     every, steps = int(cfg.frame_every), int(cfg.steps)
     fields = stored_fields(list(cfg.output.fields), scene, transfer)
-    recording_fields = fields
     if cfg.output.recording:
         from ..io.rerun import color_choices
 
-        if cfg.output.color_by not in color_choices(recording_fields):
+        if cfg.output.color_by not in color_choices(fields):
             raise ConfigError(
                 f"output.color_by='{cfg.output.color_by}' is not possible for this run (fields {list(fields) or 'none'}); "
-                f"choose one of {', '.join(color_choices(recording_fields))}."
+                f"choose one of {', '.join(color_choices(fields))}."
             )
-    names = [CONFIG, SUMMARY]
-    names += [TRAJECTORY] if cfg.output.trajectory else []
-    names += [RECORDING] if cfg.output.recording else []
-    names += [ENERGY_PLOT] if cfg.output.plots else []
-    check_outputs(out, names, ctx.overwrite)
     if 0 < steps < every:  # e.g. steps=20 on a scene that keeps every 100th step: keep the last state
         log.info("frame_every = %d exceeds steps = %d; keeping frames 0 and %d.", every, steps, steps)
         every = steps
     if steps % every:
-        log.warning("steps = %d is not a multiple of frame_every = %d: the last %d steps run but are not saved.",
-                    steps, every, steps % every)
+        log.info("steps = %d is not a multiple of frame_every = %d: frames are kept at steps 0, %d, ..., %d "
+                 "and at the last step, %d.", steps, every, every, steps - steps % every, steps)
+    check_output_sizes(cfg, scene, out, steps, every, fields)
 
     options = {}
     if cfg.backend.check_every is not None:
@@ -93,7 +105,12 @@ def run(cfg, ctx) -> dict:
     stepper = build_stepper(scene, backend, transfer, precision, **options)
     build_time = time.perf_counter() - t0
 
+    # Frames go to disk as they come (trajectory.h5); only per-frame scalars stay in memory, so memory
+    # is bounded on any horizon. Without a trajectory the recording needs the frames in memory.
     clock = FrameClock()
+    static = stepper._trajectory([], [], ())
+    series = MetricSeries(static)
+    walls = WallPenetration(scene)
     writer = None
     if cfg.output.trajectory:
         from omegaconf import OmegaConf
@@ -101,54 +118,76 @@ def run(cfg, ctx) -> dict:
         from ..io.h5 import TrajectoryWriter
 
         writer = TrajectoryWriter(
-            out / TRAJECTORY, stepper=stepper, fields=fields, every=every,
+            out / TRAJECTORY, static, fields=fields, every=every,
             config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overwrite=ctx.overwrite,
             extra_attrs={"scene": scene.name, "resolution": str(cfg.scene.resolution), "task": "simulate",
                          "seed": int(cfg.seed), "source": str(cfg.scene.source)},
         )
 
-    def on_frame(i, npstate):
-        clock(i, npstate, i * every)
+    def on_frame(i, npstate):   # runs whole (signals.deferred in the rollout): every output gets the frame
+        t0 = time.perf_counter()
+        clock(i, npstate, npstate["step"])
         if writer is not None:
             writer(i, npstate)
+        series(i, npstate)
+        walls.update(npstate["x"], int(npstate["step"]))
+        clock.output(time.perf_counter() - t0)
 
-    diverged = None
+    ended: BaseException | None = None     # what stopped the rollout before its last step
+    traj = None
     try:
-        traj = stepper.rollout(steps=steps, every=every, fields=fields, progress=ctx.progress, on_frame=on_frame)
-    except SimulationDiverged as exc:
-        diverged, traj = exc, exc.trajectory
-        if writer is not None:
-            writer.close(exc)  # keeps the frames before the failure, complete = False
-    except BaseException as exc:
-        if writer is not None:
-            writer.close(exc)
-        raise
-    else:
-        if writer is not None:
-            writer.close()
+        traj = stepper.rollout(steps=steps, every=every, fields=fields, progress=ctx.progress, on_frame=on_frame,
+                               keep_frames=writer is None and bool(cfg.output.recording))
+    except BaseException as exc:           # diverged, interrupted (SIGINT/SIGTERM), disk full, ...
+        ended = exc
+    if writer is not None:
+        try:
+            writer.close(ended)            # frames so far kept, complete = False, the reason recorded
+        except BaseException as exc:       # e.g. the disk filled up while closing
+            ended = ended or exc
+            writer = None if writer._published is None else writer
+    kept = writer is not None and writer._published is not None
+    # an error inside on_frame (a full disk) can stop a frame half way: count the frames every output has
+    frames = min(clock.count, len(series), writer.frame_count if kept else clock.count)
+    done = clock.steps[frames - 1] if frames else 0
+    diverged = ended if isinstance(ended, SimulationDiverged) else None
+    interrupted = ended if isinstance(ended, KeyboardInterrupt) else None
+    status = "ok" if ended is None else "diverged" if diverged else "interrupted" if interrupted else "failed"
 
     timing = clock.timing(P.count)
-    metrics = compute_metrics(traj) if traj is not None and traj.frame_count else {}
+    metrics = {k: a[:frames] for k, a in series.result().items()}
+    time_s = np.asarray(clock.times_s[:frames], dtype=np.float64)
     if metrics:
-        metrics["step_time_ms"] = clock.step_time_per_frame()[: traj.frame_count] * 1e3
+        # wall time per step of the chunk ending at each frame; the chunk 0 -> 1 pays the compilation
+        # (summary.json compile_time_s), so it is left out (NaN, as frame 0) instead of setting the scale
+        metrics["step_time_ms"] = clock.step_time_per_frame()[:frames] * 1e3
     outputs = {"config": CONFIG, "summary": SUMMARY}
-    if writer is not None and (out / TRAJECTORY).exists():
+    if kept:
         outputs["trajectory"] = TRAJECTORY
-    if cfg.output.recording and traj is not None and traj.frame_count:
-        from ..io.rerun import write_recording
+    notes = []
+    try:
+        if cfg.output.recording and frames and status in ("ok", "diverged"):
+            _write_recording(cfg, ctx, out, scene, traj if not kept else None, metrics)
+            outputs["recording"] = RECORDING
+        elif cfg.output.recording and frames:
+            notes.append(f"recording.rrd was not written ({status}); make it from the frames kept with "
+                         f"`mpmlab task=replay input={out / TRAJECTORY}`" if kept else
+                         f"recording.rrd was not written ({status})")
+        if cfg.output.plots and metrics and status in ("ok", "diverged"):
+            title = f"{scene.name}: {backend}/{transfer.name}/{precision}, {P.count} particles"
+            if diverged is not None:
+                title += f"\nDIVERGED at step {diverged.step} (frames before it shown)"
+            if plot_energy(out / ENERGY_PLOT, time_s, metrics, title, ctx.overwrite, dim=scene.dim) is not None:
+                outputs["energy_plot"] = ENERGY_PLOT
+    except BaseException as exc:           # the recording or plot could not be written (or a signal)
+        if ended is None:
+            ended = exc
+            interrupted = exc if isinstance(exc, KeyboardInterrupt) else None
+            status = "interrupted" if interrupted else "failed"
 
-        write_recording(out / RECORDING, traj, color_by=cfg.output.color_by, every=int(cfg.output.record_every),
-                        metrics=metrics, recording_id=f"{scene.name}-{out.name}", overwrite=ctx.overwrite)
-        outputs["recording"] = RECORDING
-    if cfg.output.plots and metrics:
-        title = f"{scene.name}: {backend}/{transfer.name}/{precision}, {P.count} particles"
-        if plot_energy(out / ENERGY_PLOT, traj.time, metrics, title, ctx.overwrite) is not None:
-            outputs["energy_plot"] = ENERGY_PLOT
-
-    done = int(traj.step[-1]) if traj is not None and traj.frame_count else 0
     summary = {
         "task": "simulate",
-        "status": "diverged" if diverged else "ok",
+        "status": status,
         "scene": scene.name,
         "resolution": str(cfg.scene.resolution),
         "backend": backend,
@@ -162,13 +201,16 @@ def run(cfg, ctx) -> dict:
         "dx": float(scene.dx),
         "dt": float(stepper.dt),
         "steps": steps,
-        "steps_saved": done,
+        "steps_done": int(clock.steps[-1]) if clock.count else 0,
+        "steps_saved": int(done) if kept else 0,
         "frame_every": every,
-        "frames": int(traj.frame_count) if traj is not None else 0,
+        "frames": int(frames),
+        "last_frame": {"step": int(done), "time": float(time_s[-1]) if frames else 0.0},
         "wall_time_s": None,
         "build_time_s": float(build_time),
         **timing,
-        **(drift(metrics, traj.time, scene.gravity) if metrics else {}),
+        **(drift(metrics, time_s, scene.gravity) if metrics else {}),
+        "containment": walls.summary(),
         "seed": int(cfg.seed),
         "host": platform.node(),
         "pid": os.getpid(),
@@ -176,16 +218,67 @@ def run(cfg, ctx) -> dict:
         "mpmlab_version": __version__,
         "overrides": list(ctx.job.get("overrides", [])),
     }
+    if ended is not None:
+        summary["error"] = stop_reason(ended) if interrupted else str(ended)
     if diverged is not None:
-        summary["error"] = str(diverged)
         summary["diverged_step"] = diverged.step
+    if notes:
+        summary["notes"] = notes
     summary["wall_time_s"] = float(time.perf_counter() - t_task)
-    write_json(out / SUMMARY, summary, ctx.overwrite)
-    if diverged is not None:
-        raise diverged
+    try:
+        write_json(out / SUMMARY, summary, ctx.overwrite)
+    except BaseException as exc:           # a full disk: report the first failure, not this one
+        if ended is None:
+            raise
+        del exc
+
+    kept_line = (f"trajectory.h5 keeps {frames} frame(s) up to step {done}, marked incomplete" if kept and ended
+                 else "no trajectory was kept" if ended and cfg.output.trajectory else "")
+    c = summary["containment"]
+    if c["particles_beyond_walls_ever"] or c["particles_in_obstacles_ever"]:
+        log.warning("%d particle(s) crossed a wall face or entered an obstacle during the run (at most %d at "
+                    "once, %d at the end), the deepest %.3g dx (%.3g m) through %s at step %s; see summary.json "
+                    "'containment' (walls constrain grid nodes, not particles: README 'Walls').",
+                    c["particles_beyond_walls_ever"] + c["particles_in_obstacles_ever"],
+                    max(c["particles_beyond_walls"], c["particles_in_obstacles"]),
+                    c["particles_beyond_walls_final"] + c["particles_in_obstacles_final"],
+                    c["worst_depth_dx"], c["worst_depth_m"], c["worst_face"], c["worst_step"])
+    for n in notes:
+        log.info("%s", n)
+    if ended is not None:
+        detail = f"at step {done} of {steps}" + (f"; {kept_line}" if kept_line else "")
+        if interrupted is not None:
+            log.warning("run %s %s.", stop_reason(interrupted), detail)
+        ended.mpmlab_detail = detail       # the CLI's closing line says what was kept
+        raise ended
+    log.info("run completed: %d steps, %d frames, %.2f s.", steps, frames, summary["wall_time_s"])
     print(f"mpmlab: {scene.name} {backend}/{transfer.name}/{precision}: {P.count} particles x {steps} steps in "
           f"{timing['rollout_time_s']:.2f} s ("
           + (f"compile {timing['compile_time_s']:.2f} s" if timing["compile_time_s"] is not None else "incl. compile")
           + "), "
           f"{fmt_rate(timing['particle_steps_per_second'])} particle-steps/s -> {out}", flush=True)
     return summary
+
+
+def _write_recording(cfg, ctx, out: Path, scene, traj, metrics) -> None:
+    """recording.rrd from the frames in memory (``traj``) or, frame by frame, from trajectory.h5."""
+    import contextlib
+    import warnings
+
+    from ..io.h5 import open_trajectory
+    from ..io.rerun import write_recording
+
+    source = contextlib.nullcontext(traj) if traj is not None else open_trajectory(out / TRAJECTORY)
+    with warnings.catch_warnings():   # "trajectory.h5 is incomplete" after a divergence: known, and reported
+        warnings.filterwarnings("ignore", message=".* is incomplete", category=UserWarning)
+        with source as t:
+            write_recording(out / RECORDING, t, color_by=cfg.output.color_by, every=int(cfg.output.record_every),
+                            metrics=metrics, recording_id=f"{scene.name}-{out.name}",
+                            overwrite=ctx.overwrite)
+
+
+def check_output_sizes(cfg, scene, out: Path, steps: int, every: int, fields) -> None:
+    """Refuse a run whose outputs cannot fit on the disk of ``out`` (before the first step)."""
+    from ..core.budget import output_preflight
+
+    output_preflight(cfg, scene, out, steps=steps, frame_every=every, fields=fields)

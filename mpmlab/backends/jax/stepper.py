@@ -368,12 +368,13 @@ class JaxStepper(BaseStepper):
 
     # ---- numpy views ------------------------------------------------------------------------------
     def to_numpy(self, state):
-        out = {"x": np.asarray(state["x"]), "v": np.asarray(state["v"]), "t": float(state["t"])}
+        dt = np.dtype(self.dtype)   # one float dtype per precision (fp32 -> float32), as on Warp
+        out = {"x": np.asarray(state["x"], dt), "v": np.asarray(state["v"], dt), "t": float(state["t"])}
         if "C" in state:
-            out["C"] = np.asarray(state["C"])
+            out["C"] = np.asarray(state["C"], dt)
         for name in ("F", "J", "sigma", "eps_p"):
             parts = [(g, st[name]) for g, st in zip(self.groups, state["law"]) if name in st]
             if parts:
-                out[name] = np.concatenate([np.asarray(a) for _, a in parts])
+                out[name] = np.concatenate([np.asarray(a, dt) for _, a in parts])
                 out[name + "_particles"] = np.concatenate([np.arange(g.start, g.stop) for g, _ in parts])
         return out

@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 
 from ...core.stepper import BaseStepper
+from . import check_device, init_warp
 from . import kernels as K
 from .kernels import WALL_CODES
 from .types import warp_types
@@ -43,10 +44,13 @@ class WarpStepper(BaseStepper):
     def __init__(self, scene, transfer, precision="fp32", check_every=None, device: str | None = None,
                  threads: int | None = None, p2g_atomic: bool | None = None):
         super().__init__(scene, transfer, precision, check_every)
-        wp.init()
+        init_warp()   # quiet: no "could not find the CUDA driver" line on a CPU machine
         # backend.device wins; MPMLAB_WARP_DEVICE sets the default (e.g. cuda:0 to run the test suite
         # on a GPU); otherwise the CPU
         self.device = str(device or os.environ.get("MPMLAB_WARP_DEVICE") or "cpu")
+        check_device(self.device, "backend.device" if device else "MPMLAB_WARP_DEVICE")
+        #: numpy dtype of every float array ``to_numpy`` returns (the stepper's precision)
+        self.np_dtype = np.dtype(np.float64 if precision == "fp64" else np.float32)
         T = self.T = warp_types(self.dim, precision)
         D = self.dim
         tr = transfer
@@ -378,7 +382,8 @@ class WarpStepper(BaseStepper):
         perm = getattr(getattr(state, "order", None), "perm", None)
 
         def scene_order(a, lo=0, hi=None):
-            a = a.numpy().astype(np.float64)
+            # a copy (the Warp array's memory is reused by later steps) in the stepper's precision
+            a = np.array(a.numpy(), dtype=self.np_dtype)
             if perm is None:
                 return a
             out = np.empty_like(a)
