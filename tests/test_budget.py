@@ -193,7 +193,8 @@ def test_output_estimate_layout():
     sizes = budget.estimate_outputs(1000, 3, "fp32", 1_000_001, ("F", "C"))
     per_frame = 1000 * (3 + 3 + 9 + 9) * 4                        # 96 kB: x, v, F, C in fp32
     assert sizes["trajectory.h5"] == pytest.approx(1_000_001 * per_frame, rel=0.01)
-    assert sizes["recording.rrd"] == pytest.approx(1_000_001 * 1000 * 3 * 4, rel=0.15)
+    # recording: positions (3 f32) and the hover values speed, J (from F), material and particle id (4 f32)
+    assert sizes["recording.rrd"] == pytest.approx(1_000_001 * 1000 * (3 + 4) * 4, rel=0.15)
     fp64 = budget.estimate_outputs(1000, 3, "fp64", 11, ("F",), recording=False)
     assert set(fp64) == {"trajectory.h5"}
     coloured = budget.estimate_outputs(1000, 2, "fp32", 11, (), 11, color_scalar=True)["recording.rrd"]

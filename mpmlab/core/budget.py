@@ -606,7 +606,7 @@ RECORDING_FILE = "recording.rrd"
 #: metadata document, blueprint and stream header
 _H5_FIXED = 256 * KiB
 _H5_PER_FRAME_DATASET = 64        # chunk index entries per frame and dataset
-_RRD_FIXED = 64 * KiB
+_RRD_FIXED = 160 * KiB           # blueprint, legends, colour bar, one entity per metric
 _RRD_PER_FRAME = 1 * KiB          # per frame: metrics scalars, time stamps, message framing
 
 
@@ -655,7 +655,10 @@ def estimate_outputs(particles: int, dim: int, precision: str, frames: int, fiel
         out[TRAJECTORY_FILE] = int(_H5_FIXED + static + T * per_frame)
     if recording:
         R = T if recording_frames is None else int(recording_frames)
-        per_logged = N * (4 * D + (4 if color_scalar else 0))
+        # positions f32 x D, a scalar colour u32, and the hover values (Particle:values, f32 each):
+        # speed, J (from J or F), eps_p and the stress norm where stored, material and particle id
+        n_values = 1 + ("J" in fp or "F" in fp) + ("eps_p" in fp) + ("sigma" in fp) + 2
+        per_logged = N * (4 * D + (4 if color_scalar else 0) + 4 * n_values)
         static = N * (4 + 4)                                    # radii f32, static colours u32
         out[RECORDING_FILE] = int(_RRD_FIXED + static + R * per_logged + T * _RRD_PER_FRAME)
     return out

@@ -12,6 +12,8 @@ _EXPORTS = {
     "export_lagrangebench": "h5", "SCHEMA": "h5", "SCHEMA_VERSION": "h5",
     "write_recording": "rerun", "RecordingWriter": "rerun", "read_recording_positions": "rerun",
     "read_recording_metrics": "rerun", "read_recording_component": "rerun", "color_choices": "rerun",
+    "read_particle_values": "rerun", "read_blueprint_views": "rerun", "read_series_names": "rerun",
+    "EpochRecorder": "rerun", "write_comparison_recording": "rerun", "open_trajectory": "h5",
     "compute_metrics": "metrics", "frame_metrics": "metrics", "state_metrics": "metrics",
 }
 

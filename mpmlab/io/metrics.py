@@ -16,6 +16,9 @@
   defines ``energy(F, params)`` and whose particles all have ``F`` recorded. Absent when no group
   qualifies (nothing is estimated); groups of other laws contribute nothing, and ``elastic_energy()``
   also returns which groups were included.
+
+``METRIC_INFO`` / ``metric_info(name, dim)`` give each metric's family (the plot it belongs to in a
+recording), its label and its unit; in 2D masses are per unit depth, so every unit gains a ``/m``.
 """
 from __future__ import annotations
 
@@ -24,6 +27,35 @@ from typing import Any
 import numpy as np
 
 from ..core.state import Trajectory
+
+
+#: name -> (family, label, unit in 3D); ``step_time_ms`` is added by ``task=simulate`` (wall time per step of
+#: the chunk ending at each frame; NaN where it is not a steady-state step: frame 0 and the compile chunk).
+METRIC_INFO: dict[str, tuple[str, str, str]] = {
+    "kinetic_energy": ("energy", "kinetic", "J"),
+    "gravity_potential_energy": ("energy", "gravitational (zero at the origin)", "J"),
+    "elastic_energy": ("energy", "elastic", "J"),
+    "linear_momentum": ("linear_momentum", "p", "kg·m/s"),
+    "angular_momentum": ("angular_momentum", "L", "kg·m²/s"),
+    "mass": ("mass", "mass", "kg"),
+    "step_time_ms": ("step_time", "wall time per step", "ms"),
+}
+#: family -> plot title (without the unit)
+FAMILY_TITLES = {"energy": "energy", "linear_momentum": "linear momentum", "angular_momentum": "angular momentum",
+                 "mass": "mass", "step_time": "step time"}
+#: families whose unit is per unit depth in 2D (all but the wall time)
+_PER_DEPTH = {"energy", "linear_momentum", "angular_momentum", "mass"}
+
+
+def metric_info(name: str, dim: int = 3) -> tuple[str, str, str]:
+    """(family, label, unit) of a metric; a name not in ``METRIC_INFO`` is its own family, unit ''.
+
+    In 2D the masses are per unit depth: kg/m, J/m, (kg·m/s)/m, (kg·m²/s)/m.
+    """
+    family, label, unit = METRIC_INFO.get(name, (name, name.replace("_", " "), ""))
+    if dim == 2 and family in _PER_DEPTH and unit:
+        unit = f"{unit}/m" if "·" not in unit else f"({unit})/m"
+    return family, label, unit
 
 
 def _cross(x: np.ndarray, v: np.ndarray) -> np.ndarray:

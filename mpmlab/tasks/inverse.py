@@ -223,34 +223,22 @@ def _fmt(v):
 
 
 class _Recorder:
-    """Loss and parameter values per epoch as rerun scalars (timeline ``epoch``), written atomically."""
+    """Loss and parameter values per epoch as rerun scalars (timeline ``epoch``: ``metrics/loss``,
+    ``metrics/<parameter>[/k]``), written atomically, in a blueprint made for a fit: log10 and linear
+    loss, one plot per parameter (``mpmlab.io.rerun.EpochRecorder``). The recording id gets a unique
+    suffix, so two fits opened at once stay apart in the viewer."""
 
     def __init__(self, path: Path, recording_id: str):
-        import rerun as rr
+        from ..io.rerun import EpochRecorder, unique_recording_id
 
         self.path = path
-        self.tmp = path.with_name(path.name + ".tmp")
-        self.rec = rr.RecordingStream("mpmlab", recording_id=recording_id)
-        self.rec.save(self.tmp)
+        self.rec = EpochRecorder(path, unique_recording_id(recording_id), title="inverse fit", overwrite=True)
 
     def log(self, epoch, loss, values):
-        import rerun as rr
-
-        self.rec.set_time("epoch", sequence=int(epoch))
-        self.rec.log("metrics/loss", rr.Scalars(float(loss)))
-        for name, v in values.items():
-            v = np.asarray(v, float).reshape(-1)
-            if v.size == 1:
-                self.rec.log(f"metrics/{name}", rr.Scalars(float(v[0])))
-            else:
-                for k, a in enumerate(v):
-                    self.rec.log(f"metrics/{name}/{k}", rr.Scalars(float(a)))
+        self.rec.log(epoch, loss, values)
 
     def close(self):
-        self.rec.flush()
-        self.rec.disconnect()
-        if self.tmp.exists():
-            os.replace(self.tmp, self.path)
+        self.rec.close()
 
 
 def plot_fit(path: Path, history, report, profiles, title: str) -> None:

@@ -21,7 +21,7 @@ def run(cfg, ctx) -> dict:
     from .. import __version__
     from ..io.h5 import read_attrs, read_trajectory
     from ..io.metrics import compute_metrics
-    from ..io.rerun import color_choices, write_recording
+    from ..io.rerun import color_choices, unique_recording_id, write_recording
 
     t0 = time.perf_counter()
     out = Path(ctx.output_dir)
@@ -41,7 +41,9 @@ def run(cfg, ctx) -> dict:
     metrics = compute_metrics(traj) if traj.frame_count else {}
     meta = traj.meta or {}
     write_recording(out / RECORDING, traj, color_by=cfg.output.color_by, every=int(cfg.output.record_every),
-                    metrics=metrics, recording_id=f"replay-{meta.get('scene', 'trajectory')}", overwrite=ctx.overwrite)
+                    metrics=metrics, overwrite=ctx.overwrite,
+                    # unique: two replays of one scene opened at once would otherwise merge in the viewer
+                    recording_id=unique_recording_id("replay", meta.get("scene", "trajectory"), out.name))
     outputs = {"config": CONFIG, "summary": SUMMARY, "recording": RECORDING}
     if cfg.output.plots and metrics:
         title = f"{meta.get('scene', src.name)} (replay of {src.name})"

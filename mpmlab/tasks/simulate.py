@@ -161,6 +161,7 @@ def run(cfg, ctx) -> dict:
         # wall time per step of the chunk ending at each frame; the chunk 0 -> 1 pays the compilation
         # (summary.json compile_time_s), so it is left out (NaN, as frame 0) instead of setting the scale
         metrics["step_time_ms"] = clock.step_time_per_frame()[:frames] * 1e3
+        metrics["step_time_ms"][1:2] = np.nan
     outputs = {"config": CONFIG, "summary": SUMMARY}
     if kept:
         outputs["trajectory"] = TRAJECTORY
@@ -266,14 +267,14 @@ def _write_recording(cfg, ctx, out: Path, scene, traj, metrics) -> None:
     import warnings
 
     from ..io.h5 import open_trajectory
-    from ..io.rerun import write_recording
+    from ..io.rerun import unique_recording_id, write_recording
 
     source = contextlib.nullcontext(traj) if traj is not None else open_trajectory(out / TRAJECTORY)
     with warnings.catch_warnings():   # "trajectory.h5 is incomplete" after a divergence: known, and reported
         warnings.filterwarnings("ignore", message=".* is incomplete", category=UserWarning)
         with source as t:
             write_recording(out / RECORDING, t, color_by=cfg.output.color_by, every=int(cfg.output.record_every),
-                            metrics=metrics, recording_id=f"{scene.name}-{out.name}",
+                            metrics=metrics, recording_id=unique_recording_id(scene.name, out.name),
                             overwrite=ctx.overwrite)
 
 
