@@ -41,17 +41,6 @@ class _Abort(BaseException):
         self.error = error
 
 
-class JobFailed(Exception):
-    """A job's error carried across a sweep launcher's process boundary (picklable; message + code)."""
-
-    def __init__(self, message: str, code: int = EXIT_INTERNAL):
-        super().__init__(message, code)
-        self.message, self.code = message, code
-
-    def __str__(self) -> str:
-        return self.message
-
-
 #: The sweep directory of a multirun started in this process (set by ``SweepRecorder``).
 _sweep_dir: Path | None = None
 JOBS_FILE = "jobs.jsonl"
@@ -72,10 +61,15 @@ class SweepRecorder(_HydraCallback):
         global _sweep_dir
         _sweep_dir = Path(str(config.hydra.sweep.dir))
         (_sweep_dir / STOP_FILE).unlink(missing_ok=True)
-        if "joblib" in str(config.hydra.launcher.get("_target_", "")):
+        if _parallel_launcher(config.hydra.launcher):
             from .core.signals import forward_to
 
             forward_to(_stop_sweep)
+
+
+def _parallel_launcher(launcher_cfg) -> bool:
+    """The joblib launcher: jobs run in worker processes of this machine, which a stop signal reaches."""
+    return "joblib" in str(launcher_cfg.get("_target_", ""))
 
 
 def _stop_sweep(signum: int) -> None:
@@ -136,7 +130,7 @@ def _task_function(cfg) -> dict:
     try:
         return _run_job(cfg, ctx, hc, multirun, job)
     finally:
-        if multirun and "joblib" in str(hc.launcher.get("_target_", "")):
+        if multirun and _parallel_launcher(hc.launcher):
             # a Ctrl-C reaches a joblib worker twice (the terminal's, and the one the sweep's parent
             # passes on): the second must not kill the worker between jobs; the parent stops the sweep
             import signal
@@ -223,10 +217,9 @@ def _debug_env() -> bool:
 
 
 def _first_line(text: str) -> str:
-    for line in str(text).splitlines():
-        if line.strip():
-            return line.strip()
-    return ""
+    from .core.errors import first_line
+
+    return first_line(text)
 
 
 def _omegaconf_detail(exc) -> str:
@@ -284,8 +277,6 @@ def describe_error(exc: BaseException) -> tuple[int, str]:
     from .io.files import OutputError, OutputExistsError
 
     detail = getattr(exc, "mpmlab_detail", "")
-    if isinstance(exc, JobFailed):
-        return exc.code, exc.message
     if isinstance(exc, KeyboardInterrupt):
         code = exc.exit_code if isinstance(exc, RunInterrupted) else EXIT_INTERRUPTED
         return code, f"{stop_reason(exc)}" + (f" {detail}" if detail else "") + "."

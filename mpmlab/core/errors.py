@@ -5,6 +5,11 @@ The CLI prints ``str(err)`` without a traceback and exits non-zero (see ``mpmlab
 from __future__ import annotations
 
 
+def first_line(text) -> str:
+    """The first non-blank line of a (library's multi-line) message, stripped."""
+    return next((line.strip() for line in str(text).splitlines() if line.strip()), "")
+
+
 class MpmlabError(Exception):
     """Base class of every error mpmlab raises for a user mistake or a failed simulation."""
 

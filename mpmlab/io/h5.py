@@ -31,6 +31,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from ..core.errors import ConfigError, SimulationDiverged
+from ..core.errors import first_line as _first_line
 from ..core.state import Trajectory
 
 SCHEMA = "mpmlab.trajectory"
@@ -600,10 +601,6 @@ def _read(f, path: Path, require_complete: bool, lazy: bool = False) -> Trajecto
         material_id=load(p["material_id"]).astype(np.int64), body_id=load(p["body_id"]).astype(np.int64),
         materials=materials, params=load(p["params"]), meta=meta, fields=fields, field_particles=field_particles,
     )
-
-
-def _first_line(text: str) -> str:
-    return next((l.strip() for l in str(text).splitlines() if l.strip()), "")
 
 
 # ---- LagrangeBench export ----------------------------------------------------------------------

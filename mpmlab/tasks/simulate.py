@@ -145,7 +145,6 @@ def run(cfg, ctx) -> dict:
             writer.close(ended)            # frames so far kept, complete = False, the reason recorded
         except BaseException as exc:       # e.g. the disk filled up while closing
             ended = ended or exc
-            writer = None if writer._published is None else writer
     kept = writer is not None and writer._published is not None
     # an error inside on_frame (a full disk) can stop a frame half way: count the frames every output has
     frames = min(clock.count, len(series), writer.frame_count if kept else clock.count)
