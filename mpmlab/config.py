@@ -330,7 +330,7 @@ class OutputConfig:
     #: particle colours: ``material`` or a scalar (``speed``, ``J``, ``eps_p``, ``stress``)
     color_by: str = "material"
     #: per-particle fields stored in the trajectory besides x and v (kept where the laws carry them)
-    fields: List[str] = field(default_factory=lambda: ["F", "C", "J", "sigma", "eps_p"])
+    fields: List[str] = field(default_factory=lambda: ["all"])
     #: energy-over-time PNG
     plots: bool = True
     #: replace outputs already in the run directory (otherwise that is an error)

@@ -3,9 +3,6 @@ from __future__ import annotations
 
 import numpy as np
 
-STATE_FIELDS = ("F", "J", "sigma", "eps_p")
-
-
 def states_from_F(law, Fs: np.ndarray, rng: np.random.Generator) -> list[dict]:
     """Law states built from deformation gradients: F itself, J = det F, a stress of the law's scale."""
     E = law_stiffness(law)
@@ -60,13 +57,16 @@ def jax_eval(law, dim, what, states, prm, grad_v=None, dt=0.0):
     import jax.numpy as jnp
 
     from mpmlab.backends.jax import stepper  # noqa: F401  (enables x64)
+    from mpmlab.backends.jax.laws import law_functions
 
-    impl = law.implementation("jax", "law")(dim)
+    law = law() if isinstance(law, type) else law
+    fns = law_functions(law, dim)
+    w = {k: jnp.asarray(a) for k, a in law.initial_weights(dim).items()}
     st = {k: jnp.asarray(v) for k, v in _stack(states, law.state_fields).items()}
     P = jnp.asarray(np.tile(prm, (len(states), 1)))
     if what == "kirchhoff":
-        return np.asarray(jax.vmap(impl.kirchhoff)(st, P))
-    new = jax.vmap(impl.update, in_axes=(0, 0, None, 0))(st, jnp.asarray(grad_v), dt, P)
+        return np.asarray(jax.vmap(fns.kirchhoff, in_axes=(0, 0, None))(st, P, w))
+    new = jax.vmap(fns.update, in_axes=(0, 0, None, 0, None))(st, jnp.asarray(grad_v), dt, P, w)
     return [{k: np.asarray(v[i]) for k, v in new.items()} for i in range(len(states))]
 
 
@@ -74,30 +74,40 @@ def warp_eval(law, dim, what, states, prm, grad_v=None, dt=0.0, precision="fp64"
     import warp as wp
 
     from mpmlab.backends.warp.kernels import law_kernels
-    from mpmlab.backends.warp.types import warp_types
 
-    T = warp_types(dim, precision)
+    law = law() if isinstance(law, type) else law
     K = law_kernels(law, dim, precision)
+    L = K.types
     n = len(states)
     st = _stack(states, law.state_fields)
-
-    def arr(name, src=None):
-        dtype = T.mat if name in ("F", "sigma") else T.scalar
-        if src is None:
-            return wp.zeros(n if name in st else 1, dtype=dtype)
-        return wp.array(src, dtype=dtype)
-
-    ins = [arr(f, st.get(f)) if f in st else arr(f) for f in STATE_FIELDS]
-    P = wp.array(np.tile(prm, (n, 1)), dtype=T.scalar)
-    tau = wp.zeros(n, dtype=T.mat)
+    ins = L.state_arrays({f: wp.array(st[f], dtype=d) for f, d, _ in L.fields})
+    outs_d = {f: wp.zeros(n, dtype=d) for f, d, _ in L.fields}
+    w = L.weights({k: wp.array(a, dtype=L.scalar) for k, a in law.initial_weights(dim).items()})
+    P = wp.array(np.tile(prm, (n, 1)), dtype=L.scalar)
+    tau = wp.zeros(n, dtype=L.mat)
     if what == "kirchhoff":
-        wp.launch(K.stress, dim=n, inputs=[*ins, P, 0, tau])
+        wp.launch(K.stress, dim=n, inputs=[ins, P, w, 0, tau])
         return tau.numpy()
-    outs = [arr(f) if f in st else arr(f) for f in STATE_FIELDS]
-    outs = [wp.zeros(n, dtype=o.dtype) if f in st else o for f, o in zip(STATE_FIELDS, outs)]
-    wp.launch(K.update, dim=n, inputs=[*ins, wp.array(np.asarray(grad_v), dtype=T.mat), P, T.scalar(dt), 0, *outs, tau])
-    got = {f: o.numpy() for f, o in zip(STATE_FIELDS, outs) if f in st}
+    wp.launch(K.update, dim=n, inputs=[ins, wp.array(np.asarray(grad_v), dtype=L.mat), P, w, L.scalar(dt), 0,
+                                       L.state_arrays(outs_d), tau])
+    got = {f: o.numpy() for f, o in outs_d.items()}
     return [{k: v[i] for k, v in got.items()} for i in range(n)]
 
 
 EVAL = {"reference": reference, "jax": jax_eval, "warp": warp_eval}
+
+
+def jax_law(law, dim):
+    """A law's JAX functions on one particle with parameters as a row in declared order and the law's
+    own weights: ``kirchhoff(state, row)``, ``update(state, grad_v, dt, row)`` (the v1 call shape)."""
+    import jax.numpy as jnp
+
+    from mpmlab.backends.jax.laws import law_functions
+
+    law = law() if isinstance(law, type) else law
+    fns = law_functions(law, dim)
+    w = {k: jnp.asarray(a) for k, a in law.initial_weights(dim).items()}
+    from types import SimpleNamespace
+
+    return SimpleNamespace(kirchhoff=lambda st, row: fns.kirchhoff(st, row, w),
+                           update=lambda st, gv, dt, row: fns.update(st, gv, dt, row, w))

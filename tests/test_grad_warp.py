@@ -169,7 +169,8 @@ def test_stress_adjoint_at_repeated_singular_values(law, dim):
     cls = registry.laws.get(law)
     st = stepper(("law_scene", law, dim), "apic")
     T = st.T
-    k = law_kernels(cls, dim, "fp64").stress
+    K = law_kernels(cls(), dim, "fp64")
+    k, L = K.stress, K.types
     rng = np.random.default_rng(0)
 
     def rot(a):
@@ -186,10 +187,10 @@ def test_stress_adjoint_at_repeated_singular_values(law, dim):
     def tau(F, grad=False):
         Fa = wp.array(F, dtype=T.mat, requires_grad=grad)
         out = wp.zeros(len(F), dtype=T.mat, requires_grad=grad)
-        empty_m, empty_s = wp.zeros(1, dtype=T.mat), wp.zeros(1, dtype=T.scalar)
         tape = wp.Tape()
         with tape:
-            wp.launch(k, dim=len(F), inputs=[Fa, empty_s, empty_m, empty_s, wp.array(prm, dtype=T.scalar), 0, out])
+            wp.launch(k, dim=len(F), inputs=[L.state_arrays({"F": Fa}), wp.array(prm, dtype=T.scalar), L.weights({}),
+                                             0, out])
         if not grad:
             return out.numpy()
         out.grad = wp.array(w, dtype=T.mat)

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from mpmlab.core import registry
 from mpmlab.core.errors import InvalidParameterError
 
-from .lawtools import EVAL
+from .lawtools import EVAL, jax_law
 
 LAW = registry.laws.get("drucker_prager_jaumann")
 REF = LAW.reference
@@ -29,7 +29,7 @@ def _jax_update(dim):
 
     from mpmlab.backends.jax import stepper  # noqa: F401  (enables x64)
 
-    return jax.jit(jax.vmap(LAW.implementation("jax", "law")(dim).update, in_axes=(0, 0, None, 0)))
+    return jax.jit(jax.vmap(jax_law(LAW, dim).update, in_axes=(0, 0, None, 0)))
 
 
 def update(backend, dim, states, L, dt, prm=PRM):
@@ -188,7 +188,7 @@ def test_jax_gradients_finite_at_rest(dim):
 
     from mpmlab.backends.jax import stepper  # noqa: F401  (enables x64)
 
-    impl = LAW.implementation("jax", "law")(dim)
+    impl = jax_law(LAW, dim)
 
     def loss(prm, L):
         st = {"J": jnp.array(1.0), "sigma": jnp.zeros((dim, dim)), "eps_p": jnp.array(0.0)}
@@ -225,7 +225,7 @@ def test_zone2_return_beyond_apex_goes_to_the_corner(backend):
     sigma_m = sigma_t with a non-negative tau on the shear surface, on every backend."""
     from mpmlab.core import registry
 
-    from .lawtools import EVAL
+    from .lawtools import EVAL, jax_law
 
     law = registry.laws.get("drucker_prager_jaumann")
     prm = np.array([law.resolve_params({"friction_angle": 30.0, "dilation_angle": 0.0}, "t")[k]

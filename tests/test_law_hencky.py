@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 from mpmlab.core import registry
 from mpmlab.laws._linalg_np import lame, polar_rotation
 
-from .lawtools import EVAL
+from .lawtools import EVAL, jax_law
 
 DP = registry.laws.get("hencky_drucker_prager")
 VM = registry.laws.get("hencky_von_mises")
@@ -242,7 +242,7 @@ def test_jax_derivatives_at_rest(dim):
     from mpmlab.backends.jax import stepper  # noqa: F401  (enables x64)
 
     for law, prm in ((DP, PRM_DP), (VM, PRM_VM)):
-        L = law.implementation("jax", "law")(dim)
+        L = jax_law(law, dim)
         P = jnp.asarray(prm)
         # d tau / d F at F = I is the small-strain elasticity tensor: d tau = 2 mu sym(dF) + lambda tr(dF) I
         J = np.asarray(jax.jit(jax.jacrev(lambda F: L.kirchhoff({"F": F}, P)))(jnp.eye(dim)))
@@ -271,7 +271,7 @@ def test_jax_plastic_derivatives_match_finite_differences(dim):
              (DP, PRM_DP, np.diag([1.3] + [1.0] * (dim - 1))),     # tension: tip
              (VM, PRM_VM, np.diag([1.2] + [0.9] * (dim - 1))))
     for law, prm, S in cases:
-        L = law.implementation("jax", "law")(dim)
+        L = jax_law(law, dim)
         F0 = R @ S @ R.T
         upd = jax.jit(lambda F: L.update({"F": F}, jnp.zeros((dim, dim)), 1e-3, jnp.asarray(prm))["F"])
         JF = np.asarray(jax.jit(jax.jacrev(upd))(jnp.asarray(F0)))

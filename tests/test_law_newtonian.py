@@ -132,10 +132,10 @@ def test_tension_cutoff_jax_gradient():
     import jax
     import jax.numpy as jnp
 
-    from mpmlab.laws.newtonian_fluid.jax import make
+    from .lawtools import jax_law
 
     jax.config.update("jax_enable_x64", True)
-    f = make(2)
+    f = jax_law(LAW, 2)
 
     def sxx(J):
         st = {"J": J, "sigma": jnp.zeros((2, 2))}

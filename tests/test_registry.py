@@ -3,7 +3,7 @@ import pytest
 
 import mpmlab
 from mpmlab.core import registry
-from mpmlab.core.interfaces import AbstractConstitutiveLaw, ParamSpec
+from mpmlab.core.interfaces import AbstractConstitutiveLaw, ParamSpec, StateField
 
 
 def test_builtins_registered():
@@ -33,7 +33,7 @@ def test_importing_mpmlab_imports_no_backend():
 class _JaxOnlyLaw(AbstractConstitutiveLaw):
     name = "jax_only_test_law"
     params = (ParamSpec("E", "Pa", 1.0, low=0.0),)
-    state_fields = ("F",)
+    state = (StateField("F", ("D", "D"), "identity"),)
     implementations = {"jax": "mpmlab.laws.fixed_corotated.jax:make"}
 
     @classmethod
@@ -42,7 +42,7 @@ class _JaxOnlyLaw(AbstractConstitutiveLaw):
 
 
 def test_missing_backend_implementation_is_refused_before_running():
-    registry.laws.register("jax_only_test_law", _JaxOnlyLaw)
+    registry.laws.register("jax_only_test_law", _JaxOnlyLaw, provenance="tests")
     scene = mpmlab.Scene(dim=2, dx=0.1, domain=([0, 0], [1, 1]), bodies=[
         mpmlab.Body(shape={"kind": "box", "lo": [0.3, 0.3], "hi": [0.5, 0.5]}, material="jax_only_test_law")], dt=1e-3)
     with pytest.raises(mpmlab.MissingImplementationError, match="no implementation for backend 'warp'"):

@@ -121,8 +121,6 @@ _EXACT_ROWS = 250_000
 #: per-axis lattices counted with the sampler's own float expressions up to this length
 _EXACT_AXIS = 1_000_000
 
-#: per-particle size (in scalars) of each stored per-particle field, by kind
-_FIELD_KIND = {"F": "mat", "C": "mat", "sigma": "mat", "J": "scalar", "eps_p": "scalar"}
 
 #: fixed allowances for the backend's compilation and allocator slack: the peak RSS above the
 #: post-import RSS of a 1000-particle run is ~90 MiB (JAX) and ~15 MiB (Warp, kernel cache warm)
@@ -343,7 +341,20 @@ def _laws(scene) -> list[tuple[Any, int]]:
 
 
 def _field_size(name: str, dim: int) -> int:
-    return dim * dim if _FIELD_KIND.get(name, "mat") == "mat" else 1
+    """Scalars per particle of a stored field: C is D x D; a law state field as its law declares it
+    (an undeclared name counts as D x D, the largest built-in)."""
+    if name == "C":
+        return dim * dim
+    from . import registry
+
+    for law_name in registry.laws.names():
+        try:
+            law = registry.laws.get(law_name)
+            if name in law.state_fields:
+                return law.state_spec(name).size(dim)
+        except Exception:  # noqa: BLE001 -- a broken plugin law: fall through to the default
+            continue
+    return dim * dim
 
 
 def _scene_particle_bytes(scene, n: int) -> int:
@@ -803,7 +814,10 @@ def output_preflight(cfg, scene, output_dir: str | os.PathLike, *, steps: int | 
     out_cfg = cfg.output
     record_every = int(out_cfg.get("record_every", 1))
     carried = carried_fields(scene, tr)
-    fields = [f for f in (out_cfg.get("fields", []) if fields is None else fields) if f in carried]
+    requested = list(out_cfg.get("fields", []) if fields is None else fields)
+    if "all" in requested:                 # every carried field (output.fields default)
+        requested = list(dict.fromkeys([f for f in requested if f != "all"] + sorted(carried)))
+    fields = [f for f in requested if f in carried]
     T, R = frame_counts(steps, every, record_every)
     write_traj, write_rec = bool(out_cfg.get("trajectory", True)), bool(out_cfg.get("recording", True))
     if keep_frames is None:

@@ -9,16 +9,62 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from .errors import InvalidParameterError, MissingImplementationError
+from .errors import ConfigError, InvalidParameterError, MissingImplementationError
 from .registry import load_object
 
-#: Per-particle law state fields and their shape (``"mat"``: [D, D], ``"scalar"``: []).
-STATE_FIELDS = {"F": "mat", "J": "scalar", "sigma": "mat", "eps_p": "scalar"}
+
+@dataclass(frozen=True)
+class StateField:
+    """One per-particle law state field, declared by the law (like Newton's custom attributes).
+
+    ``shape`` is per particle: ``()`` a scalar, ``("D",)`` a vector, ``("D", "D")`` a matrix; ``"D"``
+    stands for the scene's dimension and integers are fixed sizes (``(3,)``, ``("D", 4)``). ``init`` is
+    the value every particle starts from: a number (filled) or ``"identity"`` (square matrices).
+    ``check``: what the divergence guard tests besides finiteness: ``"positive"`` (a scalar > 0, e.g.
+    J) or ``"positive_det"`` (a matrix with det > 0, e.g. F); reported as field ``J``.
+
+    The steppers, the gradient paths, ``trajectory.h5``, ``output.fields``/``output.color_by`` and the
+    Warp structs are all built from these declarations: a law adds a field without editing mpmlab.
+    """
+
+    name: str
+    shape: tuple = ()
+    init: float | str = 0.0
+    unit: str = "-"
+    doc: str = ""
+    check: str | None = None
+
+    def __post_init__(self):
+        if not self.name.isidentifier() or self.name in ("x", "v", "C", "t", "tau"):
+            raise ConfigError(f"state field '{self.name}': the name must be a Python identifier other than "
+                              f"x, v, C, t and tau (those are the stepper's own).")
+        if any(not (d == "D" or (isinstance(d, int) and d > 0)) for d in self.shape) or len(self.shape) > 2:
+            raise ConfigError(f"state field '{self.name}': shape {self.shape!r} must be (), (n,) or (n, m) with "
+                              f"each n a positive int or 'D' (the dimension).")
+        if self.init == "identity" and (len(self.shape) != 2 or self.shape[0] != self.shape[1]):
+            raise ConfigError(f"state field '{self.name}': init 'identity' needs a square matrix shape.")
+        if self.check not in (None, "positive", "positive_det"):
+            raise ConfigError(f"state field '{self.name}': check {self.check!r} must be None, 'positive' or "
+                              f"'positive_det'.")
+
+    def resolved_shape(self, dim: int) -> tuple[int, ...]:
+        return tuple(dim if d == "D" else int(d) for d in self.shape)
+
+    def size(self, dim: int) -> int:
+        """Scalars per particle."""
+        return int(np.prod(self.resolved_shape(dim), dtype=int))
+
+    def initial(self, n: int, dim: int) -> np.ndarray:
+        shape = self.resolved_shape(dim)
+        if self.init == "identity":
+            return np.repeat(np.eye(shape[0])[None], n, axis=0)
+        return np.full((n,) + shape, float(self.init))
 
 
 @dataclass(frozen=True)
@@ -64,30 +110,98 @@ class _Pluggable:
 
 
 class AbstractConstitutiveLaw(_Pluggable, ABC):
-    """A material's response, written as two pure per-particle functions on every backend.
+    """A material's response: a law *instance*, built from its material config, with two pure
+    per-particle functions on every backend (one contract, three spellings):
 
-    * ``kirchhoff(state, params) -> tau``: Kirchhoff stress tau = P F^T = J sigma, used by P2G.
-    * ``update(state, grad_v, dt, params) -> state``: advance the law state over dt given the particle
-      velocity gradient (elastic predictor + return map for hyperelastic laws, NCLaw Alg. 1; stress
-      rate integration for hypo-elastic laws, JAX-MPM Eq. 21).
+    * ``kirchhoff(state, params, weights) -> tau``: Kirchhoff stress tau = P F^T = J sigma, for P2G.
+    * ``update(state, grad_v, dt, params, weights) -> state``: advance the law state over dt given the
+      particle velocity gradient (elastic predictor + return map for hyperelastic laws, NCLaw Alg. 1;
+      stress-rate integration for hypo-elastic laws, JAX-MPM Eq. 21).
 
-    ``state_fields`` is the subset of ``STATE_FIELDS`` the law carries: a J-based fluid declares only
-    ``J``, so the stepper never stores or updates a full F for it. ``params`` are the user-facing
-    parameters (units, ranges); backends receive them as a per-particle array ``[N, len(params)]`` in
-    this order and derive moduli inline, so gradients reach E and nu directly.
-    ``reference`` is a NumPy float64 module with the same two functions: the conformance oracle. A law
-    whose state has no matrix field (J only) takes the dimension as ``kirchhoff(state, params, dim=D)``.
+    What the law declares, and what each backend passes:
+
+    * ``params``: per-particle physical parameters (``ParamSpec``: units, ranges). Law code reads them
+      **by name**: ``params["E"]`` on JAX and in the NumPy reference (a mapping name -> scalar per
+      particle), ``prm.E`` on Warp (a generated ``wp.struct``). Gradients reach them on both backends.
+    * ``weight_shapes(dim)`` / ``initial_weights(dim)``: group-level (shared) arrays, e.g. a network's
+      weights, a ``{name: array}`` dict. JAX passes the dict un-batched (``vmap(in_axes=None)``); Warp
+      passes a generated ``wp.struct`` of ``wp.array`` members as one kernel argument, whose adjoints
+      accumulate over particles. They are ``controls()["law_weights"][group]`` on both backends, with
+      memory O(weights), not O(particles x weights).
+    * ``state``: the per-particle state fields (``StateField``: name, shape, initial value). Everything
+      downstream is built from it: ``initial_state``, the Warp ``LawState`` struct, the stored fields.
+
+    Backend factories (``implementations``: ``{"jax": "pkg.mod:make", "warp": "pkg.mod:make"}``):
+
+    * JAX: ``make(law, dim) -> namespace(kirchhoff, update)`` of plain functions on one particle; the
+      stepper vmaps them over the group. ``state`` is a dict of arrays, ``weights`` a dict.
+    * Warp: ``make(law, dim, precision) -> namespace(kirchhoff, update)`` of ``@wp.func``s with
+      ``(s: LawState, [grad_v: mat, dt: scalar,] prm: Params, w: Weights)``, the types from
+      ``mpmlab.backends.warp.law_types(law, dim, precision)``; ``update`` returns a ``LawState``.
+    * ``reference``: a NumPy float64 module with the same two functions (``state`` a dict of arrays,
+      ``params`` a dict of floats): the conformance oracle of ``mpmlab.testing``.
+
+    A law's configuration (network widths, a weights file, ablation switches) is the instance's
+    fields: subclasses are frozen dataclasses, ``material.options`` in the config fills them, two
+    bodies may use two instances of one law. Instances compare and hash by class and fields, so a
+    backend compiles one kernel per distinct configuration.
     """
 
-    params: ClassVar[tuple[ParamSpec, ...]]
-    state_fields: ClassVar[tuple[str, ...]]
+    params: ClassVar[tuple[ParamSpec, ...]] = ()
+    state: ClassVar[tuple[StateField, ...]]
+    #: the declared state's names (derived from ``state``)
+    state_fields: ClassVar[tuple[str, ...]] = ()
     plastic: ClassVar[bool] = False
-    reference: ClassVar[Any]
+    reference: ClassVar[Any] = None
     #: the smallest stable CFL factor C* measured for this law over the transfers and both backends
     #: (``benchmarks/stress.py --full``), where it is below the library-wide safety margin; ``dt: auto``
     #: then uses at most C*/2 for scenes with this law (``Scene.effective_cfl``). None: no extra limit.
     stable_cfl: ClassVar[float | None] = None
+    #: parameters (and options) that make this law deform and, if plastic, yield within 50 steps of
+    #: the ``mpmlab.testing`` scenes; the conformance kit takes its test cases from here
+    test_params: ClassVar[Mapping[str, float]] = {}
+    test_options: ClassVar[Mapping[str, Any]] = {}
 
+    def __init_subclass__(cls, **kw):
+        super().__init_subclass__(**kw)
+        if "state" in cls.__dict__:
+            names = [f.name for f in cls.state]
+            if len(set(names)) != len(names):
+                raise ConfigError(f"law '{getattr(cls, 'name', cls.__name__)}': state field names {names} repeat.")
+            cls.state_fields = tuple(names)
+
+    # ---- instances ----------------------------------------------------------------------------
+    @classmethod
+    def from_config(cls, options: Mapping[str, Any] | None, where: str) -> "AbstractConstitutiveLaw":
+        """The law instance a material's ``options`` describe (unknown options: a clear error)."""
+        options = dict(options or {})
+        known = [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else []
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            raise ConfigError(
+                f"{where}: law '{cls.name}' has no option(s) {', '.join(unknown)}; "
+                + (f"its options are {', '.join(known)}." if known else "it takes no options."))
+        try:
+            return cls(**options)
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"{where}: law '{cls.name}' options {options}: {e}") from None
+
+    def __eq__(self, other):
+        return type(other) is type(self) and other._config_key() == self._config_key()
+
+    def __hash__(self):
+        return hash((type(self), self._config_key()))
+
+    def _config_key(self) -> tuple:
+        if not dataclasses.is_dataclass(self):
+            return ()
+        return tuple((f.name, _frozen(getattr(self, f.name))) for f in dataclasses.fields(self))
+
+    def __repr__(self):
+        body = ", ".join(f"{k}={v!r}" for k, v in self._config_key())
+        return f"{type(self).__name__}({body})"
+
+    # ---- parameters ---------------------------------------------------------------------------
     @classmethod
     def param_names(cls) -> tuple[str, ...]:
         return tuple(p.name for p in cls.params)
@@ -100,7 +214,7 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
         if unknown:
             raise InvalidParameterError(
                 f"{where}: law '{cls.name}' has no parameter(s) {', '.join(unknown)}; its parameters are "
-                f"{', '.join(known)}."
+                f"{', '.join(known) or '(none)'}."
             )
         out = {}
         for spec in cls.params:
@@ -127,15 +241,53 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
     def wave_speed(cls, params: Mapping[str, float], density: float) -> float:
         """Largest elastic wave speed [m/s] (P-wave or sound speed) for the CFL bound."""
 
+    # ---- state and shared weights ---------------------------------------------------------------
+    @classmethod
+    def state_spec(cls, name: str) -> StateField:
+        for f in cls.state:
+            if f.name == name:
+                return f
+        raise KeyError(name)
+
     @classmethod
     def initial_state(cls, n: int, dim: int) -> dict[str, np.ndarray]:
-        out = {}
-        for f in cls.state_fields:
-            if STATE_FIELDS[f] == "mat":
-                out[f] = np.repeat(np.eye(dim)[None], n, axis=0) if f == "F" else np.zeros((n, dim, dim))
-            else:
-                out[f] = np.ones(n) if f == "J" else np.zeros(n)
-        return out
+        return {f.name: f.initial(n, dim) for f in cls.state}
+
+    def weight_shapes(self, dim: int) -> dict[str, tuple[int, ...]]:
+        """Shapes of the group-level (shared) arrays; none by default."""
+        return {}
+
+    def initial_weights(self, dim: int) -> dict[str, np.ndarray]:
+        """The shared arrays' starting values (float64; e.g. loaded from a weights file)."""
+        return {k: np.zeros(s) for k, s in self.weight_shapes(dim).items()}
+
+    def check_weights(self, weights: Mapping[str, Any], dim: int, where: str) -> None:
+        """Refuse weights whose names or shapes differ from ``weight_shapes`` (one line, names the law)."""
+        want = self.weight_shapes(dim)
+        if set(weights) != set(want):
+            raise ConfigError(f"{where}: law '{self.name}' declares weights {sorted(want)}, got {sorted(weights)}.")
+        for k, shape in want.items():
+            got = tuple(np.shape(weights[k]))
+            if got != tuple(shape):
+                raise ConfigError(f"{where}: law '{self.name}' weight '{k}' has shape {got}; it declares {tuple(shape)}.")
+
+
+def named_params(prm, names) -> Mapping[str, Any]:
+    """Law parameters by name: a mapping is returned as is; an array ``[..., P]`` in the declared
+    order (the layout of a stepper's per-particle parameters) becomes ``{name: prm[..., i]}``. NumPy
+    references call it at their entry points, so their code reads ``prm["E"]`` either way."""
+    if isinstance(prm, Mapping):
+        return prm
+    a = np.asarray(prm, dtype=float)
+    return {n: a[..., i] for i, n in enumerate(names)}
+
+
+def _frozen(v):
+    if isinstance(v, Mapping):
+        return tuple(sorted((k, _frozen(x)) for k, x in v.items()))
+    if isinstance(v, (list, tuple)):
+        return tuple(_frozen(x) for x in v)
+    return v
 
 
 class AbstractTransfer(_Pluggable, ABC):

@@ -33,6 +33,8 @@ class Body:
         particles_per_cell: k^D points per cell (regular / jittered sampling).
         sampling: ``regular``, ``jittered`` or ``random`` (then ``count`` particles).
         particle_volume: override of the per-particle volume [m^D] (e.g. Taichi mpm3d's quirk).
+        options: the law's configuration (its instance fields: network widths, a weights file, ...);
+            bodies with the same material and options share one law instance and its weights.
     """
 
     shape: Any
@@ -46,6 +48,7 @@ class Body:
     count: int | None = None
     particle_volume: float | None = None
     name: str = ""
+    options: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         if isinstance(self.shape, Mapping):
@@ -55,12 +58,14 @@ class Body:
 
 @dataclass
 class MaterialGroup:
-    """A contiguous block of particles sharing one law; ``params`` is ``[n, P]`` in the law's order."""
+    """A contiguous block of particles sharing one law instance: ``params`` is ``[n, P]`` per particle
+    in the law's declared order, ``weights`` the law's shared arrays ``{name: array}`` (float64)."""
 
     law: Any
     start: int
     stop: int
     params: np.ndarray
+    weights: dict = field(default_factory=dict)
 
     @property
     def count(self) -> int:
@@ -167,10 +172,12 @@ class Scene:
     @cached_property
     def _particles(self) -> ParticleSet:
         xs, vs, ms, vols, bids, law_names, params = [], [], [], [], [], [], []
+        instances = {}
         for b, body in enumerate(self.bodies):
             where = f"scene '{self.name}', body {body.name or b}"
             law = registry.laws.get(body.material)
             prm = law.resolve_params(body.params, where, density=body.density)
+            inst = law.from_config(body.options, where)
             if not body.density > 0:
                 raise ConfigError(f"{where}: density = {body.density} must be positive.")
             x, vol = sample(body.shape, self.dim, self.dx, body.particles_per_cell, body.sampling,
@@ -206,17 +213,19 @@ class Scene:
                     v += np.cross(w, r)
             xs.append(x); vs.append(v)
             ms.append(np.full(len(x), body.density * vol)); vols.append(np.full(len(x), vol))
-            bids.append(np.full(len(x), b)); law_names.append(body.material)
+            bids.append(np.full(len(x), b)); law_names.append(inst)
+            instances.setdefault(inst, where)
             params.append(np.tile(np.array([prm[k] for k in law.param_names()]), (len(x), 1)))
-        # group particles by law, in order of first appearance
+        # group particles by law instance (law and options), in order of first appearance
         order_laws = list(dict.fromkeys(law_names))
         blocks, groups, start = [], [], 0
         mat_id = []
-        for g, name in enumerate(order_laws):
-            idx = [b for b, n in enumerate(law_names) if n == name]
+        for g, inst in enumerate(order_laws):
+            idx = [b for b, n in enumerate(law_names) if n == inst]
             n = sum(len(xs[b]) for b in idx)
-            groups.append(MaterialGroup(registry.laws.get(name), start, start + n,
-                                        np.concatenate([params[b] for b in idx])))
+            weights = {k: np.asarray(a, dtype=float) for k, a in inst.initial_weights(self.dim).items()}
+            inst.check_weights(weights, self.dim, instances[inst])
+            groups.append(MaterialGroup(inst, start, start + n, np.concatenate([params[b] for b in idx]), weights))
             blocks.extend(idx); mat_id.append(np.full(n, g)); start += n
         cat = lambda arrs: np.concatenate([arrs[b] for b in blocks])
         return ParticleSet(cat(xs), cat(vs), cat(ms), cat(vols), cat(bids), np.concatenate(mat_id), groups)

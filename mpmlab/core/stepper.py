@@ -49,6 +49,12 @@ class BaseStepper(AbstractStepper):
         self.groups = self.particles.groups
         self.check_every = check_every
         self.compile_time_s = 0.0
+        #: every law state field of the scene (declared by its laws), in order of first appearance
+        self.state_fields = {}
+        for g in self.groups:
+            for f in g.law.state:
+                self.state_fields.setdefault(f.name, f)
+        self.state_field_names = tuple(self.state_fields)
 
     # ---- primitives a backend implements ---------------------------------------------------
     @abstractmethod
@@ -105,7 +111,7 @@ class BaseStepper(AbstractStepper):
             bad = ~np.all(np.isfinite(a), axis=1)
             if bad.any():
                 p = int(np.argmax(bad)); return p, name, a[p].tolist()
-        for name in ("F", "J", "sigma", "eps_p", "C"):
+        for name in (*self.state_field_names, "C"):
             if name not in npstate:
                 continue
             a = npstate[name].reshape(len(npstate[name]), -1)
@@ -113,15 +119,16 @@ class BaseStepper(AbstractStepper):
             bad = ~np.all(np.isfinite(a), axis=1)
             if bad.any():
                 k = int(np.argmax(bad)); return int(idx[k]), name, a[k].tolist()
-        if "J" in npstate or "F" in npstate:
-            for name in ("J", "F"):
-                if name not in npstate:
-                    continue
-                J = npstate[name] if name == "J" else np.linalg.det(npstate["F"])
+        checks = [(n, f.check) for n, f in self.state_fields.items() if f.check and n in npstate]
+        if checks:
+            # scalar checks first (J before det F); det F <= 0 is reported as field "J" (the volume ratio)
+            for name, check in sorted(checks, key=lambda c: c[1] != "positive"):
+                J = npstate[name] if check == "positive" else np.linalg.det(npstate[name])
                 idx = npstate.get(name + "_particles", np.arange(len(J)))
                 bad = J <= 0
                 if bad.any():
-                    k = int(np.argmax(bad)); return int(idx[k]), "J", float(J[k])
+                    k = int(np.argmax(bad))
+                    return int(idx[k]), name if check == "positive" else "J", float(J[k])
         x = npstate["x"]
         out = np.any((x < lo) | (x >= hi), axis=1)
         if out.any():

@@ -77,7 +77,31 @@ def color_choices(fields: Sequence[str]) -> list[str]:
         out.append("eps_p")
     if "sigma" in fields:
         out.append("stress")
-    return out
+    # any other state field a law declares (a hardening variable, a back-stress): coloured by its
+    # value, or by its norm when it is not a scalar
+    extra = [f for f in fields if f not in _PRESENTED and f not in out]
+    for f in extra:          # a declared field becomes a quantity (hover value, colour bar) like the built-ins
+        QUANTITIES.setdefault(f, (f, *_declared_label(f)))
+    return out + extra
+
+
+def _declared_label(name: str) -> tuple[str, str]:
+    """(label, unit) of a law state field from its declaration (``StateField.doc``/``unit``)."""
+    from ..core import registry
+
+    for law_name in registry.laws.names():
+        try:
+            law = registry.laws.get(law_name)
+            if name in law.state_fields:
+                f = law.state_spec(name)
+                return (f.doc or name), ("" if f.unit == "-" else f.unit)
+        except Exception:  # noqa: BLE001 -- a broken plugin law: plain name
+            continue
+    return name, ""
+
+
+#: stored fields with a colouring of their own above (J from F, |sigma| as stress) or none (F, C)
+_PRESENTED = ("F", "C", "J", "sigma", "eps_p")
 
 
 def _check_color_by(color_by: str, fields: Sequence[str]) -> None:
@@ -97,8 +121,8 @@ def particle_scalar(color_by: str, v: np.ndarray, fields: dict, field_particles:
         key = "J" if "J" in fields else "F"
         a = np.asarray(fields[key], dtype=np.float64)
         val = a.reshape(len(a), -1)[:, 0] if key == "J" else np.linalg.det(a)
-    elif color_by == "eps_p":
-        key = "eps_p"
+    elif color_by == "eps_p" or (color_by in fields and color_by not in _PRESENTED):
+        key = color_by
         a = np.asarray(fields[key], dtype=np.float64)
         a = a.reshape(len(a), -1)
         val = a[:, 0] if a.shape[1] == 1 else np.linalg.norm(a, axis=1)

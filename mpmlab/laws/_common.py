@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import math
 
-from ..core.interfaces import ParamSpec
+from ..core.interfaces import ParamSpec, StateField, named_params  # noqa: F401  (the references use it)
 from ._linalg_np import lame
 
 YOUNGS_MODULUS = ParamSpec("E", "Pa", 1.0e5, low=0.0, low_open=True, doc="Young's modulus")
 POISSON_RATIO = ParamSpec("nu", "-", 0.3, low=-1.0, high=0.5, low_open=True, high_open=True, doc="Poisson ratio")
+
+#: the state fields the built-in laws share (each law declares the ones it carries)
+DEFORMATION_GRADIENT = StateField("F", ("D", "D"), "identity", doc="deformation gradient F (elastic part for "
+                                  "plastic laws)", check="positive_det")
+VOLUME_RATIO = StateField("J", (), 1.0, doc="volume ratio J = det F", check="positive")
+CAUCHY_STRESS = StateField("sigma", ("D", "D"), 0.0, unit="Pa", doc="Cauchy stress (tension positive)")
+PLASTIC_STRAIN = StateField("eps_p", (), 0.0, doc="equivalent plastic strain")
 
 
 def p_wave_speed(params, density: float) -> float:
@@ -20,3 +27,4 @@ def p_wave_speed(params, density: float) -> float:
 def builtin_implementations(name: str) -> dict[str, str]:
     """``{backend: "module:make"}`` for a law folder ``mpmlab/laws/<name>/{jax,warp}.py``."""
     return {b: f"mpmlab.laws.{name}.{b}:make" for b in ("jax", "warp")}
+

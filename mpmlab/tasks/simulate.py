@@ -23,7 +23,6 @@ import numpy as np
 
 from ..config import build_scene, check_run_options, make_transfer_from_config
 from ..core.errors import ConfigError, SimulationDiverged
-from ..core.interfaces import STATE_FIELDS
 from ..core.signals import stop_reason
 from ..io.containment import WallPenetration
 from .common import (CONFIG, ENERGY_PLOT, RECORDING, SUMMARY, TRAJECTORY, FrameClock, check_outputs, drift,
@@ -31,17 +30,31 @@ from .common import (CONFIG, ENERGY_PLOT, RECORDING, SUMMARY, TRAJECTORY, FrameC
 
 log = logging.getLogger("mpmlab")
 
-FIELD_NAMES = ("C", *STATE_FIELDS)
+def known_fields() -> list[str]:
+    """Every per-particle field a run can store: ``C`` and the state fields the registered laws declare."""
+    from ..core import registry
+
+    names = {"C": None}
+    for name in registry.laws.names():
+        try:
+            names.update(dict.fromkeys(registry.laws.get(name).state_fields))
+        except Exception:  # noqa: BLE001 -- a broken plugin law must not hide the built-in fields
+            continue
+    return list(names)
 
 
 def stored_fields(requested, scene, transfer) -> tuple[str, ...]:
-    """The requested per-particle fields that this scene's laws and transfer actually carry."""
-    unknown = [f for f in requested if f not in FIELD_NAMES]
-    if unknown:
-        raise ConfigError(f"output.fields: unknown field(s) {unknown}; choose from {list(FIELD_NAMES)}.")
-    carried = {"C"} if transfer.needs_affine else set()
+    """The requested per-particle fields that this scene's laws and transfer actually carry; ``all``
+    stands for every one of them (C first, then each law's declared fields)."""
+    carried = {"C": None} if transfer.needs_affine else {}
     for g in scene.particles().groups:
-        carried |= set(g.law.state_fields)
+        carried.update(dict.fromkeys(g.law.state_fields))
+    if "all" in requested:
+        requested = list(dict.fromkeys([f for f in requested if f != "all"] + list(carried)))
+    known = known_fields()
+    unknown = [f for f in requested if f not in known and f not in carried]
+    if unknown:
+        raise ConfigError(f"output.fields: unknown field(s) {unknown}; choose from {['all'] + known}.")
     return tuple(f for f in requested if f in carried)
 
 

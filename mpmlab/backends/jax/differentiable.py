@@ -31,25 +31,48 @@ def controls(stepper) -> dict[str, Any]:
     scene_order = [None] * len(stepper._bc_order)
     for k, i in enumerate(stepper._bc_order):
         scene_order[i] = prm["boundary"][k]
-    return {"x": jnp.asarray(P.x, dt), "v": jnp.asarray(P.v, dt), "law": prm["law"], "boundary": tuple(scene_order),
-            "gravity": prm["gravity"], "mass": prm["mass"], "volume": prm["volume"]}
+    law_state = tuple({k: jnp.asarray(v, dt) for k, v in g.law.initial_state(g.count, stepper.dim).items()}
+                      for g in stepper.groups)
+    out = {"x": jnp.asarray(P.x, dt), "v": jnp.asarray(P.v, dt), "law": prm["law"], "law_weights": prm["law_weights"],
+           "law_state": law_state, "boundary": tuple(scene_order),
+           "gravity": prm["gravity"], "mass": prm["mass"], "volume": prm["volume"]}
+    if stepper.transfer.needs_affine:
+        out["C"] = jnp.zeros((P.count, stepper.dim, stepper.dim), dt)
+    return out
+
+
+REQUIRED = ("x", "v", "law", "boundary", "gravity", "mass", "volume")
 
 
 def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
-    """(initial state, step parameters) from controls; the law state starts at rest (F = I, J = 1, ...)."""
-    missing = {"x", "v", "law", "boundary", "gravity", "mass", "volume"} - set(c)
+    """(initial state, step parameters) from controls. ``law_state`` and ``C`` are optional: without
+    them the rollout starts at rest (F = I, J = 1, ..., C = 0); ``law_weights`` defaults to the laws'
+    own weights."""
+    missing = set(REQUIRED) - set(c)
     if missing:
         raise ConfigError(f"controls lack {sorted(missing)}; start from stepper.controls() and replace entries.")
     dt = stepper.dtype
-    law_states = tuple({k: jnp.asarray(v, dt) for k, v in g.law.initial_state(g.count, stepper.dim).items()}
-                       for g in stepper.groups)
+    if "law_state" in c:
+        law_states = tuple(c["law_state"])
+        if len(law_states) != len(stepper.groups):
+            raise ConfigError(f"controls['law_state'] has {len(law_states)} entries; the scene has "
+                              f"{len(stepper.groups)} material groups.")
+        for g, st in zip(stepper.groups, law_states):
+            if set(st) != set(g.law.state_fields):
+                raise ConfigError(f"controls['law_state'] for law '{g.law.name}' has fields {sorted(st)}; the law "
+                                  f"declares {sorted(g.law.state_fields)}.")
+    else:
+        law_states = tuple({k: jnp.asarray(v, dt) for k, v in g.law.initial_state(g.count, stepper.dim).items()}
+                           for g in stepper.groups)
     state = {"x": jnp.asarray(c["x"], dt), "v": jnp.asarray(c["v"], dt), "law": law_states, "t": jnp.asarray(0.0, dt)}
     if stepper.transfer.needs_affine:
-        state["C"] = jnp.zeros((stepper.particles.count, stepper.dim, stepper.dim), dt)
+        state["C"] = (jnp.asarray(c["C"], dt) if "C" in c
+                      else jnp.zeros((stepper.particles.count, stepper.dim, stepper.dim), dt))
     if len(c["boundary"]) != len(stepper._bc_order):
         raise ConfigError(f"controls have {len(c['boundary'])} boundary entries; the scene has {len(stepper._bc_order)}.")
-    params = {"law": tuple(c["law"]), "mass": c["mass"], "volume": c["volume"], "gravity": c["gravity"],
-              "boundary": tuple(c["boundary"][i] for i in stepper._bc_order)}   # scene -> stepper order
+    weights = tuple(c["law_weights"]) if "law_weights" in c else stepper.default_params()["law_weights"]
+    params = {"law": tuple(c["law"]), "law_weights": weights, "mass": c["mass"], "volume": c["volume"],
+              "gravity": c["gravity"], "boundary": tuple(c["boundary"][i] for i in stepper._bc_order)}   # scene -> stepper order
     return state, params
 
 

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...core.stepper import BaseStepper
+from .laws import law_functions, weights_of
 
 DTYPES = {"fp32": jnp.float32, "fp64": jnp.float64}
 
@@ -76,8 +77,7 @@ class JaxStepper(BaseStepper):
         self._offsets = np.array(list(itertools.product(range(3), repeat=D)), dtype=np.int32)  # [S, D]
         self._laws = []
         for g in self.groups:
-            impl = g.law.implementation("jax", "law")(D)
-            self._laws.append(impl)
+            self._laws.append(law_functions(g.law, D, dtype))
         grid_bcs, self._particle_bcs, self._force_bcs = [], [], []
         for b in scene.boundaries:
             impl = b.implementation("jax", "boundary")(b, scene, dtype)
@@ -111,6 +111,7 @@ class JaxStepper(BaseStepper):
         P = self.particles
         return {
             "law": tuple(jnp.asarray(g.params, self.dtype) for g in self.groups),
+            "law_weights": tuple(weights_of(g, self.dtype) for g in self.groups),
             "mass": jnp.asarray(P.mass, self.dtype),
             "volume": jnp.asarray(P.volume, self.dtype),
             "gravity": jnp.asarray(self.scene.gravity, self.dtype),
@@ -181,8 +182,9 @@ class JaxStepper(BaseStepper):
             return out
 
         # stress (Kirchhoff) from each law present ----------------------------------------------------
-        tau = jnp.concatenate([jax.vmap(law.kirchhoff)(st, prm) for law, st, prm in
-                               zip(self._laws, state["law"], params["law"])], axis=0).astype(dtype)  # [N, D, D]
+        tau = jnp.concatenate([jax.vmap(law.kirchhoff, in_axes=(0, 0, None))(st, prm, w) for law, st, prm, w in
+                               zip(self._laws, state["law"], params["law"], params["law_weights"])],
+                              axis=0).astype(dtype)  # [N, D, D]
 
         # P2G ---------------------------------------------------------------------------------------------
         # Node o of a particle gets, per lane (momentum D, mass 1 [, force D when split]):
@@ -315,9 +317,9 @@ class JaxStepper(BaseStepper):
 
         # law update per material block ------------------------------------------------------------------------
         laws = []
-        for g, law, st, prm in zip(self.groups, self._laws, state["law"], params["law"]):
+        for g, law, st, prm, w in zip(self.groups, self._laws, state["law"], params["law"], params["law_weights"]):
             gv = grad_v[g.start:g.stop]
-            upd = jax.vmap(law.update, in_axes=(0, 0, None, 0))(st, gv, dt, prm)
+            upd = jax.vmap(law.update, in_axes=(0, 0, None, 0, None))(st, gv, dt, prm, w)
             # a law (or a plugin's law) may build constants in float64: keep the state in the stepper's precision
             laws.append({k: a.astype(dtype) for k, a in upd.items()})
         new["law"] = tuple(laws)
@@ -354,13 +356,14 @@ class JaxStepper(BaseStepper):
         lo, hi = self.scene.inner_bounds
         bad = ~jnp.all(jnp.isfinite(state["x"])) | ~jnp.all(jnp.isfinite(state["v"]))
         bad = bad | jnp.any((state["x"] < lo) | (state["x"] >= hi))
-        for st in state["law"]:
+        for g, st in zip(self.groups, state["law"]):
             for k, a in st.items():
                 bad = bad | ~jnp.all(jnp.isfinite(a))
-            if "J" in st:
-                bad = bad | jnp.any(st["J"] <= 0)
-            elif "F" in st:
-                bad = bad | jnp.any(jnp.linalg.det(st["F"]) <= 0)
+            for f in g.law.state:          # the declared sign checks (J > 0, det F > 0)
+                if f.check == "positive":
+                    bad = bad | jnp.any(st[f.name] <= 0)
+                elif f.check == "positive_det":
+                    bad = bad | jnp.any(jnp.linalg.det(st[f.name]) <= 0)
         return bad
 
     def _is_bad(self, state) -> bool:
@@ -372,7 +375,7 @@ class JaxStepper(BaseStepper):
         out = {"x": np.asarray(state["x"], dt), "v": np.asarray(state["v"], dt), "t": float(state["t"])}
         if "C" in state:
             out["C"] = np.asarray(state["C"], dt)
-        for name in ("F", "J", "sigma", "eps_p"):
+        for name in self.state_field_names:
             parts = [(g, st[name]) for g, st in zip(self.groups, state["law"]) if name in st]
             if parts:
                 out[name] = np.concatenate([np.asarray(a, dt) for _, a in parts])

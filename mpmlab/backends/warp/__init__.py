@@ -7,6 +7,15 @@ import tempfile
 from ...core.errors import ConfigError
 from ...core.interfaces import AbstractBackend
 
+def __getattr__(name):
+    # the public law-author API, imported on first use (importing this package must not import warp)
+    if name == "law_types":
+        from .law_structs import law_types
+
+        return law_types
+    raise AttributeError(name)
+
+
 #: What Warp's native library prints (to the process's stderr, from C) when ``libcuda`` is absent: on
 #: a CPU machine that is no news, so ``init_warp`` drops it; a run that asks for a CUDA device is
 #: refused by ``check_device`` with a sentence that says so.

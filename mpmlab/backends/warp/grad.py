@@ -373,9 +373,8 @@ class GradPath:
         self.gvec = K.grid_vec_type(D, prec)
         self.empty_vec = wp.zeros(1, dtype=T.vec, device=dev)
         self.empty_C = wp.zeros(1, dtype=T.mat, device=dev)
-        # the law state every rollout starts from (constants: F = I, J = 1, sigma = 0, ...)
-        self.law0 = [{k: wp.array(a, dtype=T.mat if k in ("F", "sigma") else T.scalar, device=dev)
-                      for k, a in g.law.initial_state(g.count, D).items()} for g in st.groups]
+        #: per group: the law's generated types (state fields and their Warp dtypes, weight shapes)
+        self.law_types = [k.types for k in st.k_laws]
         self._obs_cache = {}
 
     # ---- controls -----------------------------------------------------------------------------------
@@ -386,21 +385,45 @@ class GradPath:
         dt = torch.float64 if st.precision == "fp64" else torch.float32
         dev = _torch_device(self.dev)
         t = lambda a: torch.tensor(np.asarray(a, float), dtype=dt, device=dev)
-        return {"x": t(P.x), "v": t(P.v), "law": tuple(t(g.params) for g in st.groups),
-                "boundary": tuple({k: t(a) for k, a in bc.params.items()} for bc in self.bcs),
-                "gravity": t(st.scene.gravity), "mass": t(P.mass), "volume": t(P.volume)}
+        out = {"x": t(P.x), "v": t(P.v), "law": tuple(t(g.params) for g in st.groups),
+               "law_weights": tuple({k: t(a) for k, a in g.weights.items()} for g in st.groups),
+               "law_state": tuple({k: t(a) for k, a in g.law.initial_state(g.count, st.dim).items()} for g in st.groups),
+               "boundary": tuple({k: t(a) for k, a in bc.params.items()} for bc in self.bcs),
+               "gravity": t(st.scene.gravity), "mass": t(P.mass), "volume": t(P.volume)}
+        if self.affine:
+            out["C"] = t(np.zeros((P.count, st.dim, st.dim)))
+        return out
 
     def flatten(self, c):
-        """Control tensors in a fixed order, with their names (for errors) and shapes."""
+        """Control tensors in a fixed order, with their names (for errors) and shapes. ``law_weights``,
+        ``law_state`` and ``C`` are optional: missing ones take the laws' weights and the rest state."""
         missing = {"x", "v", "law", "boundary", "gravity", "mass", "volume"} - set(c)
         if missing:
             raise ConfigError(f"controls lack {sorted(missing)}; start from stepper.controls() and replace entries.")
         if len(c["law"]) != len(self.st.groups) or len(c["boundary"]) != len(self.bcs):
             raise ConfigError(f"controls have {len(c['law'])} law and {len(c['boundary'])} boundary entries; this "
                               f"scene has {len(self.st.groups)} material groups and {len(self.bcs)} boundaries.")
+        groups = self.st.groups
+        defaults = None
+        if not {"law_weights", "law_state"} <= set(c) or (self.affine and "C" not in c):
+            defaults = self.controls()
         names, flat = ["x", "v"], [c["x"], c["v"]]
         for i, a in enumerate(c["law"]):
             names.append(f"law[{i}]"); flat.append(a)
+        for key in ("law_weights", "law_state"):
+            entries = c[key] if key in c else defaults[key]
+            if len(entries) != len(groups):
+                raise ConfigError(f"controls['{key}'] has {len(entries)} entries; this scene has {len(groups)} "
+                                  f"material groups.")
+            for i, (g, d, L) in enumerate(zip(groups, entries, self.law_types)):
+                want = list(L.weight_shapes) if key == "law_weights" else [n for n, _, _ in L.fields]
+                if set(d) != set(want):
+                    raise ConfigError(f"controls['{key}'][{i}] (law '{g.law.name}') has {sorted(d)}; the law "
+                                      f"declares {sorted(want)}.")
+                for k in want:
+                    names.append(f"{key}[{i}].{k}"); flat.append(d[k])
+        if self.affine:
+            names.append("C"); flat.append(c["C"] if "C" in c else defaults["C"])
         for i, (bc, d) in enumerate(zip(self.bcs, c["boundary"])):
             for k in bc.params:
                 if k not in d:
@@ -435,6 +458,11 @@ class GradPath:
         out.v = arr(next(it), T.vec, (N, D))
         for g in self.st.groups:
             out.law.append(arr(next(it), T.scalar, (g.count, len(g.law.params))))
+        out.weights = [{k: arr(next(it), T.scalar, s) for k, s in L.weight_shapes.items()} for L in self.law_types]
+        out.weights_struct = [L.weights(w) for L, w in zip(self.law_types, out.weights)]
+        out.law_state = [{n: arr(next(it), d, (g.count,) + shape) for n, d, shape in L.fields}
+                         for g, L in zip(self.st.groups, self.law_types)]
+        out.C = arr(next(it), T.mat, (N, D, D)) if self.affine else None
         for i, bc in enumerate(self.bcs):
             for k, a in bc.params.items():
                 shape = (1, D) if k in ("velocity", "force") else (max(1, int(np.size(a))),)
@@ -449,6 +477,14 @@ class GradPath:
         out = [("x", ctl.x, "particle"), ("v", ctl.v, "particle")]
         for i, a in enumerate(ctl.law):
             out.append((f"law[{i}]", a, ("group", i)))
+        for i, d in enumerate(ctl.weights):
+            for k, a in d.items():
+                out.append((f"law_weights[{i}].{k}", a, None))
+        for i, d in enumerate(ctl.law_state):
+            for k, a in d.items():
+                out.append((f"law_state[{i}].{k}", a, ("group", i)))
+        if self.affine:
+            out.append(("C", ctl.C, "particle"))
         for i, d in enumerate(ctl.bc):
             for k, a in d.items():
                 out.append((f"boundary[{i}].{k}", a, None))
@@ -457,20 +493,21 @@ class GradPath:
 
     # ---- one step -----------------------------------------------------------------------------------
     def initial(self, ctl, grad: bool):
-        """State 0 from the controls: x, v are the control arrays themselves; tau from the rest state."""
+        """State 0 from the controls: x, v, C and the law state are the control arrays themselves; tau
+        from the law state."""
         T, dev = self.T, self.dev
-        C = wp.zeros(self.N, dtype=T.mat, device=dev) if self.affine else self.empty_C
+        C = ctl.C if self.affine else self.empty_C
         tau = wp.zeros(self.N, dtype=T.mat, device=dev, requires_grad=grad)
-        law = [dict(a) for a in self.law0]
-        for g, st, k, prm in zip(self.st.groups, law, self.k_laws, ctl.law):
-            wp.launch(k.stress, dim=g.count, inputs=[*self.st._law_args(st), prm, g.start, tau], device=dev)
+        law = [dict(a) for a in ctl.law_state]
+        for i, (g, st, k) in enumerate(zip(self.st.groups, law, self.k_laws)):
+            wp.launch(k.stress, dim=g.count, inputs=[*self.st._law_args(i, st, ctl.law[i], ctl.weights_struct[i]),
+                                                     g.start, tau], device=dev)
         return SimpleNamespace(x=ctl.x, v=ctl.v, C=C, law=law, tau=tau)
 
     def alloc_state(self, grad: bool):
         T, dev, N = self.T, self.dev, self.N
         z = lambda n, dtype: wp.zeros(n, dtype=dtype, device=dev, requires_grad=grad)
-        law = [{k: z(g.count, T.mat if k in ("F", "sigma") else T.scalar) for k in g.law.state_fields}
-               for g in self.st.groups]
+        law = [{n: z(g.count, d) for n, d, _ in L.fields} for g, L in zip(self.st.groups, self.law_types)]
         return SimpleNamespace(x=z(N, T.vec), v=z(N, T.vec), C=z(N, T.mat) if self.affine else self.empty_C,
                                law=law, tau=z(N, T.mat))
 
@@ -547,10 +584,10 @@ class GradPath:
                 wp.launch(self.k_bc.obstacle, dim=G, inputs=[grid_v, bc.index, bc.normals, out], device=dev)
             grid_v = out
         o = SimpleNamespace(**vars(buf.state))
-        for g, k, ls, lo, prm in zip(st.groups, self.k_g2p, s.law, o.law, ctl.law):
+        for i, (g, k, ls, lo) in enumerate(zip(st.groups, self.k_g2p, s.law, o.law)):
             wp.launch(k, dim=g.count, inputs=[s.x, s.v, grid_v, grid_v_old, st.origin, st.dx_s, st.dt_s, st.strides,
-                                              st._ratio, g.start, 0, *st._law_args(ls), prm, o.x, o.v, o.C,
-                                              *st._law_args(lo), o.tau], device=dev)
+                                              st._ratio, g.start, 0, *st._law_args(i, ls, ctl.law[i], ctl.weights_struct[i]),
+                                              o.x, o.v, o.C, self.law_types[i].state_arrays(lo), o.tau], device=dev)
         t_end = t + st.dt
         pv = iter(buf.pv)
         for bc, c in zip(self.bcs, ctl.bc):
@@ -724,8 +761,14 @@ class GradPath:
         arrays = [a for _, a, _ in (self.state_arrays(s) if s is not None else []) if a.requires_grad]
         arrays += [a for _, a, _ in ctl_arrays]
         for a in arrays:
-            k = self.k_finite["2d"] if a.ndim == 2 else self.k_finite[a.dtype]
-            wp.launch(k, dim=a.shape, inputs=[a.grad, flags, slot], device=self.dev)
+            k = self.k_finite["2d"] if (a.ndim == 2 and a.dtype == self.T.scalar) else \
+                (self.k_finite.get(a.dtype) if a.ndim == 1 else None)
+            if k is not None:
+                wp.launch(k, dim=a.shape, inputs=[a.grad, flags, slot], device=self.dev)
+            elif not np.all(np.isfinite(a.grad.numpy())):     # other shapes (weights, declared fields): on the host
+                f = flags.numpy().copy()
+                f[slot] = 1
+                flags.assign(f)
 
     def _raise(self, step, s, ctl_arrays):
         """GradientError at ``step`` naming the first particle whose adjoint is non-finite."""

@@ -15,6 +15,7 @@ from typing import Any
 
 import warp as wp
 
+from .law_structs import law_types
 from .types import warp_types
 
 WALL_NONE, WALL_STICKY, WALL_SLIP, WALL_SEPARATE = 0, 1, 2, 3
@@ -329,7 +330,7 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool):
 
 
 @lru_cache(maxsize=None)
-def g2p_law_kernel(law_cls, dim: int, precision: str, affine: str | None, grad_v_from_affine: bool, flip: bool):
+def g2p_law_kernel(law, dim: int, precision: str, affine: str | None, grad_v_from_affine: bool, flip: bool):
     """G2P fused with the law update of one material group (a closure over the law's ``@wp.func``s).
 
     Gathers the 3^D stencil with separable partial sums (z lines first), writes x, v, C, then feeds the
@@ -339,14 +340,13 @@ def g2p_law_kernel(law_cls, dim: int, precision: str, affine: str | None, grad_v
     """
     T = warp_types(dim, precision)
     S = stencil_funcs(dim, precision)
-    scalar, vec, mat, ivec, LawState = T.scalar, T.vec, T.mat, T.ivec, T.LawState
+    L = law_types(law, dim, precision)
+    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
     need_grad = (not grad_v_from_affine) or affine == "velocity_gradient"
     apic = affine == "apic"
     tpic = affine == "velocity_gradient"
     vec3s = wp.types.vector(3, scalar)
-    impl = law_cls.implementation("warp", "law")(dim, precision)
-    fields = set(law_cls.state_fields)
-    hasF, hasJ, hasS, hasE = "F" in fields, "J" in fields, "sigma" in fields, "eps_p" in fields
+    impl = law.implementation("warp", "law")(law, dim, precision)
 
     @wp.func
     def cols(a: vec, b: vec, c: vec):
@@ -359,11 +359,9 @@ def g2p_law_kernel(law_cls, dim: int, precision: str, affine: str | None, grad_v
     def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
             grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
             flip_ratio: scalar, goff: int, start: int,
-            F: wp.array(dtype=mat), J: wp.array(dtype=scalar), sig: wp.array(dtype=mat),
-            eps: wp.array(dtype=scalar), prm: wp.array2d(dtype=scalar),
+            state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights,
             x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
-            F_out: wp.array(dtype=mat), J_out: wp.array(dtype=scalar), sig_out: wp.array(dtype=mat),
-            eps_out: wp.array(dtype=scalar), tau: wp.array(dtype=mat)):
+            state_out: L.StateArrays, tau: wp.array(dtype=mat)):
         q = wp.tid() + start
         p = goff + q
         inv_dx = scalar(1.0) / dx
@@ -459,80 +457,40 @@ def g2p_law_kernel(law_cls, dim: int, precision: str, affine: str | None, grad_v
                 grad_v = Cn
         if wp.static(tpic):
             C_out[p] = Gm
-        # law update of this particle's material
-        ls = LawState()
-        if wp.static(hasF):
-            ls.F = F[q]
-        if wp.static(hasJ):
-            ls.J = J[q]
-        if wp.static(hasS):
-            ls.sigma = sig[q]
-        if wp.static(hasE):
-            ls.eps_p = eps[q]
-        n = impl.update(ls, grad_v, dt, prm, q)
-        if wp.static(hasF):
-            F_out[q] = n.F
-        if wp.static(hasJ):
-            J_out[q] = n.J
-        if wp.static(hasS):
-            sig_out[q] = n.sigma
-        if wp.static(hasE):
-            eps_out[q] = n.eps_p
-        tau[p] = impl.kirchhoff(n, prm, q)
+        # law update of this particle's material (state and parameters by name: law_types.py)
+        P = L.load_params(prm, q)
+        n = impl.update(L.load_state(state, q), grad_v, dt, P, w)
+        L.store_state(state_out, q, n)
+        tau[p] = impl.kirchhoff(n, P, w)
 
     return g2p
 
 
 @lru_cache(maxsize=None)
-def law_kernels(law_cls, dim: int, precision: str):
+def law_kernels(law, dim: int, precision: str):
     """Per-law kernels from a closure over the law's ``@wp.func``s: ``update`` (state + stress) and
     ``stress`` (stress only, used at init and in conformance tests)."""
     T = warp_types(dim, precision)
-    scalar, mat, LawState = T.scalar, T.mat, T.LawState
-    impl = law_cls.implementation("warp", "law")(dim, precision)
-    fields = set(law_cls.state_fields)
-    hasF, hasJ, hasS, hasE = "F" in fields, "J" in fields, "sigma" in fields, "eps_p" in fields
-
-    @wp.func
-    def load(F: wp.array(dtype=mat), J: wp.array(dtype=scalar), sig: wp.array(dtype=mat),
-             eps: wp.array(dtype=scalar), q: int):
-        s = LawState()
-        if wp.static(hasF):
-            s.F = F[q]
-        if wp.static(hasJ):
-            s.J = J[q]
-        if wp.static(hasS):
-            s.sigma = sig[q]
-        if wp.static(hasE):
-            s.eps_p = eps[q]
-        return s
+    L = law_types(law, dim, precision)
+    scalar, mat = T.scalar, T.mat
+    impl = law.implementation("warp", "law")(law, dim, precision)
 
     @wp.kernel(module="unique")
-    def update(F: wp.array(dtype=mat), J: wp.array(dtype=scalar), sig: wp.array(dtype=mat),
-               eps: wp.array(dtype=scalar), grad_v: wp.array(dtype=mat), prm: wp.array2d(dtype=scalar),
-               dt: scalar, offset: int,
-               F_out: wp.array(dtype=mat), J_out: wp.array(dtype=scalar), sig_out: wp.array(dtype=mat),
-               eps_out: wp.array(dtype=scalar), tau: wp.array(dtype=mat)):
+    def update(state: L.StateArrays, grad_v: wp.array(dtype=mat), prm: wp.array2d(dtype=scalar), w: L.Weights,
+               dt: scalar, offset: int, state_out: L.StateArrays, tau: wp.array(dtype=mat)):
         q = wp.tid()
-        s = load(F, J, sig, eps, q)
-        n = impl.update(s, grad_v[offset + q], dt, prm, q)
-        if wp.static(hasF):
-            F_out[q] = n.F
-        if wp.static(hasJ):
-            J_out[q] = n.J
-        if wp.static(hasS):
-            sig_out[q] = n.sigma
-        if wp.static(hasE):
-            eps_out[q] = n.eps_p
-        tau[offset + q] = impl.kirchhoff(n, prm, q)
+        P = L.load_params(prm, q)
+        n = impl.update(L.load_state(state, q), grad_v[offset + q], dt, P, w)
+        L.store_state(state_out, q, n)
+        tau[offset + q] = impl.kirchhoff(n, P, w)
 
     @wp.kernel(module="unique")
-    def stress(F: wp.array(dtype=mat), J: wp.array(dtype=scalar), sig: wp.array(dtype=mat),
-               eps: wp.array(dtype=scalar), prm: wp.array2d(dtype=scalar), offset: int, tau: wp.array(dtype=mat)):
+    def stress(state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights, offset: int,
+               tau: wp.array(dtype=mat)):
         q = wp.tid()
-        tau[offset + q] = impl.kirchhoff(load(F, J, sig, eps, q), prm, q)
+        tau[offset + q] = impl.kirchhoff(L.load_state(state, q), L.load_params(prm, q), w)
 
-    return SimpleNamespace(update=update, stress=stress)
+    return SimpleNamespace(update=update, stress=stress, types=L)
 
 
 @lru_cache(maxsize=None)
@@ -558,25 +516,35 @@ def guard_kernel(dim: int, precision: str):
 
 
 @lru_cache(maxsize=None)
-def law_guard_kernel(dim: int, precision: str, field: str):
-    """Sets flag[0] = 1 if a law state entry is non-finite or its J (det F) is <= 0."""
+def law_guard_kernel(dim: int, precision: str, shape: tuple, check: str | None):
+    """Sets flag[0] = 1 if a law state entry (of per-particle ``shape``) is non-finite, or fails its
+    declared ``check`` (``positive``: a scalar <= 0; ``positive_det``: a matrix with det <= 0)."""
+    from .law_structs import field_dtype
+
     T = warp_types(dim, precision)
-    scalar, mat = T.scalar, T.mat
-    is_mat = field in ("F", "sigma")
-    dtype = mat if is_mat else scalar
-    check_j = field in ("F", "J")
+    scalar = T.scalar
+    dtype = field_dtype(T, tuple(shape))
+    is_mat = len(shape) == 2
+    is_vec = len(shape) == 1
+    rows = shape[0] if shape else 1
+    cols_ = shape[1] if is_mat else 1
+    check_j = check is not None
 
     @wp.kernel(module="unique")
     def guard(a: wp.array(dtype=dtype), flag: wp.array(dtype=int)):
         q = wp.tid()
         bad = False
         if wp.static(is_mat):
-            for i in range(dim):
-                for j in range(dim):
+            for i in range(rows):
+                for j in range(cols_):
                     if not wp.isfinite(a[q][i, j]):
                         bad = True
             if wp.static(check_j):
                 if not (wp.determinant(a[q]) > scalar(0.0)):
+                    bad = True
+        elif wp.static(is_vec):
+            for i in range(rows):
+                if not wp.isfinite(a[q][i]):
                     bad = True
         else:
             if not wp.isfinite(a[q]):

@@ -117,6 +117,10 @@ class WarpStepper(BaseStepper):
         self.mass = wp.array(P.mass, dtype=T.scalar, device=dev)
         self.vol = wp.array(P.volume, dtype=T.scalar, device=dev)
         self.law_params = [wp.array(g.params, dtype=T.scalar, device=dev) for g in self.groups]
+        #: each group's shared law weights: {name: wp.array} and the law's ``Weights`` struct over them
+        self.law_weights = [{k: wp.array(a, dtype=T.scalar, device=dev) for k, a in g.weights.items()}
+                            for g in self.groups]
+        self._weights_structs = [k.types.weights(w) for k, w in zip(self.k_laws, self.law_weights)]
         gvec = K.grid_vec_type(D, precision)
         # P2G accumulators (one private copy per thread), all zero between steps: the grid update
         # clears what it reads
@@ -149,26 +153,28 @@ class WarpStepper(BaseStepper):
     def _alloc(self) -> WarpState:
         T, dev, N = self.T, self.device, self.particles.count
         law = []
-        for g in self.groups:
-            f = g.law.state_fields
-            law.append({k: wp.empty(g.count, dtype=T.mat if k in ("F", "sigma") else T.scalar, device=dev) for k in f})
+        for g, k in zip(self.groups, self.k_laws):
+            law.append({n: wp.empty(g.count, dtype=d, device=dev) for n, d, _ in k.types.fields})
         return WarpState(x=wp.empty(N, dtype=T.vec, device=dev), v=wp.empty(N, dtype=T.vec, device=dev),
                          C=wp.zeros(N if self.transfer.needs_affine else 1, dtype=T.mat, device=dev),
                          law=law, tau=wp.zeros(N, dtype=T.mat, device=dev), t=0.0)
 
-    def _law_args(self, st: dict):
-        return [st.get("F", self._empty_mat), st.get("J", self._empty_scalar), st.get("sigma", self._empty_mat),
-                st.get("eps_p", self._empty_scalar)]
+    def _law_args(self, g: int, st: dict, prm=None, weights=None):
+        """Kernel arguments of group ``g``'s law: its state arrays (a ``StateArrays`` struct), per-particle
+        parameters and shared ``Weights`` (struct); ``prm``/``weights`` override the stepper's own."""
+        L = self.k_laws[g].types
+        return [L.state_arrays(st), self.law_params[g] if prm is None else prm,
+                self._weights_structs[g] if weights is None else weights]
 
     def init(self) -> WarpState:
         T, dev, P = self.T, self.device, self.particles
         s = self._alloc()
         s.x.assign(wp.array(P.x, dtype=T.vec, device=dev))
         s.v.assign(wp.array(P.v, dtype=T.vec, device=dev))
-        for g, st, k, prm in zip(self.groups, s.law, self.k_laws, self.law_params):
+        for i, (g, st, k) in enumerate(zip(self.groups, s.law, self.k_laws)):
             for name, a in g.law.initial_state(g.count, self.dim).items():
                 st[name].assign(wp.array(a, dtype=st[name].dtype, device=dev))
-            wp.launch(k.stress, dim=g.count, inputs=[*self._law_args(st), prm, g.start, s.tau], device=dev)
+            wp.launch(k.stress, dim=g.count, inputs=[*self._law_args(i, st), g.start, s.tau], device=dev)
         s.order, s.age = self._base_order, (self.sort_every or 0)     # sorted at the first step
         return s
 
@@ -254,11 +260,13 @@ class WarpStepper(BaseStepper):
                                      self.grid_v_old])
                 for _ in range(self._grid_chunks)]
         g2p = []
-        for g, k, st, ot, prm in zip(self.groups, self.k_g2p, s.law, o.law, s.order.params):
+        for i, (g, k, st, ot, prm) in enumerate(zip(self.groups, self.k_g2p, s.law, o.law, s.order.params)):
+            law_in = self._law_args(i, st, prm)
+            law_out = self.k_laws[i].types.state_arrays(ot)
             for start, cnt in self._chunks(g.count, self._dyn_chunks):
                 g2p.append(rec(k, cnt, [s.x, s.v, self.grid_v, self.grid_v_old, self.origin, self.dx_s, self.dt_s,
-                                        self.strides, self._ratio, g.start, start, *self._law_args(st), prm, o.x, o.v,
-                                        o.C, *self._law_args(ot), o.tau]))
+                                        self.strides, self._ratio, g.start, start, *law_in, o.x, o.v,
+                                        o.C, law_out, o.tau]))
         return SimpleNamespace(p2g=p2g, grid=grid, g2p=g2p)
 
     def _step_into(self, s: WarpState, o: WarpState) -> None:
@@ -355,9 +363,9 @@ class WarpStepper(BaseStepper):
         wp.launch(self.k_guard, dim=self.particles.count, inputs=[state.x, state.v, self.lo, self.hi, self.flag],
                   device=self.device)
         for g, st in zip(self.groups, state.law):
-            for name, a in st.items():
-                wp.launch(K.law_guard_kernel(self.dim, self.precision, name), dim=g.count, inputs=[a, self.flag],
-                          device=self.device)
+            for f in g.law.state:
+                k = K.law_guard_kernel(self.dim, self.precision, f.resolved_shape(self.dim), f.check)
+                wp.launch(k, dim=g.count, inputs=[st[f.name], self.flag], device=self.device)
         return bool(self.flag.numpy()[0])
 
     # ---- differentiable entry points (issue #4) -----------------------------------------------------
@@ -393,7 +401,7 @@ class WarpStepper(BaseStepper):
         out = {"x": scene_order(state.x), "v": scene_order(state.v), "t": state.t}
         if self.transfer.needs_affine:
             out["C"] = scene_order(state.C)
-        for name in ("F", "J", "sigma", "eps_p"):
+        for name in self.state_field_names:
             parts = [(g, st[name]) for g, st in zip(self.groups, state.law) if name in st]
             if parts:
                 out[name] = np.concatenate([scene_order(a, g.start, g.stop) for g, a in parts])

@@ -22,15 +22,6 @@ def warp_types(dim: int, precision: str) -> SimpleNamespace:
     scalar = SCALARS[precision]
     vec = wp.types.vector(dim, scalar)
     mat = wp.types.matrix((dim, dim), scalar)
-
-    # All law state fields (mpmlab.core.interfaces.STATE_FIELDS); a law reads and writes only those it
-    # declares, the stepper loads/stores only those, so unused members cost nothing in memory.
-    @wp.struct
-    class LawState:
-        F: mat
-        J: scalar
-        sigma: mat
-        eps_p: scalar
-
-    return SimpleNamespace(dim=dim, precision=precision, scalar=scalar, vec=vec, mat=mat, LawState=LawState,
+    # per-law structs (LawState, Params, Weights) are generated from each law's declarations: law_types.py
+    return SimpleNamespace(dim=dim, precision=precision, scalar=scalar, vec=vec, mat=mat,
                            ivec=wp.types.vector(dim, wp.int32))

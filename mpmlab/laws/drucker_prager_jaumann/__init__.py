@@ -7,7 +7,7 @@ from typing import ClassVar
 
 from ...core.errors import InvalidParameterError
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .._common import builtin_implementations
+from .._common import builtin_implementations, VOLUME_RATIO, CAUCHY_STRESS, PLASTIC_STRAIN
 from . import reference as _reference
 
 
@@ -45,7 +45,9 @@ class Law(AbstractConstitutiveLaw):
         ParamSpec("cohesion", "Pa", 0.0, low=0.0, doc="cohesion c"),
         ParamSpec("tensile_strength", "Pa", 0.0, low=0.0, doc="tension cutoff sigma_t"),
     )
-    state_fields = ("J", "sigma", "eps_p")
+    state = (VOLUME_RATIO, CAUCHY_STRESS, PLASTIC_STRAIN,)
+    #: deforms (and yields) within 50 steps of the mpmlab.testing scenes
+    test_params = {"bulk_modulus": 2e4, "nu": 0.3, "friction_angle": 30.0}
     plastic = True
     reference = _reference
     # benchmarks/stress.md (--full): the thrown granular square diverges (J <= 0 after 400-900 steps)

@@ -13,14 +13,15 @@ DEG = math.pi / 180.0
 R3 = math.sqrt(3.0)
 
 
-def make(dim: int) -> SimpleNamespace:
+def make(law, dim: int) -> SimpleNamespace:
     eye = jnp.eye(dim)
 
-    def kirchhoff(state, prm):
+    def kirchhoff(state, prm, w):
         return state["J"] * state["sigma"]
 
-    def update(state, grad_v, dt, prm):
-        K, nu, phi, psi, c, st = prm[0], prm[1], prm[2] * DEG, prm[3] * DEG, prm[4], prm[5]
+    def update(state, grad_v, dt, prm, w):
+        K, nu, phi, psi, c, st = (prm["bulk_modulus"], prm["nu"], prm["friction_angle"] * DEG, prm["dilation_angle"] * DEG,
+                                  prm["cohesion"], prm["tensile_strength"])
         G = 3.0 * K * (1.0 - 2.0 * nu) / (2.0 * (1.0 + nu))
         lam = K - 2.0 * G / 3.0
         sp, ss = jnp.sin(phi), jnp.sin(psi)

@@ -5,7 +5,16 @@ import math
 
 import numpy as np
 
+from .._common import named_params
+
 DEG = math.pi / 180.0
+
+
+def _named(prm):
+    """Parameters by name (a mapping, or an array in the law's declared order)."""
+    from . import Law
+
+    return named_params(prm, Law.param_names())
 
 
 def moduli(K, nu):
@@ -31,7 +40,8 @@ def invariants(sig):
 
 def jaumann_trial(sigma, grad_v, dt, prm):
     """A.1-A.2: sigma_R = sigma + sigma dw^T + dw sigma, trial = sigma_R + lambda tr(dd) I + 2 G dd."""
-    G, lam = moduli(prm[0], prm[1])
+    prm = _named(prm)
+    G, lam = moduli(prm["bulk_modulus"], prm["nu"])
     d = len(sigma)
     dd = 0.5 * (grad_v + grad_v.T) * dt
     dw = 0.5 * (grad_v - grad_v.T) * dt
@@ -42,8 +52,9 @@ def jaumann_trial(sigma, grad_v, dt, prm):
 
 def zone(sm, tau, prm):
     """1, 2 or 3 (A.9-A.11) for trial invariants (sm, tau)."""
-    q_phi, k_phi, _ = cone_constants(prm[2], prm[3], prm[4])
-    st = prm[5]
+    prm = _named(prm)
+    q_phi, k_phi, _ = cone_constants(prm["friction_angle"], prm["dilation_angle"], prm["cohesion"])
+    st = prm["tensile_strength"]
     fs = tau - k_phi + q_phi * sm                                   # A.5
     ft = sm - st                                                    # A.6
     tau_p = k_phi - q_phi * st                                      # A.8
@@ -56,10 +67,11 @@ def zone(sm, tau, prm):
 
 def return_map(trial, prm):
     """A.3-A.19: (sigma, delta eps_eq) from the trial stress."""
-    K = prm[0]
-    G, _ = moduli(prm[0], prm[1])
-    q_phi, k_phi, q_psi = cone_constants(prm[2], prm[3], prm[4])
-    st = prm[5]
+    prm = _named(prm)
+    K = prm["bulk_modulus"]
+    G, _ = moduli(prm["bulk_modulus"], prm["nu"])
+    q_phi, k_phi, q_psi = cone_constants(prm["friction_angle"], prm["dilation_angle"], prm["cohesion"])
+    st = prm["tensile_strength"]
     d = len(trial)
     sm, s, tau = invariants(trial)
     z = zone(sm, tau, prm)
@@ -78,13 +90,15 @@ def return_map(trial, prm):
     return trial + (st - sm) * np.eye(d), math.sqrt(2.0) / 3.0 * dl  # A.17-18
 
 
-def kirchhoff(state, prm):
+def kirchhoff(state, prm, w=None):
     """tau = J sigma."""
+    prm = _named(prm)
     return state["J"] * state["sigma"]
 
 
-def update(state, grad_v, dt, prm):
+def update(state, grad_v, dt, prm, w=None):
     """Eq. 21 / App. A: Jaumann trial stress, three-zone return map, J <- J det(I + dt grad_v)."""
+    prm = _named(prm)
     sigma, deps = return_map(jaumann_trial(state["sigma"], grad_v, dt, prm), prm)
     J = state["J"] * np.linalg.det(np.eye(len(grad_v)) + dt * grad_v)
     return {"J": J, "sigma": sigma, "eps_p": state["eps_p"] + deps}

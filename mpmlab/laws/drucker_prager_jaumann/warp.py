@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from ...backends.warp.types import warp_types
+from ...backends.warp.law_structs import law_types
 
 DEG = math.pi / 180.0
 R3 = math.sqrt(3.0)
@@ -14,23 +14,23 @@ SQRT2_3 = math.sqrt(2.0) / 3.0
 
 
 @lru_cache(maxsize=None)
-def make(dim: int, precision: str) -> SimpleNamespace:
-    T = warp_types(dim, precision)
-    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    T = law_types(law, dim, precision)
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
     DIMF = float(dim)   # sigma_m = tr / D (2D continuum in 2D, see Law)
 
     @wp.func
-    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
+    def kirchhoff(s: LawState, prm: Params, w: Weights):
         return s.J * s.sigma
 
     @wp.func
-    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
-        K = prm[p, 0]
-        nu = prm[p, 1]
-        phi = prm[p, 2] * scalar(DEG)
-        psi = prm[p, 3] * scalar(DEG)
-        c = prm[p, 4]
-        st = prm[p, 5]
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
+        K = prm.bulk_modulus
+        nu = prm.nu
+        phi = prm.friction_angle * scalar(DEG)
+        psi = prm.dilation_angle * scalar(DEG)
+        c = prm.cohesion
+        st = prm.tensile_strength
         G = scalar(3.0) * K * (scalar(1.0) - scalar(2.0) * nu) / (scalar(2.0) * (scalar(1.0) + nu))
         lam = K - scalar(2.0) * G / scalar(3.0)
         sp = wp.sin(phi)

@@ -4,7 +4,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw
-from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed
+from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed, DEFORMATION_GRADIENT
 from . import reference as _reference
 
 
@@ -16,7 +16,9 @@ class Law(AbstractConstitutiveLaw):
         YOUNGS_MODULUS,
         POISSON_RATIO,
     )
-    state_fields = ("F",)
+    state = (DEFORMATION_GRADIENT,)
+    #: deforms (and yields) within 50 steps of the mpmlab.testing scenes
+    test_params = {"E": 2e4, "nu": 0.3}
     plastic = False
     reference = _reference
     implementations: ClassVar[dict] = builtin_implementations("fixed_corotated")

@@ -8,15 +8,15 @@ import jax.numpy as jnp
 from ...backends.jax.linalg import lame, polar_rotation
 
 
-def make(dim: int) -> SimpleNamespace:
-    def kirchhoff(state, prm):
+def make(law, dim: int) -> SimpleNamespace:
+    def kirchhoff(state, prm, w):
         F = state["F"]
         eye = jnp.eye(dim, dtype=F.dtype)
-        mu, lam = lame(prm[0], prm[1])
+        mu, lam = lame(prm["E"], prm["nu"])
         J = jnp.linalg.det(F)
         return 2.0 * mu * (F - polar_rotation(F)) @ F.T + lam * J * (J - 1.0) * eye
 
-    def update(state, grad_v, dt, prm):
+    def update(state, grad_v, dt, prm, w):
         F = state["F"]
         return {"F": (jnp.eye(dim, dtype=F.dtype) + dt * grad_v) @ F}
 

@@ -6,25 +6,25 @@ from types import SimpleNamespace
 import warp as wp
 
 from ...backends.warp.linalg import warp_linalg
-from ...backends.warp.types import warp_types
+from ...backends.warp.law_structs import law_types
 
 
 @lru_cache(maxsize=None)
-def make(dim: int, precision: str) -> SimpleNamespace:
-    T = warp_types(dim, precision)
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    T = law_types(law, dim, precision)
     La = warp_linalg(dim, precision)
-    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
 
     @wp.func
-    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
-        mu, lam = La.lame(prm[p, 0], prm[p, 1])
+    def kirchhoff(s: LawState, prm: Params, w: Weights):
+        mu, lam = La.lame(prm.E, prm.nu)
         U, sig, V = La.svd_const(s.F)
         R = La.polar(s.F, U, sig, V)   # U V^T with a derivative finite at F = I
         J = wp.determinant(s.F)
         return scalar(2.0) * mu * (s.F - R) @ wp.transpose(s.F) + lam * J * (J - scalar(1.0)) * wp.identity(dim, scalar)
 
     @wp.func
-    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
         out = s
         out.F = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
         return out

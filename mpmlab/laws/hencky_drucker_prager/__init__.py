@@ -4,7 +4,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed
+from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed, DEFORMATION_GRADIENT
 from . import reference as _reference
 
 
@@ -26,7 +26,9 @@ class Law(AbstractConstitutiveLaw):
         ParamSpec("friction_angle", "deg", 30.0, low=0.0, high=90.0, low_open=True, high_open=True,
                   doc="friction angle phi"),
     )
-    state_fields = ("F",)
+    state = (DEFORMATION_GRADIENT,)
+    #: deforms (and yields) within 50 steps of the mpmlab.testing scenes
+    test_params = {"E": 2e4, "nu": 0.3, "friction_angle": 30.0}
     plastic = True
     reference = _reference
     implementations: ClassVar[dict] = builtin_implementations("hencky_drucker_prager")

@@ -22,12 +22,12 @@ def hencky_log(s):
 
 def hencky_principal_tau(s, prm):
     """Principal Kirchhoff stresses 2 mu eps + lambda tr(eps) (NCLaw Eq. 14)."""
-    mu, lam = lame(prm[0], prm[1])
+    mu, lam = lame(prm["E"], prm["nu"])
     eps = hencky_log(s)
     return 2.0 * mu * eps + lam * jnp.sum(eps)
 
 
-def hencky_kirchhoff(state, prm):
+def hencky_kirchhoff(state, prm, w=None):
     """tau = U (2 mu eps + lambda tr(eps) I) U^T; NCLaw Eq. 14's "P" is this Kirchhoff stress (P = tau F^-T)."""
     return spectral(hencky_principal_tau, True, state["F"], prm)
 
@@ -35,8 +35,8 @@ def hencky_kirchhoff(state, prm):
 def _cone(s, prm):
     """(eps, tr, eps_hat, |eps_hat|, delta_gamma) of NCLaw Eq. 15 with d = len(s)."""
     d = s.shape[0]
-    mu, lam = lame(prm[0], prm[1])
-    sp = jnp.sin(jnp.deg2rad(prm[2]))
+    mu, lam = lame(prm["E"], prm["nu"])
+    sp = jnp.sin(jnp.deg2rad(prm["friction_angle"]))
     alpha = jnp.sqrt(2.0 / 3.0) * 2.0 * sp / (3.0 - sp)
     eps = hencky_log(s)
     tr = jnp.sum(eps)
@@ -53,8 +53,8 @@ def _returned_stretch(s, prm):
     return jnp.where(tr > 0.0, jnp.ones_like(s), on_cone)
 
 
-def make(dim: int) -> SimpleNamespace:
-    def update(state, grad_v, dt, prm):
+def make(law, dim: int) -> SimpleNamespace:
+    def update(state, grad_v, dt, prm, w):
         F = (jnp.eye(dim, dtype=grad_v.dtype) + dt * grad_v) @ state["F"]
         _, s, _ = svd_rotations(jax.lax.stop_gradient(F))
         _, tr, _, n, dg = _cone(s, jax.lax.stop_gradient(prm))

@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from ...backends.warp.linalg import HENCKY_MIN_STRETCH, spectral_func, warp_linalg
+from ...backends.warp.law_structs import law_types
 from ...backends.warp.types import warp_types
 
 
@@ -21,7 +22,7 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
     volume-keeping return maps of Eqs. 16 and 19."""
     T = warp_types(dim, precision)
     La = warp_linalg(dim, precision)
-    scalar, vec, mat, LawState = T.scalar, T.vec, T.mat, T.LawState
+    scalar, vec, mat = T.scalar, T.vec, T.mat
     fdim = float(dim)   # scalar(dim) on the int closure constant confuses Warp's range(dim) (Warp 1.19)
     p1, p2 = wp.types.vector(1, scalar), wp.types.vector(2, scalar)
 
@@ -67,16 +68,16 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
     tau_map = spectral_func(dim, precision, tau_jac, left=True, nparams=2)
 
     @wp.func
-    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
+    def kirchhoff(F: mat, E: scalar, nu: scalar):
         """tau = U (2 mu eps + lambda tr(eps) I) U^T (NCLaw Eq. 14, which calls it "P"; P = tau F^-T)."""
-        mu, lam = La.lame(prm[p, 0], prm[p, 1])
-        U, sv, V = La.svd_const(s.F)
+        mu, lam = La.lame(E, nu)
+        U, sv, V = La.svd_const(F)
         eps = logs(sv)
         tr, eps_hat, n = trace_split(eps)
         t = vec()
         for i in range(dim):
             t[i] = scalar(2.0) * mu * eps[i] + lam * tr
-        return tau_map(s.F, U, sv, V, t, p2(mu, lam))
+        return tau_map(F, U, sv, V, t, p2(mu, lam))
 
     # ---- e = exp(eps - dg eps_hat / |eps_hat|): the volume-keeping returns of Eqs. 16 and 19. With
     # u = eps_hat / n, e_i = exp(tr/d + a u_i) where a = k (von Mises, dg = n - k) or a = -c alpha tr
@@ -132,19 +133,19 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
 
 
 @lru_cache(maxsize=None)
-def make(dim: int, precision: str) -> SimpleNamespace:
-    T = warp_types(dim, precision)
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    T = law_types(law, dim, precision)
     La = warp_linalg(dim, precision)
     H = hencky_funcs(dim, precision)
-    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
     fdim = float(dim)   # scalar(dim) on the int closure constant confuses Warp's range(dim) (Warp 1.19)
 
     @wp.func
-    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
         out = s
         F = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
-        mu, lam = La.lame(prm[p, 0], prm[p, 1])
-        sp = wp.sin(prm[p, 2] * (scalar(wp.pi) / scalar(180.0)))
+        mu, lam = La.lame(prm.E, prm.nu)
+        sp = wp.sin(prm.friction_angle * (scalar(wp.pi) / scalar(180.0)))
         alpha = wp.sqrt(scalar(2.0) / scalar(3.0)) * scalar(2.0) * sp / (scalar(3.0) - sp)   # NCLaw Eq. 15
         U, sv, V = La.svd_const(F)
         eps = H.logs(sv)
@@ -159,4 +160,8 @@ def make(dim: int, precision: str) -> SimpleNamespace:
         out.F = F
         return out
 
-    return SimpleNamespace(kirchhoff=H.kirchhoff, update=update)
+    @wp.func
+    def kirchhoff(s: LawState, prm: Params, w: Weights):
+        return H.kirchhoff(s.F, prm.E, prm.nu)
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update)

@@ -4,7 +4,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed
+from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed, DEFORMATION_GRADIENT
 from . import reference as _reference
 
 
@@ -24,7 +24,9 @@ class Law(AbstractConstitutiveLaw):
         ParamSpec("yield_stress", "Pa", 3.0e3, low=0.0, low_open=True,
                   doc="yield stress tau_Y (Frobenius norm of the deviatoric Kirchhoff stress, = sqrt(2/3) sigma_y)"),
     )
-    state_fields = ("F",)
+    state = (DEFORMATION_GRADIENT,)
+    #: deforms (and yields) within 50 steps of the mpmlab.testing scenes
+    test_params = {"E": 2e4, "nu": 0.3, "yield_stress": 20.0}
     plastic = True
     reference = _reference
     implementations: ClassVar[dict] = builtin_implementations("hencky_von_mises")

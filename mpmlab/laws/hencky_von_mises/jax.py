@@ -14,11 +14,11 @@ from ..hencky_drucker_prager.jax import hencky_kirchhoff, hencky_log
 
 def _excess(s, prm):
     """(eps, eps_hat, |eps_hat|, delta_gamma = |eps_hat| - tau_Y / (2 mu)) of NCLaw Eq. 18."""
-    mu, _ = lame(prm[0], prm[1])
+    mu, _ = lame(prm["E"], prm["nu"])
     eps = hencky_log(s)
     eps_hat = eps - jnp.sum(eps) / s.shape[0]
     n = safe_norm(eps_hat)
-    return eps, eps_hat, n, n - prm[2] / (2.0 * mu)
+    return eps, eps_hat, n, n - prm["yield_stress"] / (2.0 * mu)
 
 
 def _returned_stretch(s, prm):
@@ -27,8 +27,8 @@ def _returned_stretch(s, prm):
     return jnp.exp(eps - dg * eps_hat / jnp.where(n > 0.0, n, 1.0))
 
 
-def make(dim: int) -> SimpleNamespace:
-    def update(state, grad_v, dt, prm):
+def make(law, dim: int) -> SimpleNamespace:
+    def update(state, grad_v, dt, prm, w):
         F = (jnp.eye(dim, dtype=grad_v.dtype) + dt * grad_v) @ state["F"]
         _, s, _ = svd_rotations(jax.lax.stop_gradient(F))
         dg = _excess(s, jax.lax.stop_gradient(prm))[3]

@@ -7,29 +7,33 @@ from types import SimpleNamespace
 import warp as wp
 
 from ...backends.warp.linalg import warp_linalg
-from ...backends.warp.types import warp_types
+from ...backends.warp.law_structs import law_types
 from ..hencky_drucker_prager.warp import hencky_funcs
 
 
 @lru_cache(maxsize=None)
-def make(dim: int, precision: str) -> SimpleNamespace:
-    T = warp_types(dim, precision)
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    T = law_types(law, dim, precision)
     La = warp_linalg(dim, precision)
     H = hencky_funcs(dim, precision)
-    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
 
     @wp.func
-    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
         out = s
         F = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
-        mu, lam = La.lame(prm[p, 0], prm[p, 1])
+        mu, lam = La.lame(prm.E, prm.nu)
         U, sv, V = La.svd_const(F)
         eps = H.logs(sv)
         tr, eps_hat, n = H.trace_split(eps)
-        k = prm[p, 2] / (scalar(2.0) * mu)
+        k = prm.yield_stress / (scalar(2.0) * mu)
         if n - k > scalar(0.0):                    # NCLaw Eq. 18: isochoric return (Eq. 19)
             F = H.vm_return(F, U, sv, V, eps, eps_hat, n, k)
         out.F = F
         return out
 
-    return SimpleNamespace(kirchhoff=H.kirchhoff, update=update)
+    @wp.func
+    def kirchhoff(s: LawState, prm: Params, w: Weights):
+        return H.kirchhoff(s.F, prm.E, prm.nu)
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update)

@@ -4,7 +4,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .._common import builtin_implementations
+from .._common import builtin_implementations, VOLUME_RATIO, CAUCHY_STRESS
 from . import reference as _reference
 
 
@@ -43,7 +43,9 @@ class Law(AbstractConstitutiveLaw):
         ParamSpec("min_pressure", "Pa", 0.0, high=0.0,
                   doc="tension cut-off: p = max(p, min_pressure); 0 = no tension, -1e30 = Eq. 20 unclamped"),
     )
-    state_fields = ("J", "sigma")
+    state = (VOLUME_RATIO, CAUCHY_STRESS,)
+    #: deforms (and yields) within 50 steps of the mpmlab.testing scenes
+    test_params = {"sound_speed": 5.0, "viscosity": 0.1}
     plastic = False
     reference = _reference
     implementations: ClassVar[dict] = builtin_implementations("newtonian_fluid")

@@ -6,14 +6,14 @@ from types import SimpleNamespace
 import jax.numpy as jnp
 
 
-def make(dim: int) -> SimpleNamespace:
+def make(law, dim: int) -> SimpleNamespace:
     eye = jnp.eye(dim)
 
-    def kirchhoff(state, prm):
+    def kirchhoff(state, prm, w):
         return state["J"] * state["sigma"]
 
-    def update(state, grad_v, dt, prm):
-        c, mu, rho0, pmin = prm[0], prm[1], prm[2], prm[3]
+    def update(state, grad_v, dt, prm, w):
+        c, mu, rho0, pmin = prm["sound_speed"], prm["viscosity"], prm["rest_density"], prm["min_pressure"]
         J = state["J"] * jnp.linalg.det(eye + dt * grad_v)
         p = c * c * (rho0 / J - rho0)                          # Eq. 20, rho = rho0 / J
         # tension cut-off p = max(p, pmin); where(>=) keeps the unclamped gradient at p == pmin (rest)

@@ -5,24 +5,24 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from ...backends.warp.types import warp_types
+from ...backends.warp.law_structs import law_types
 
 
 @lru_cache(maxsize=None)
-def make(dim: int, precision: str) -> SimpleNamespace:
-    T = warp_types(dim, precision)
-    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    T = law_types(law, dim, precision)
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
 
     @wp.func
-    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
+    def kirchhoff(s: LawState, prm: Params, w: Weights):
         return s.J * s.sigma
 
     @wp.func
-    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
-        c = prm[p, 0]
-        mu = prm[p, 1]
-        rho0 = prm[p, 2]
-        pmin = prm[p, 3]
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
+        c = prm.sound_speed
+        mu = prm.viscosity
+        rho0 = prm.rest_density
+        pmin = prm.min_pressure
         eye = wp.identity(dim, scalar)
         out = s
         J = s.J * wp.determinant(eye + dt * grad_v)

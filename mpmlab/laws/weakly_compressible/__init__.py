@@ -5,7 +5,7 @@ import math
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .._common import builtin_implementations
+from .._common import builtin_implementations, VOLUME_RATIO
 from . import reference as _reference
 
 
@@ -23,7 +23,9 @@ class Law(AbstractConstitutiveLaw):
     params = (
         ParamSpec("bulk_modulus", "Pa", 1.0e5, low=0.0, low_open=True, doc="bulk modulus lambda"),
     )
-    state_fields = ("J",)
+    state = (VOLUME_RATIO,)
+    #: deforms (and yields) within 50 steps of the mpmlab.testing scenes
+    test_params = {"bulk_modulus": 2e4}
     plastic = True   # Eq. 21 is a return map; on the J state it is folded into the update
     reference = _reference
     implementations: ClassVar[dict] = builtin_implementations("weakly_compressible")

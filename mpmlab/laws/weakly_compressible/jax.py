@@ -6,12 +6,12 @@ from types import SimpleNamespace
 import jax.numpy as jnp
 
 
-def make(dim: int) -> SimpleNamespace:
-    def kirchhoff(state, prm):
+def make(law, dim: int) -> SimpleNamespace:
+    def kirchhoff(state, prm, w):
         J = state["J"]
-        return prm[0] * J * (J - 1.0) * jnp.eye(dim, dtype=J.dtype)
+        return prm["bulk_modulus"] * J * (J - 1.0) * jnp.eye(dim, dtype=J.dtype)
 
-    def update(state, grad_v, dt, prm):
+    def update(state, grad_v, dt, prm, w):
         return {"J": state["J"] * jnp.linalg.det(jnp.eye(dim, dtype=grad_v.dtype) + dt * grad_v)}
 
     return SimpleNamespace(kirchhoff=kirchhoff, update=update)

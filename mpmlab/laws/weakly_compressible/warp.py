@@ -5,20 +5,20 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from ...backends.warp.types import warp_types
+from ...backends.warp.law_structs import law_types
 
 
 @lru_cache(maxsize=None)
-def make(dim: int, precision: str) -> SimpleNamespace:
-    T = warp_types(dim, precision)
-    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    T = law_types(law, dim, precision)
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
 
     @wp.func
-    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
-        return prm[p, 0] * s.J * (s.J - scalar(1.0)) * wp.identity(dim, scalar)
+    def kirchhoff(s: LawState, prm: Params, w: Weights):
+        return prm.bulk_modulus * s.J * (s.J - scalar(1.0)) * wp.identity(dim, scalar)
 
     @wp.func
-    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
         out = s
         out.J = s.J * wp.determinant(wp.identity(dim, scalar) + dt * grad_v)
         return out

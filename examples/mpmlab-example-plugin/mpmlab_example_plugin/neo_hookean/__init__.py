@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import ClassVar
 
-from mpmlab.core.interfaces import AbstractConstitutiveLaw, ParamSpec
+from mpmlab.core.interfaces import AbstractConstitutiveLaw, ParamSpec, StateField
 
 from . import reference as _reference
 
@@ -21,7 +21,8 @@ class Law(AbstractConstitutiveLaw):
         ParamSpec("E", "Pa", 5.0e4, low=0.0, low_open=True, doc="Young's modulus"),
         ParamSpec("nu", "-", 0.3, low=-1.0, high=0.5, low_open=True, high_open=True, doc="Poisson ratio"),
     )
-    state_fields = ("F",)
+    state = (StateField("F", ("D", "D"), "identity", doc="deformation gradient", check="positive_det"),)
+    test_params = {"E": 2e4, "nu": 0.3}
     plastic = False
     reference = _reference
     implementations: ClassVar[dict] = {

@@ -6,10 +6,10 @@ from types import SimpleNamespace
 import jax.numpy as jnp
 
 
-def make(dim: int) -> SimpleNamespace:
-    def kirchhoff(state, prm):
+def make(law, dim: int) -> SimpleNamespace:
+    def kirchhoff(state, prm, w):
         F = state["F"]
-        E, nu = prm[0], prm[1]
+        E, nu = prm["E"], prm["nu"]
         mu = E / (2.0 * (1.0 + nu))
         lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
         eye = jnp.eye(dim, dtype=F.dtype)
@@ -17,7 +17,7 @@ def make(dim: int) -> SimpleNamespace:
         logJ = jnp.log(jnp.abs(jnp.linalg.det(F)))
         return mu * (F @ F.T - eye) + lam * logJ * eye
 
-    def update(state, grad_v, dt, prm):
+    def update(state, grad_v, dt, prm, w):
         F = state["F"]
         return {"F": (jnp.eye(dim, dtype=F.dtype) + dt * grad_v) @ F}
 

@@ -5,18 +5,18 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from mpmlab.backends.warp.types import warp_types
+from mpmlab.backends.warp import law_types
 
 
 @lru_cache(maxsize=None)
-def make(dim: int, precision: str) -> SimpleNamespace:
-    T = warp_types(dim, precision)
-    scalar, mat, LawState = T.scalar, T.mat, T.LawState
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    T = law_types(law, dim, precision)   # LawState, Params (by name), Weights: from the law's declarations
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
 
     @wp.func
-    def kirchhoff(s: LawState, prm: wp.array2d(dtype=scalar), p: int):
-        E = prm[p, 0]
-        nu = prm[p, 1]
+    def kirchhoff(s: LawState, prm: Params, w: Weights):
+        E = prm.E
+        nu = prm.nu
         mu = E / (scalar(2.0) * (scalar(1.0) + nu))
         lam = E * nu / ((scalar(1.0) + nu) * (scalar(1.0) - scalar(2.0) * nu))
         logJ = wp.log(wp.abs(wp.determinant(s.F)))
@@ -24,7 +24,7 @@ def make(dim: int, precision: str) -> SimpleNamespace:
         return mu * (s.F @ wp.transpose(s.F) - eye) + lam * logJ * eye
 
     @wp.func
-    def update(s: LawState, grad_v: mat, dt: scalar, prm: wp.array2d(dtype=scalar), p: int):
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
         out = s
         out.F = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
         return out
