@@ -16,12 +16,13 @@ import logging
 import os
 import platform
 import time
+from dataclasses import dataclass
 from pathlib import Path
-
 
 import numpy as np
 
-from ..config import build_scene, check_run_options, make_transfer_from_config
+from ..build import build_scene, make_transfer_from_config
+from ..config import TaskConfig, check_run_options, register_task_schema
 from ..core.errors import ConfigError, SimulationDiverged
 from ..core.interfaces import STATE_FIELDS
 from ..core.signals import stop_reason
@@ -30,6 +31,14 @@ from .common import (CONFIG, ENERGY_PLOT, RECORDING, SUMMARY, TRAJECTORY, FrameC
                      fmt_rate, plot_energy, write_config, write_json)
 
 log = logging.getLogger("mpmlab")
+
+
+@dataclass
+class SimulateTaskConfig(TaskConfig):
+    name: str = "simulate"
+
+
+register_task_schema("simulate", SimulateTaskConfig)
 
 FIELD_NAMES = ("C", *STATE_FIELDS)
 
