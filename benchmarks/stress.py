@@ -39,14 +39,13 @@ import time
 import traceback
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _harness as H  # noqa: E402
 from _harness import log, machine_info, write_readme_section  # noqa: E402
 
-H.quiet_warp(threads=1)
-
-import numpy as np  # noqa: E402
-
+H.quiet_warp(threads=1)   # before Warp is imported
 HERE = H.HERE
 
 TRANSFERS = ("pic", "flip", "apic", "mls", "tpic")
