@@ -95,9 +95,9 @@ def test_every_shrink_still_applies():
 @pytest.mark.parametrize("bid, line, code", [_param(*b) for b in BLOCKS])
 def test_readme_block_runs(bid, line, code, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    # README line numbers in tracebacks: pad the block to where it stands in README.md
-    compiled = compile("\n" * (line - 1) + shrink(code), str(README), "exec")
     try:
+        # README line numbers in tracebacks: pad the block to where it stands in README.md
+        compiled = compile("\n" * (line - 1) + shrink(code), str(README), "exec")
         exec(compiled, {"__name__": f"readme_{bid.replace('-', '_')}"})
     except BaseException as exc:
         exc.add_note(f"README.md python block '{bid}' (from line {line}) does not run as written "
