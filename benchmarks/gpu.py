@@ -31,7 +31,6 @@ Throughput (particle-steps/s) on the GPU comes from ``benchmarks/throughput.py``
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -41,8 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))          # tests.scenes
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as H  # noqa: E402
+
+HERE = H.HERE
+H.on_path(H.ROOT)                              # tests.scenes
 TRANSFERS = ("pic", "flip", "apic", "mls", "tpic")
 LAW_STEPS, LAW_DT = 40, 1e-3
 LAW_DX = 0.05                                  # all_laws_scene's cell size
@@ -199,7 +201,7 @@ def cmd_check(args):
     def on_result(key, value, dt):      # rows rebuilt each time: a JAX row gains Warp's comparison
         gpu[key], seconds[key] = value, dt
         rows = [_row(k, gpu[k], seconds[k], ref, gpu) for k in gpu]
-        path.write_text(json.dumps({"info": info, "rows": rows}, indent=1))
+        H.write_json(path, {"info": info, "rows": rows})
 
     compute_all(args.backends.split(","), on_result)
     print(path.read_text())
@@ -269,7 +271,7 @@ def cmd_grad(args):
                 r["wall_s"] = time.perf_counter() - t0
                 print(r, flush=True)
                 rows.append(r)
-                (out_dir / "gpu_grad.json").write_text(json.dumps({"info": _device_info(), "rows": rows}, indent=1))
+                H.write_json(out_dir / "gpu_grad.json", {"info": _device_info(), "rows": rows})
 
 
 # ---- report ---------------------------------------------------------------------------------------------
@@ -300,13 +302,13 @@ def cmd_render(args):
                   f"`all_laws_{{2,3}}d`: the six built-in laws in one scene (`tests/scenes.py`), fp64, {LAW_STEPS} "
                   "steps. Max |x_gpu - x_cpu| in cells (dx), per backend, and between JAX and Warp on the GPU; "
                   "`Warp first call` is the CUDA compile (NVRTC) of that scene's kernels plus the steps.", "",
-                  "| case | JAX GPU vs JAX CPU | Warp CUDA vs Warp CPU | JAX GPU vs Warp CUDA | finite | Warp first call s |",
-                  "|---|---|---|---|---|---|"]
+                  *H.md_table(["case", "JAX GPU vs JAX CPU", "Warp CUDA vs Warp CPU", "JAX GPU vs Warp CUDA", "finite",
+                               "Warp first call s"])]
         for case in sorted({r["case"] for r in c["rows"] if r["case"].startswith("all_laws")}):
             j, w = rows.get(("jax", case), {}), rows.get(("warp", case), {})
-            lines.append(f"| {case} | {_fmt(j.get('max_dx_vs_cpu'))} | {_fmt(w.get('max_dx_vs_cpu'))} | "
-                         f"{_fmt(j.get('max_dx_vs_other_gpu'))} | {j.get('finite', '-')} / {w.get('finite', '-')} | "
-                         f"{_fmt(w.get('warp_first_call_s'), '{:.0f}')} |")
+            lines.append(H.md_row([case, _fmt(j.get("max_dx_vs_cpu")), _fmt(w.get("max_dx_vs_cpu")),
+                                   _fmt(j.get("max_dx_vs_other_gpu")), f"{j.get('finite', '-')} / {w.get('finite', '-')}",
+                                   _fmt(w.get("warp_first_call_s"), "{:.0f}")]))
         dam = rows.get(("warp", DAM_CASE), {})
         e = dam.get("dev_per_frame")
         if e:
@@ -320,10 +322,10 @@ def cmd_render(args):
         lines += ["", "## Gradients: GPU against CPU", "",
                   f"d sum(x_N^2) / d(v0, law parameters) of the six-law scene, APIC, fp64, N = {GRAD_N}, segment "
                   f"{GRAD_SEG}: relative L2 difference per leaf (`law5` = drucker_prager_jaumann).", "",
-                  "| leaf | JAX GPU vs JAX CPU | Warp CUDA vs Warp CPU |", "|---|---|---|"]
+                  *H.md_table(["leaf", "JAX GPU vs JAX CPU", "Warp CUDA vs Warp CPU"])]
         for case in sorted({r["case"] for r in c["rows"] if r["case"].startswith("grad")}):
             j, w = rows.get(("jax", case), {}), rows.get(("warp", case), {})
-            lines.append(f"| {case} | {_fmt(j.get('rel_l2_vs_cpu'))} | {_fmt(w.get('rel_l2_vs_cpu'))} |")
+            lines.append(H.md_row([case, _fmt(j.get("rel_l2_vs_cpu")), _fmt(w.get("rel_l2_vs_cpu"))]))
         lines.append("")
     before = d / "gpu_check_before_p2g_fix.json"
     if before.exists():
@@ -353,8 +355,8 @@ def cmd_render(args):
                   "The Ritter dam break, APIC, fp32, N steps, segment n; L = sum(x_N^2) w.r.t. v0 and the law "
                   "parameters. Median of 5 timed runs after a warm-up. Memory: JAX = XLA temp buffers of the "
                   "compiled gradient program; Warp = growth of the memory pool's high-water mark in one gradient.", "",
-                  "| backend | particles | N | n | forward s | fwd+bwd s | ratio | fwd particle-steps/s | grad memory MiB |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  *H.md_table(["backend", "particles", "N", "n", "forward s", "fwd+bwd s", "ratio", "fwd particle-steps/s",
+                               "grad memory MiB"])]
         for r in g["rows"]:
             if "error" in r:
                 lines.append(f"| {r['backend']} | dx {r['dx']} | - | {r['n']} | error: {r['error'][:120]} | | | | |")
@@ -371,7 +373,7 @@ def cmd_render(args):
                   "`benchmarks/throughput.py --big --no-taichi --no-skips` on the GPU (Taichi is not installed "
                   "there, so no ratio): Taichi mpm3d's scene (J-fluid, MLS), steady-state particle-steps/s, best "
                   "of 3; first call = trace/compile/kernel load (from the warm kernel cache for Warp) + first steps.",
-                  "", "| dim | particles | precision | JAX GPU | Warp CUDA | Warp / JAX |", "|---|---|---|---|---|---|"]
+                  "", *H.md_table(["dim", "particles", "precision", "JAX GPU", "Warp CUDA", "Warp / JAX"])]
         best = {}
         for r in t.get("throughput", []):
             if "particle_steps_per_s" not in r or r.get("scene") != "mpm3d":
@@ -381,19 +383,19 @@ def cmd_render(args):
         for dim, n, prec in sorted({k[:3] for k in best}, key=lambda k: (-k[0], k[1], k[2])):
             j, w = best.get((dim, n, prec, "jax")), best.get((dim, n, prec, "warp"))
             ratio = f"{w / j:.2f}" if j and w else "-"
-            lines.append(f"| {dim}D | {n} | {prec} | {_fmt(j)} | {_fmt(w)} | {ratio} |")
+            lines.append(H.md_row([f"{dim}D", n, prec, _fmt(j), _fmt(w), ratio]))
         lines.append("")
     Path(args.md).write_text("\n".join(lines) + "\n")
     print(f"[gpu] wrote {args.md}")
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = H.parser(__doc__.split("\n")[0])
     ap.add_argument("mode", choices=["reference", "check", "grad", "render"])
-    ap.add_argument("--backends", default="jax,warp")
-    ap.add_argument("--reference", default=str(HERE / "out" / "gpu_reference.npz"))
-    ap.add_argument("--out", default=str(HERE / "out" / "gpu"))
-    ap.add_argument("--inputs", default=str(HERE / "results" / "gpu"))
+    H.add_backends(ap)
+    ap.add_argument("--reference", default=str(H.OUT / "gpu_reference.npz"))
+    ap.add_argument("--out", default=str(H.OUT / "gpu"))
+    ap.add_argument("--inputs", default=str(H.RESULTS / "gpu"))
     ap.add_argument("--md", default=str(HERE / "gpu.md"))
     ap.add_argument("--N", type=int, default=400)
     ap.add_argument("--segments", default="20")

@@ -58,7 +58,6 @@ import argparse
 import gc
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -69,10 +68,9 @@ from pathlib import Path
 
 import numpy as np
 
-import _common
-from _common import write_readme_section
+import _harness as H
 
-HERE = Path(__file__).resolve().parent
+HERE = H.HERE
 MiB = 2.0**20
 
 
@@ -466,10 +464,7 @@ def run_worker(kind, spec, log, timeout=900):
 
 # ---- report -----------------------------------------------------------------------------------------------
 def machine_info() -> dict:
-    info = _common.machine_info(("jax", "warp", "torch"))
-    info["platform"] = platform.platform()
-    info["load_before"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
-    return info
+    return H.machine_info(("jax", "warp", "torch"), with_platform=True, load=True)
 
 
 def _xla_temp(res, r):
@@ -493,9 +488,9 @@ def row_md(res, r):
             f"{r['fwd_s']:.3f} | {r['grad_s']:.3f} | **{r['ratio']:.1f}x** | {first} |")
 
 
-HEADER = ("| backend | N | n | N/n + n | peak (MiB) | peak, sampled (MiB) | XLA temp (MiB) | model (MiB) | "
-          "ru_maxrss base / grad (MiB) | forward (s) | fwd+bwd (s) | ratio | first (s) |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+HEADER = "\n".join(H.md_table(["backend", "N", "n", "N/n + n", "peak (MiB)", "peak, sampled (MiB)", "XLA temp (MiB)",
+                               "model (MiB)", "ru_maxrss base / grad (MiB)", "forward (s)", "fwd+bwd (s)", "ratio",
+                               "first (s)"]))
 
 
 def tables(res) -> str:
@@ -543,9 +538,8 @@ def tables(res) -> str:
                  "arrays per step, atomic P2G, no tape); *no recompute* = gradient with every intermediate "
                  "kept (O(N) memory: JAX `value_and_grad` of the plain scan, Warp one `wp.Tape` over all N "
                  "steps); *step remat* = JAX with `jax.checkpoint` on each step only.\n")
-        L.append("| backend | fast (s) | grad path fwd (s) | no recompute: fwd+bwd (s) | ratio | step remat only (s) | ratio | "
-                 "XLA temp, no recompute (MiB) |")
-        L.append("|---|---|---|---|---|---|---|---|")
+        L += H.md_table(["backend", "fast (s)", "grad path fwd (s)", "no recompute: fwd+bwd (s)", "ratio",
+                         "step remat only (s)", "ratio", "XLA temp, no recompute (MiB)"])
         for b in res["breakdown"]:
             if b["backend"] == "jax":
                 L.append(f"| {b.get('label', 'jax')} | {b['fast_s']:.3f} | {b['plain_fwd_s']:.3f} | {b['plain_grad_s']:.3f} | "
@@ -560,8 +554,7 @@ def tables(res) -> str:
             tf_, ta_ = sum(v["fwd_ms"] for v in kern.values()), sum(v["adj_ms"] for v in kern.values())
             L.append("\n**Warp, per kernel** (ms per step; each launch of a 20-step tape replayed alone; the "
                      "adjoint is Warp's generated one, which replays the forward body first):\n")
-            L.append("| kernel | forward (ms) | adjoint (ms) | adjoint / forward |")
-            L.append("|---|---|---|---|")
+            L += H.md_table(["kernel", "forward (ms)", "adjoint (ms)", "adjoint / forward"])
             for k, v in kern.items():
                 L.append(f"| {k} | {v['fwd_ms']:.3f} | {v['adj_ms']:.3f} | {v['adj_ms'] / v['fwd_ms']:.1f}x |")
             L.append(f"| all | {tf_:.3f} | {ta_:.3f} | {ta_ / tf_:.1f}x |")
@@ -585,7 +578,7 @@ def tables(res) -> str:
 
 
 def write_readme(path: Path, body: str, title="Gradients: memory and time", name="gradients"):
-    write_readme_section(path, name, title, body)
+    H.write_readme_section(path, name, title, body)
 
 
 def plot(res, path: Path):
@@ -654,8 +647,8 @@ def plot(res, path: Path):
 
 # ---- main ------------------------------------------------------------------------------------------------------
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--backends", default="jax,warp")
+    ap = H.parser(__doc__.split("\n")[0])
+    H.add_backends(ap)
     ap.add_argument("--N", type=int, default=400, help="steps of the segment-length sweep")
     ap.add_argument("--segments", default="1,10,20,50,100,400", help="segment lengths n at --N (n > N dropped)")
     ap.add_argument("--scaling-N", default="100,200,400,800", help="steps of the N sweep")
@@ -668,13 +661,13 @@ def main(argv=None):
     ap.add_argument("--jax-variant-flags", default="--xla_cpu_experimental_ynn_fusion_type=",
                     help="XLA_FLAGS of an extra JAX run of the segment sweep ('' to skip)")
     ap.add_argument("--jax-variant-label", default="jax, YNN off")
-    ap.add_argument("--quick", action="store_true", help="N = 40, n in {5, 40}, N sweep {20, 40}, dx 0.025")
+    H.add_quick(ap, "N = 40, n in {5, 40}, N sweep {20, 40}, dx 0.025")
     ap.add_argument("--merge", action="store_true",
                     help="keep the rows of variants not run now from the existing --out JSON (e.g. --backends warp)")
     ap.add_argument("--render", action="store_true", help="only rewrite the README section and plot from --out")
-    ap.add_argument("--out", default=str(HERE / "out" / "gradients.json"))
-    ap.add_argument("--plot", default=str(HERE / "out" / "gradients.png"))
-    ap.add_argument("--readme", default=str(HERE / "README.md"), help="'' to leave the README alone")
+    ap.add_argument("--out", default=str(H.OUT / "gradients.json"))
+    ap.add_argument("--plot", default=str(H.OUT / "gradients.png"))
+    H.add_readme(ap)
     ap.add_argument("--worker", choices=sorted(WORKERS), help=argparse.SUPPRESS)
     ap.add_argument("--spec", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -684,7 +677,7 @@ def main(argv=None):
         print("RESULT " + json.dumps(res), flush=True)
         return res
 
-    log = lambda *a: print(*a, file=sys.stderr, flush=True)
+    log = lambda *a: H.log(*a, err=True)
     out = Path(args.out)
     if args.render:
         res = json.loads(out.read_text())
@@ -739,20 +732,19 @@ def main(argv=None):
                 res["breakdown"].append(bd)
                 log(f"{label} breakdown: {json.dumps({k: v for k, v in bd.items() if not k.endswith('xla')})}")
     res["machine"]["parent_maxrss_mib_end"] = maxrss_mib()
-    res["machine"]["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
+    res["machine"]["load_after"] = H.load_average()
     res["total_s"] = time.perf_counter() - t_start
     if args.merge and out.exists():
         # keep the other variants' rows from the earlier run; say which rows were measured when
         old = json.loads(out.read_text())
         new_labels = {label for label, *_ in variants}
-        old_labels = sorted({r.get("label", r["backend"]) for r in old["rows"]} - new_labels)
-        res["rows"] = [r for r in old["rows"] if r.get("label", r["backend"]) in old_labels] + res["rows"]
-        res["breakdown"] = [r for r in old.get("breakdown", []) if r.get("label", r["backend"]) in old_labels] \
-            + res["breakdown"]
+        label_of = lambda r: r.get("label", r["backend"])
+        old_labels = sorted({label_of(r) for r in old["rows"]} - new_labels)
+        res["rows"] = H.keep_rows(old["rows"], res["rows"], lambda r: label_of(r) in old_labels)
+        res["breakdown"] = H.keep_rows(old.get("breakdown", []), res["breakdown"], lambda r: label_of(r) in old_labels)
         res["compile"] = {**{k: v for k, v in old.get("compile", {}).items() if k in old_labels}, **res["compile"]}
         res["date"] = f"{old['date']} ({', '.join(old_labels)} rows); {res['date']} ({', '.join(sorted(new_labels))} rows)"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))
+    H.write_json(out, res)
     log(f"total {res['total_s']:.0f} s")
     return report(res, args)
 

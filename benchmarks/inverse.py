@@ -28,7 +28,6 @@ The cases (JAX-MPM Sec. 5; the paper's numbers from its text):
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -39,12 +38,13 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import write_readme_section
+import _harness as H
+from _harness import write_readme_section
 
-HERE = Path(__file__).resolve().parent
-RUNS = HERE / "out" / "inverse"
-RESULTS = HERE / "results" / "inverse"
-FIGURES = HERE / "figures"
+HERE = H.HERE
+RUNS = H.OUT / "inverse"
+RESULTS = H.RESULTS / "inverse"
+FIGURES = H.FIGURES
 TABLE = HERE / "inverse.md"
 
 
@@ -176,8 +176,7 @@ def _mark(ok):
 
 
 def table(results: dict, backends: list[str], resolution: str) -> str:
-    lines = ["| Sec. | case | paper | " + " | ".join(f"mpmlab {b}" for b in backends) + " | epochs | fit time (s / epoch) |",
-             "|---|---|---|" + "---|" * len(backends) + "---|---|"]
+    lines = H.md_table(["Sec.", "case", "paper", *(f"mpmlab {b}" for b in backends), "epochs", "fit time (s / epoch)"])
     for case in CASES:
         cells, epochs, walls = [], [], []
         for b in backends:
@@ -191,8 +190,7 @@ def table(results: dict, backends: list[str], resolution: str) -> str:
             cells.append(text + _mark(ok))
             epochs.append(f"{s['epochs']}")
             walls.append(f"{fit_time(s) / 60:.0f} min ({epoch_time(s):.1f} s)")
-        lines.append(f"| {case.key} | {case.label} | {case.paper} | " + " | ".join(cells)
-                     + f" | {' / '.join(epochs)} | {' / '.join(walls)} |")
+        lines.append(H.md_row([case.key, case.label, case.paper, *cells, " / ".join(epochs), " / ".join(walls)]))
     first = next(iter(results.values()), None)
     head = ""
     if first is not None:
@@ -368,8 +366,8 @@ def load_results(backends: list[str], resolution: str) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--backends", nargs="+", default=["jax", "warp"], choices=["jax", "warp"])
+    ap = H.parser(__doc__.split("\n\n")[0])
+    H.add_backends(ap, as_list=True)
     ap.add_argument("--cases", nargs="+", default=["5.1", "5.2", "5.3"], choices=["5.1", "5.2", "5.3"])
     ap.add_argument("--variants", nargs="+", default=None, help="only these run directories (e.g. p500 eulerian)")
     ap.add_argument("--resolution", default="cpu", choices=["tiny", "cpu", "mid", "paper"])
@@ -383,8 +381,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.friction_landscape:
         res = friction_landscape(args.friction_landscape, args.resolution, 500)
-        RESULTS.mkdir(parents=True, exist_ok=True)
-        (RESULTS / "friction_landscape.json").write_text(json.dumps(res, indent=1))
+        H.write_json(RESULTS / "friction_landscape.json", res)
         for r in res["points"]:
             print(f"{r['point']:>20s}  loss {r['loss']:.3g}")
         print("front:", ", ".join(f"{f['t']:.2f} s {f['x_front']:.2f} m" for f in res["front"]))
@@ -398,7 +395,7 @@ def main(argv=None) -> int:
             for b in args.backends:
                 s = run_case(c, b, args.resolution, list(args.extra))
                 if s is not None:
-                    result_path(c, b, args.resolution).write_text(json.dumps(compact(s), indent=1))
+                    H.write_json(result_path(c, b, args.resolution), compact(s))
     results = load_results(args.table_backends, args.resolution)
     if not results:
         print("[inverse] no results to tabulate", file=sys.stderr)

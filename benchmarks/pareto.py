@@ -19,22 +19,21 @@ and the ``pareto`` section of ``benchmarks/README.md``.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as H  # noqa: E402
+from _harness import machine_info, write_readme_section  # noqa: E402
 
-from _common import machine_info, write_readme_section  # noqa: E402
-
-RESULTS = HERE / "results" / "pareto.json"
+H.on_path(H.ROOT)
+HERE = H.HERE
+RESULTS = H.RESULTS / "pareto.json"
 TABLE = HERE / "pareto.md"
-FIGURES = HERE / "figures"
+FIGURES = H.FIGURES
 
 
 def sweep(quick: bool, full: bool) -> list[dict]:
@@ -170,9 +169,8 @@ def plot(rows: list[dict], scene: str, path: Path) -> None:
 def report(rows: list[dict], machine: dict, args_text: str, wall_total: float) -> None:
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     orders = convergence_orders(rows)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps({"machine": machine, "command": args_text, "sweep_wall_s": wall_total,
-                                   "points": rows, "convergence": orders}, indent=1))
+    H.write_json(RESULTS, {"machine": machine, "command": args_text, "sweep_wall_s": wall_total, "points": rows,
+                           "convergence": orders})
     FIGURES.mkdir(parents=True, exist_ok=True)
     lines = [f"# Run time against error (`{args_text}`)", "",
              f"Machine: {machine.get('cpu')}, {machine.get('cores')} cores (shared with other jobs), "
@@ -186,25 +184,24 @@ def report(rows: list[dict], machine: dict, args_text: str, wall_total: float) -
         ids = {id(r) for r in front}
         plot(R, sc, FIGURES / f"pareto_{sc}.png")
         lines += [f"## {sc}: {R[0]['metric']} (resolution = {R[0]['resolution_meaning']})", "",
-                  "| front | backend | transfer | prec | resolution | dx | cfl | ppc | particles | steps | error | wall_s | compile_s |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        for r in sorted(R, key=lambda r: r["wall_s"]):
-            lines.append(f"| {'*' if id(r) in ids else ''} | {r['backend']} | {r['transfer']} | {r['precision']} | "
-                         f"{r['resolution']:g} | {r['dx']:.4g} | {r['cfl']:g} | {r['particles_per_cell']} | {r['particles']} | "
-                         f"{r['steps']} | {r['error']:.3e} | {r['wall_s']:.3f} | {r['compile_s']:.2f} |")
+                  *H.md_table(["front", "backend", "transfer", "prec", "resolution", "dx", "cfl", "ppc", "particles",
+                               "steps", "error", "wall_s", "compile_s"],
+                              (["*" if id(r) in ids else "", r["backend"], r["transfer"], r["precision"],
+                                f"{r['resolution']:g}", f"{r['dx']:.4g}", f"{r['cfl']:g}", r["particles_per_cell"],
+                                r["particles"], r["steps"], f"{r['error']:.3e}", f"{r['wall_s']:.3f}",
+                                f"{r['compile_s']:.2f}"] for r in sorted(R, key=lambda r: r["wall_s"])))]
         lines.append("")
         readme.append(f"**{sc}** ({R[0]['metric']}): front = " + "; ".join(
             f"{r['backend']}/{r['transfer']}/{r['precision']} res {r['resolution']:g}, cfl {r['cfl']:g}, ppc "
             f"{r['particles_per_cell']} ({r['error']:.2e} in {r['wall_s']:.2f} s)" for r in front) + "\n\n"
             f"![{sc}](figures/pareto_{sc}.png)\n\n")
     lines += ["## Convergence orders (successive refinements, same other settings)", "",
-              "| scene | backend | transfer | prec | cfl | ppc/axis | dx | error | observed orders | F orders |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
-    for o in orders:
-        lines.append(f"| {o['scene']} | {o['backend']} | {o['transfer']} | {o['precision']} | {o['cfl']:g} | "
-                     f"{o['particles_per_axis']} | {', '.join(f'{d:.3g}' for d in o['dx'])} | "
-                     f"{', '.join(f'{e:.2e}' for e in o['error'])} | {', '.join(f'{p:.2f}' for p in o['orders'])} | "
-                     f"{', '.join(f'{p:.2f}' for p in o.get('F_orders', []))} |")
+              *H.md_table(["scene", "backend", "transfer", "prec", "cfl", "ppc/axis", "dx", "error", "observed orders",
+                           "F orders"],
+                          ([o["scene"], o["backend"], o["transfer"], o["precision"], f"{o['cfl']:g}",
+                            o["particles_per_axis"], ", ".join(f"{d:.3g}" for d in o["dx"]),
+                            ", ".join(f"{e:.2e}" for e in o["error"]), ", ".join(f"{p:.2f}" for p in o["orders"]),
+                            ", ".join(f"{p:.2f}" for p in o.get("F_orders", []))] for o in orders))]
     TABLE.write_text("\n".join(lines) + "\n")
     mms = [o for o in orders if o["scene"].startswith("mms") and o["backend"] == "jax" and o["precision"] == "fp64"
            and o["cfl"] == 0.3 and o["particles_per_axis"] == 2]
@@ -229,11 +226,11 @@ def report(rows: list[dict], machine: dict, args_text: str, wall_total: float) -
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = H.parser(__doc__, raw=True)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--full", action="store_true")
     ap.add_argument("--scenes", default="bar,ritter,hydrostatic,mms,mms_slip")
-    ap.add_argument("--backends", default="jax,warp")
+    H.add_backends(ap)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--from-json", default=None, help="make the report from a JSON list of points (task=bench out)")
     args = ap.parse_args(argv)

@@ -12,7 +12,6 @@ spans between ``<!-- readme-numbers:NAME -->`` and ``<!-- /readme-numbers -->`` 
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -25,9 +24,12 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as H  # noqa: E402
+
+ROOT = H.ROOT
 README = ROOT / "README.md"
-RESULTS = ROOT / "benchmarks" / "results" / "readme_numbers.json"
+RESULTS = H.RESULTS / "readme_numbers.json"
 SPAN = re.compile(r"<!-- readme-numbers:(?P<name>[\w-]+) -->(?P<body>.*?)<!-- /readme-numbers -->", re.S)
 
 
@@ -66,7 +68,7 @@ def render(text: str, results: dict) -> str:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = H.parser(__doc__, raw=True)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--update", action="store_true", help="measure, then rewrite README.md's spans")
     ap.add_argument("--check", action="store_true", help="compare README.md with the results file only")
@@ -77,8 +79,7 @@ def main() -> int:
         print("README numbers match" if ok else "README numbers are stale: run benchmarks/readme_numbers.py --update")
         return 0 if ok else 1
     results = measure(a.runs)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(results, indent=2) + "\n")
+    H.write_json(RESULTS, results, indent=2, newline=True)
     print(f"median {results['median_wall_s']:.2f} s -> {RESULTS}")
     if a.update:
         README.write_text(render(README.read_text(), results))

@@ -12,8 +12,6 @@ started (``apt-get install xvfb mesa-vulkan-drivers``, as ``.ci/run`` does; soft
 """
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import shutil
 import subprocess
@@ -22,8 +20,11 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "figures" / "viewer"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as H  # noqa: E402
+
+ROOT = H.ROOT
+OUT = H.FIGURES / "viewer"
 WINDOW = "1280x800"
 
 #: name -> (what it shows, the mpmlab arguments)
@@ -101,7 +102,7 @@ def shrink(src: Path, dst: Path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = H.parser(__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="*", choices=sorted(SHOTS), help="make only these")
     ap.add_argument("--out", type=Path, default=OUT, help=f"where the PNGs go (default {OUT.relative_to(ROOT)})")
     ap.add_argument("--keep", type=Path, help="keep the runs (recordings, full-size screenshots) here")
@@ -111,7 +112,7 @@ def main(argv=None) -> int:
     work = args.keep or Path(tempfile.mkdtemp(prefix="mpmlab-shots-"))
     work.mkdir(parents=True, exist_ok=True)
     manifest_path = args.out / "screenshots.json"
-    manifest = json.loads(manifest_path.read_text()) if manifest_path.exists() else {}
+    manifest = H.read_json(manifest_path, {})
     proc, env = start_display(work / "xdg")
     import rerun
 
@@ -142,7 +143,7 @@ def main(argv=None) -> int:
             proc.wait(10)
         if args.keep is None:
             shutil.rmtree(work, ignore_errors=True)
-    manifest_path.write_text(json.dumps({k: manifest[k] for k in sorted(manifest)}, indent=2) + "\n")
+    H.write_json(manifest_path, {k: manifest[k] for k in sorted(manifest)}, indent=2, newline=True)
     return 0
 
 

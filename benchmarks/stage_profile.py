@@ -31,7 +31,6 @@ section of ``benchmarks/README.md``.
 """
 from __future__ import annotations
 
-import argparse
 import gzip
 import inspect
 import json
@@ -44,20 +43,20 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import machine_info, write_readme_section
+import _harness as H
+from _harness import machine_info, write_readme_section
 
-HERE = Path(__file__).resolve().parent
-RESULT = HERE / "results" / "profile.json"
-FIGURE = HERE / "figures" / "profile.png"
+HERE = H.HERE
+RESULT = H.RESULTS / "profile.json"
+FIGURE = H.FIGURES / "profile.png"
 STAGES = ("law (stress)", "P2G", "grid update", "boundaries", "G2P", "law (update)", "host / loop", "guards",
           "output")
 
 
 # ---- scenes ------------------------------------------------------------------------------------------------
 def make_scene(name: str, dim: int, n_grid: int):
-    from mpmlab.scenes.mpm3d import elastic_cube, mpm3d_fluid
-
-    return mpm3d_fluid(n_grid, dim) if name == "mpm3d" else elastic_cube(n_grid, dim)
+    """``mpm3d`` or ``cube``: the scenes of ``throughput.py`` (``_harness.throughput_scene``)."""
+    return H.throughput_scene(name, dim, n_grid)
 
 
 # ---- guards and output, both backends ----------------------------------------------------------------------
@@ -327,8 +326,7 @@ def render(res: dict) -> str:
              f"JAX {res['machine'].get('jax')}, Warp {res['machine'].get('warp')}. Regenerate with "
              f"`python benchmarks/stage_profile.py` (method in its docstring). Milliseconds per step; guards and "
              f"output per step at one frame (and one guard check) every {res['rows'][0]['frame_every']} steps.\n",
-             "| scene | backend | particles | " + " | ".join(STAGES) + " | total | wall (fast path) |",
-             "|---|---|---|" + "---|" * (len(STAGES) + 2)]
+             *H.md_table(["scene", "backend", "particles", *STAGES, "total", "wall (fast path)"])]
     for r in res["rows"]:
         s = r["stages_s_per_step"]
         tot = sum(s.get(k, 0.0) for k in STAGES)
@@ -336,8 +334,8 @@ def render(res: dict) -> str:
         for k in STAGES:
             v = s.get(k)
             cells.append("-" if v is None else f"{v * 1e3:.3f} ({v / tot:.0%})")
-        lines.append(f"| {r['scene']} {r['dim']}D {r['n_grid']} | {r['backend']} {r['precision']} | {r['particles']} | "
-                     + " | ".join(cells) + f" | {tot * 1e3:.3f} | {r['wall_per_step_s'] * 1e3:.3f} |")
+        lines.append(H.md_row([f"{r['scene']} {r['dim']}D {r['n_grid']}", f"{r['backend']} {r['precision']}",
+                               r["particles"], *cells, f"{tot * 1e3:.3f}", f"{r['wall_per_step_s'] * 1e3:.3f}"]))
     lines.append("\nWarp: G2P is fused with the law update and the next step's stress (one kernel), so its "
                  "law columns are empty. JAX: one XLA program per chunk of steps; the split is the share of "
                  "XLA thunk time per `step_fn` section (concurrent thunks overlap), scaled to the wall time.")
@@ -369,8 +367,8 @@ def plot(res: dict) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--backends", nargs="+", default=["jax", "warp"], choices=["jax", "warp"])
+    ap = H.parser(__doc__.split("\n\n")[0])
+    H.add_backends(ap, as_list=True)
     ap.add_argument("--scenes", nargs="+", default=["mpm3d", "cube"], choices=["mpm3d", "cube"])
     ap.add_argument("--dim", type=int, default=3, choices=[2, 3])
     ap.add_argument("--n-grid", type=int, default=32)
@@ -383,8 +381,7 @@ def main(argv=None) -> int:
         res = json.loads(RESULT.read_text())
     else:
         res = run(args.backends, args.scenes, args.dim, args.n_grid, args.precision, args.steps, args.every)
-        RESULT.parent.mkdir(parents=True, exist_ok=True)
-        RESULT.write_text(json.dumps(res, indent=1))
+        H.write_json(RESULT, res)
     plot(res)
     body = render(res)
     write_readme_section(HERE / "README.md", "profile", "Profiles: where a step's time goes", body)

@@ -32,32 +32,26 @@ must never gain kinetic energy (no external work; verification note #5b). Kineti
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import os
 import sys
 import time
 import traceback
 from pathlib import Path
 
-os.environ.setdefault("WARP_QUIET", "1")
-os.environ.setdefault("MPMLAB_WARP_THREADS", "1")
-
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from _common import machine_info, write_readme_section  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as H  # noqa: E402
+from _harness import log, machine_info, write_readme_section  # noqa: E402
+
+H.quiet_warp(threads=1)   # before Warp is imported
+HERE = H.HERE
 
 TRANSFERS = ("pic", "flip", "apic", "mls", "tpic")
 C_LO, C_HI, HALVINGS = 0.02, 3.0, 7
 #: kinetic energy allowed over the available energy before a run counts as blowing up
 KE_FACTOR = 1.5
-
-
-def log(msg: str) -> None:
-    print(msg, flush=True)
 
 
 # ---- scenes --------------------------------------------------------------------------------------
@@ -398,8 +392,7 @@ def render(res: dict) -> str:
                  "as a 2D strip (20 cells, 4 particles/cell, nu 0), `falling_cube` = 0.3 m square, E 1e4, "
                  "nu 0.3, thrown at (1, -2) m/s with spin 2 rad/s onto slip walls (4 particles/cell).\n")
         backends = sorted({r["backend"] for r in res["sweep"]})
-        L.append("| scene | law | backend | " + " | ".join(TRANSFERS) + " |")
-        L.append("|---|---|---|" + "---|" * len(TRANSFERS))
+        L += H.md_table(["scene", "law", "backend", *TRANSFERS])
         keys = sorted({(r["scene"], r["law"]) for r in res["sweep"]})
         for sc, law in keys:
             for b in backends:
@@ -408,7 +401,7 @@ def render(res: dict) -> str:
                     r = next((r for r in res["sweep"] if (r["scene"], r["law"], r["backend"], r["transfer"]) == (sc, law, b, tr)), None)
                     cells.append("–" if r is None else (f"<{C_LO}" if r["c_star"] is None else
                                  (f">={C_HI}" if r["bracket"][1] is None else f"{r['c_star']:.3g}")))
-                L.append(f"| {sc} | {law} | {b} | " + " | ".join(cells) + " |")
+                L.append(H.md_row([sc, law, b, *cells]))
         from mpmlab.core import registry
 
         cfl = res["meta"]["default_cfl"]
@@ -429,8 +422,8 @@ def render(res: dict) -> str:
                  "fp32. `ok` = finite trajectory with bounded kinetic energy; `diverged` = `SimulationDiverged` "
                  "naming step, particle and field; `config_error` = refused before running. `BAD` would be a "
                  "NaN trajectory returned as fine, or any other exception.\n")
-        L.append("| case | what | transfer | backend | outcome | steps | dt(0) [s] | t_end [s] | max KE / available | detail |")
-        L.append("|---|---|---|---|---|---|---|---|---|---|")
+        L += H.md_table(["case", "what", "transfer", "backend", "outcome", "steps", "dt(0) [s]", "t_end [s]",
+                         "max KE / available", "detail"])
         for r in res["cases"]:
             det = (f"step {r['step']}, particle {r['particle']}, field {r['field']}" if r["outcome"] == "diverged"
                    else r.get("message", "")).replace("|", "/")
@@ -453,8 +446,8 @@ def render(res: dict) -> str:
         L.append("Spinning elastic disc (r 0.12 m, E 1e5, omega 2 rad/s, no gravity, no walls), `dt: auto` "
                  "with the default cadence; energies every 100 steps. No external work is done, so kinetic "
                  "energy must not rise for PIC/APIC (verification #5b).\n")
-        L.append("| backend | transfer | steps | t_end [s] | KE_end / KE0 | max KE / KE0 | max KE rise per 100 steps (rel. KE0) | max (KE+elastic) rise per 100 steps | outcome |")
-        L.append("|---|---|---|---|---|---|---|---|---|")
+        L += H.md_table(["backend", "transfer", "steps", "t_end [s]", "KE_end / KE0", "max KE / KE0",
+                         "max KE rise per 100 steps (rel. KE0)", "max (KE+elastic) rise per 100 steps", "outcome"])
         for r in res["long"]:
             if r["outcome"] != "ok":
                 L.append(f"| {r['backend']} | {r['transfer']} | {r['steps']} | | | | | | {r['outcome']}: {r.get('message', '')} |")
@@ -466,16 +459,16 @@ def render(res: dict) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="smoke-sized: short horizons, fewer cases and scenes")
+    ap = H.parser(__doc__.split("\n")[0])
+    H.add_quick(ap, "smoke-sized: short horizons, fewer cases and scenes")
     ap.add_argument("--full", action="store_true", help="every registered law (solids and fluids) in the sweep, 1000-step horizon")
-    ap.add_argument("--backends", default="jax,warp")
+    H.add_backends(ap)
     ap.add_argument("--parts", default="sweep,cases,random,long")
     ap.add_argument("--long-steps", type=int, default=None, help="long-run steps (default 100000; --quick 5000)")
     ap.add_argument("--random", type=int, default=None, help="random scenes (default 12; --quick 4)")
     ap.add_argument("--no-write", action="store_true", help="print only; leave results and README alone")
     a = ap.parse_args(argv)
-    backends = [b for b in a.backends.split(",") if b]
+    backends = H.csv(a.backends)
     parts = set(a.parts.split(","))
     horizon = 150 if a.quick else (1000 if a.full else 500)
     laws = {"vibrating_bar": ["fixed_corotated"], "falling_cube": ["fixed_corotated", "hencky_von_mises"]}
@@ -510,13 +503,11 @@ def main(argv=None):
         log(f"[stress] long runs, {steps} steps")
         res["long"] = long_run(backends, steps)
     res["meta"]["wall_s"] = time.perf_counter() - t0
-    prev_path = HERE / "results" / "stress.json"
+    prev_path = H.RESULTS / "stress.json"
     if not a.no_write and prev_path.exists():
         # a partial run (--parts) keeps the other parts of the last full run, and says which came from where
         prev = json.loads(prev_path.read_text())
-        kept = [k for k in ("sweep", "cases", "random", "long") if k not in res and k in prev]
-        for k in kept:
-            res[k] = prev[k]
+        kept = H.keep_parts(res, prev, ("sweep", "cases", "random", "long"))
         if kept:
             res["meta"]["kept_from_previous_run"] = {"parts": kept, "argv": prev.get("meta", {}).get("argv"),
                                                     "wall_s": prev.get("meta", {}).get("wall_s")}
@@ -524,9 +515,7 @@ def main(argv=None):
     print(md)
     if a.no_write:
         return res
-    out = HERE / "results" / "stress.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1, default=float))
+    out = H.write_json(H.RESULTS / "stress.json", res, default=float)
     (HERE / "stress.md").write_text("# Stability stress suite\n\n" + (__doc__.split("\n\n", 2)[2]) + "\n" + md)
     write_readme_section(HERE / "README.md", "stress", "Stability stress suite (benchmarks/stress.py)",
                          "`python benchmarks/stress.py` (`--quick`, `--full`, `--backends`, `--parts`); full "

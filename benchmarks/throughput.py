@@ -33,23 +33,18 @@ Usage::
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-import _common
-from _common import write_readme_section
+import _harness as H
+from _harness import CUBE_N_GRID, N_GRID_2D, N_GRID_3D
 
-HERE = Path(__file__).resolve().parent
-N_GRID_3D = {"8k": 32, "65k": 64, "524k": 128}
-N_GRID_2D = {"8k": 181, "65k": 512, "524k": 1448}
-CUBE_N_GRID = {3: 64, 2: 512}
+HERE = H.HERE
 
 
 # ---- measurement -----------------------------------------------------------------------------------
@@ -167,16 +162,12 @@ def run_taichi(python: str, peer_dir: Path, n_grid: int, steps: int, threads: in
 
 # ---- scenes ------------------------------------------------------------------------------------------
 def fluid(size: str, dim: int, law="weakly_compressible", boundaries=None):
-    from mpmlab.scenes.mpm3d import mpm3d_fluid
-
     n_grid = (N_GRID_3D if dim == 3 else N_GRID_2D)[size]
-    return mpm3d_fluid(n_grid, dim, law=law, boundaries=boundaries), n_grid
+    return H.throughput_scene("mpm3d", dim, n_grid, law=law, boundaries=boundaries), n_grid
 
 
 def cube(dim: int, law="fixed_corotated", **kw):
-    from mpmlab.scenes.mpm3d import elastic_cube
-
-    return elastic_cube(CUBE_N_GRID[dim], dim, law=law, **kw)
+    return H.throughput_scene("cube", dim, CUBE_N_GRID[dim], law=law, **kw)
 
 
 def extra_boundaries(dim):
@@ -206,49 +197,47 @@ def tables(res: dict) -> tuple[str, str]:
                  "compile; Warp: kernel load, from Warp's disk cache when warm) including its steps; "
                  f"3D fp32 mpm3d rows and Taichi: best of {res.get('rounds', 1)} interleaved rounds. "
                  "Regenerate with `python benchmarks/throughput.py` (see its docstring).\n")
-    lines.append("| scene | dim | particles | backend | precision | particle-steps/s | ms/step | first (s) | vs Taichi |")
-    lines.append("|---|---|---|---|---|---|---|---|---|")
+    lines += H.md_table(["scene", "dim", "particles", "backend", "precision", "particle-steps/s", "ms/step",
+                         "first (s)", "vs Taichi"])
     tai = {t["n_grid"]: t for t in res["taichi"]}
     for r in res["throughput"]:
         ratio = ""
         if r["scene"] == "mpm3d" and r["dim"] == 3 and r["precision"] == "fp32" and r["n_grid"] in tai:
             ratio = f"{r['particle_steps_per_s'] / tai[r['n_grid']]['particle_steps_per_s']:.2f}x"
-        lines.append(f"| {r['scene']} | {r['dim']}D | {r['particles']} | {r['backend']}"
-                     f"{' (' + str(r['threads']) + ' thr)' if 'threads' in r else ''} | {r['precision']} | "
-                     f"{fmt(r['particle_steps_per_s'])} | {r['ms_per_step']:.2f} | {r['first_call_s']:.1f} | {ratio} |")
+        lines.append(H.md_row([r["scene"], f"{r['dim']}D", r["particles"],
+                               r["backend"] + (f" ({r['threads']} thr)" if "threads" in r else ""), r["precision"],
+                               fmt(r["particle_steps_per_s"]), f"{r['ms_per_step']:.2f}", f"{r['first_call_s']:.1f}",
+                               ratio]))
     for t in res["taichi"]:
-        lines.append(f"| mpm3d | 3D | {t['particles']} | taichi {mach.get('taichi', '')} ({t['threads']} thr, peer) | fp32 | "
-                     f"{fmt(t['particle_steps_per_s'])} | {t['ms_per_step']:.2f} | {t['first_call_s']:.1f} | 1.00x |")
+        lines.append(H.md_row(["mpm3d", "3D", t["particles"], f"taichi {mach.get('taichi', '')} ({t['threads']} thr, peer)",
+                               "fp32", fmt(t["particle_steps_per_s"]), f"{t['ms_per_step']:.2f}",
+                               f"{t['first_call_s']:.1f}", "1.00x"]))
     if res.get("taichi_note"):
         lines.append(f"\n{res['taichi_note']}")
     thr = "\n".join(lines) + "\n"
     sk = ["Each row: the same scene and backend with and without one thing the compiled step can leave out; "
           "fp32, 3D, 65k particles (cube: 55k), Warp on one thread. `gain` = throughput without / with.\n",
-          "| skip | backend | without (particle-steps/s) | with (particle-steps/s) | gain | note |",
-          "|---|---|---|---|---|---|"]
-    for s in res["skips"]:
-        sk.append(f"| {s['skip']} | {s['backend']} | {fmt(s['without'])} | {fmt(s['with'])} | "
-                  f"{s['without'] / s['with']:.2f}x | {s.get('note', '')} |")
+          *H.md_table(["skip", "backend", "without (particle-steps/s)", "with (particle-steps/s)", "gain", "note"],
+                      ([s["skip"], s["backend"], fmt(s["without"]), fmt(s["with"]), f"{s['without'] / s['with']:.2f}x",
+                        s.get("note", "")] for s in res["skips"]))]
     return thr, "\n".join(sk) + "\n"
 
 
 def write_readme(path: Path, throughput_md: str, skips_md: str) -> None:
-    write_readme_section(path, "throughput", "Throughput", throughput_md)
-    write_readme_section(path, "skips", "Skips", skips_md)
+    H.write_readme_section(path, "throughput", "Throughput", throughput_md)
+    H.write_readme_section(path, "skips", "Skips", skips_md)
 
 
 # ---- main -------------------------------------------------------------------------------------------------
 def machine_info() -> dict:
-    info = _common.machine_info(("jax", "warp"))
-    info["load_before"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
-    return info
+    return H.machine_info(("jax", "warp"), load=True)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="8k particles only, no skips (a smoke run)")
+    ap = H.parser(__doc__.split("\n")[0])
+    H.add_quick(ap, "8k particles only, no skips (a smoke run)")
     ap.add_argument("--big", action="store_true", help="also the 524k-particle mpm3d case (3D fp32 + 2D fp32)")
-    ap.add_argument("--backends", default="jax,warp")
+    H.add_backends(ap)
     ap.add_argument("--precisions", default="fp32,fp64")
     ap.add_argument("--dims", default="3,2")
     ap.add_argument("--reps", type=int, default=3, help="timed runs per measurement (best kept)")
@@ -262,19 +251,19 @@ def main(argv=None):
                     help="python of a venv with taichi==1.7.4 (default $MPMLAB_TAICHI_PYTHON)")
     ap.add_argument("--taichi-threads", type=int, default=2)
     ap.add_argument("--peer-dir", default=os.environ.get("MPMLAB_PEERS_DIR", "/work/shared/peers"))
-    ap.add_argument("--out", default=str(HERE / "out" / "throughput.json"))
-    ap.add_argument("--readme", default=str(HERE / "README.md"), help="'' to leave the README alone")
+    ap.add_argument("--out", default=str(H.OUT / "throughput.json"))
+    H.add_readme(ap)
     args = ap.parse_args(argv)
 
     backends = args.backends.split(",")
-    log = lambda *a: print(*a, file=sys.stderr, flush=True)
+    log = lambda *a: H.log(*a, err=True)
     if args.skips_only:
         out = Path(args.out)
         res = json.loads(out.read_text())
         res["skips"], res["rollout"] = [], []
         run_skips(res, backends, args.reps, log, max(1, args.rounds - 1))
         res["skips_date"] = time.strftime("%Y-%m-%d %H:%M")
-        out.write_text(json.dumps(res, indent=1))
+        H.write_json(out, res)
         thr, sk = tables(res)
         print(sk)
         if args.readme:
@@ -375,9 +364,7 @@ def main(argv=None):
                     res["throughput"].append(r)
                     log(f"cube {dim}D n={r['particles']} {backend} {prec}: {fmt(r['particle_steps_per_s'])}")
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))        # partial results, in case the skips fail
+    out = H.write_json(args.out, res)        # partial results, in case the skips fail
     if not args.quick and not args.no_skips:
         run_skips(res, backends, args.reps, log, max(1, args.rounds - 1))
 
@@ -385,8 +372,8 @@ def main(argv=None):
                       "ratio": r["particle_steps_per_s"] / t["particle_steps_per_s"]}
                      for t in res["taichi"] for r in res["throughput"]
                      if r["scene"] == "mpm3d" and r["dim"] == 3 and r["precision"] == "fp32" and r["n_grid"] == t["n_grid"]]
-    res["machine"]["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
-    out.write_text(json.dumps(res, indent=1))
+    res["machine"]["load_after"] = H.load_average()
+    H.write_json(out, res)
     thr, sk = tables(res)
     print(thr)
     print(sk)

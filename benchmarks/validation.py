@@ -10,8 +10,6 @@ benchmarks/validation.md. Scenes and measurements live in ``mpmlab.scenes.valida
 """
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
 import platform
@@ -19,7 +17,10 @@ import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("WARP_QUIET", "1")
+import _harness as H
+from _harness import log
+
+H.quiet_warp(threads=None)
 try:  # keep the log readable: no per-kernel "Module ... load" lines
     import warp
 
@@ -36,11 +37,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from mpmlab.scenes import validation as V  # noqa: E402
 
-HERE = Path(__file__).resolve().parent
-
-
-def log(*a):
-    print(*a, flush=True)
+HERE = H.HERE
 
 
 # ------------------------------------------------------------------------------------------------
@@ -427,14 +424,12 @@ def write_markdown(rows, meta, path):
                   ""]
     for case in dict.fromkeys(r["case"] for r in rows):
         lines += [f"## {case}", "",
-                  "| variant | backend | transfer | resolution | measured | reference | error | bar | pass | wall [s] | notes |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
-        for r in rows:
-            if r["case"] != case:
-                continue
-            lines.append("| " + " | ".join(esc(x) for x in (
-                r["variant"], r["backend"], r["transfer"], r["resolution"], r["measured"], r["reference"], r["error"],
-                r["bar"], "yes" if r["pass"] else "**no**", f"{r['wall_s']:.1f}", r["extra"])) + " |")
+                  *H.md_table(["variant", "backend", "transfer", "resolution", "measured", "reference", "error", "bar",
+                               "pass", "wall [s]", "notes"],
+                              ([esc(x) for x in (r["variant"], r["backend"], r["transfer"], r["resolution"],
+                                                 r["measured"], r["reference"], r["error"], r["bar"],
+                                                 "yes" if r["pass"] else "**no**", f"{r['wall_s']:.1f}", r["extra"])]
+                               for r in rows if r["case"] == case))]
         lines.append("")
     lines.append(NOTES.strip("\n"))
     lines += ["", FINDINGS.strip("\n")]
@@ -465,11 +460,11 @@ def _key(row):
 
 def main(argv=None):
     global OUT
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = H.parser(__doc__, raw=True)
     ap.add_argument("--cases", default="bar,dam,column", help="comma list of bar, dam, column")
-    ap.add_argument("--backends", default="jax,warp")
-    ap.add_argument("--quick", action="store_true", help="coarse smoke run (not the reported numbers)")
-    ap.add_argument("--out", default=str(HERE / "out"))
+    H.add_backends(ap)
+    H.add_quick(ap, "coarse smoke run (not the reported numbers)")
+    ap.add_argument("--out", default=str(H.OUT))
     ap.add_argument("--md", default=None, help="Markdown table (default benchmarks/validation.md; quick: out/)")
     ap.add_argument("--merge", action="store_true",
                     help="keep the rows of cases not run now from the existing JSON (rerun one case)")
@@ -481,7 +476,7 @@ def main(argv=None):
     cases = [] if a.render else a.cases.split(",")
     stem = "validation_quick" if a.quick else "validation"
     jpath = OUT / f"{stem}.json"
-    old = json.loads(jpath.read_text()) if (a.merge or a.render) and jpath.exists() else None
+    old = H.read_json(jpath) if (a.merge or a.render) else None
     rows, raw = [], {"bar": [], "dam": [], "column": []}
     t0 = time.time()
     runners = {"bar": run_bar, "dam": run_dam, "column": run_column}
@@ -500,14 +495,14 @@ def main(argv=None):
     if old is not None:
         meta = old["meta"] | ({"rerun": {"date": meta["date"], "cases": cases}} if cases else {})
     meta["runs"] = runs
-    jpath.write_text(json.dumps({"meta": meta, "rows": rows, "raw": raw}, indent=1, default=float))
+    H.write_json(jpath, {"meta": meta, "rows": rows, "raw": raw}, default=float)
     md = Path(a.md) if a.md else (OUT / "validation_quick.md" if a.quick else HERE / "validation.md")
     write_markdown(rows, meta, md)
     log(f"wrote {md} and {jpath} in {time.time() - t0:.0f} s")
     return rows
 
 
-OUT = HERE / "out"
+OUT = H.OUT
 
 if __name__ == "__main__":
     main()

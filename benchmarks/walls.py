@@ -18,27 +18,21 @@ give the final-frame numbers through ``mpmlab.io.containment.trajectory_penetrat
 """
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("WARP_QUIET", "1")
-os.environ.setdefault("MPMLAB_WARP_THREADS", "1")
-
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from _common import machine_info  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as H  # noqa: E402
+from _harness import log, machine_info  # noqa: E402
+
+H.quiet_warp(threads=1)   # before Warp is imported
+HERE = H.HERE
 
 TRANSFERS = ("pic", "flip", "apic", "tpic", "mls")
-
-
-def log(msg: str) -> None:
-    print(msg, flush=True)
 
 
 def cases(quick: bool) -> list[dict]:
@@ -129,9 +123,9 @@ def fmt_row(r: dict) -> str:
             f"{r['wall_time_s']:.0f} | `{r['command']}` |")
 
 
-HEADER = ("| case | particles | steps | beyond walls, end | beyond walls, max over run | distinct particles "
-          "| worst depth [m] | worst depth [dx] | face | at step | depth at end [dx] | outside interior (max) "
-          "| < 0.5 dx | time [s] | command |\n|" + "---|" * 15)
+HEADER = "\n".join(H.md_table(["case", "particles", "steps", "beyond walls, end", "beyond walls, max over run",
+                               "distinct particles", "worst depth [m]", "worst depth [dx]", "face", "at step",
+                               "depth at end [dx]", "outside interior (max)", "< 0.5 dx", "time [s]", "command"]))
 
 GROUPS = {
     "scene": "dam_break_2d as configured (slip walls, thickness 2), fp64",
@@ -230,11 +224,11 @@ def write_md(path: Path, rows: list[dict], info: dict, quick: bool, total: float
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="a subset of the rows (~1 min)")
+    ap = H.parser(__doc__.split("\n")[0])
+    H.add_quick(ap, "a subset of the rows (~1 min)")
     ap.add_argument("--only", default=None, help="run only the rows whose label contains this text")
     ap.add_argument("--out", default=str(HERE / "walls.md"))
-    ap.add_argument("--json", default=str(HERE / "results" / "walls.json"))
+    ap.add_argument("--json", default=str(H.RESULTS / "walls.json"))
     ap.add_argument("--rewrite", action="store_true", help="only rewrite --out from the rows in --json (no runs)")
     a = ap.parse_args(argv)
     if a.rewrite:
@@ -253,8 +247,7 @@ def main(argv=None) -> None:
             f"{r['wall_time_s']:.0f} s")
         rows.append(r)
     total = time.perf_counter() - t0
-    Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.json).write_text(json.dumps({"machine": info, "quick": a.quick, "total_s": total, "rows": rows}, indent=1))
+    H.write_json(a.json, {"machine": info, "quick": a.quick, "total_s": total, "rows": rows})
     write_md(Path(a.out), rows, info, a.quick, total)
     log(f"wrote {a.out} and {a.json} ({total:.0f} s)")
 

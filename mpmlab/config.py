@@ -1,14 +1,18 @@
-"""Typed configuration: the Hydra schema of ``mpmlab`` and its conversion to a :class:`mpmlab.Scene`.
+"""Typed configuration: the root Hydra schema of ``mpmlab``, its registration, and composing it.
 
 The YAML config tree (``mpmlab/conf``, also reachable as the top-level ``conf/``) is validated against
 the dataclasses below, which are registered in Hydra's ``ConfigStore``: a misspelled key or a value of
-the wrong type fails while Hydra composes the config, before anything runs.
+the wrong type fails while Hydra composes the config, before anything runs. A task's options are a
+``TaskConfig`` subclass that lives in the task's own module (``mpmlab.tasks.<name>``: schema, ``run``
+and registration with :func:`register_task_schema`); :func:`register_configs` imports the built-in
+task modules so that their schemas are stored before anything is composed.
 
 Physics is chosen by registered name (``material.law``, ``transfer.name``, ``backend.name``,
 ``scene.boundaries.<b>.kind``); parameters are checked by the classes that own them (a law's
-``ParamSpec`` ranges, a boundary's ``validate``, the scene's CFL bound) when :func:`build_scene` turns
-the config into a ``Scene``. ``_target_`` is left for generic objects (optimisers, networks) that later
-tasks instantiate.
+``ParamSpec`` ranges, a boundary's ``validate``, the scene's CFL bound) when
+:func:`mpmlab.build.build_scene` turns the config into a ``Scene`` (:mod:`mpmlab.build` is the one
+module that turns config into objects; its names are re-exported here). ``_target_`` is left for
+generic objects (optimisers, networks) that later tasks instantiate.
 
 Layout of the composed config::
 
@@ -17,7 +21,7 @@ Layout of the composed config::
     precision: {name}                                  # precision/ (fp32, fp64)
     material:  {law, params, density, label}           # material/: the default material of the scene
     scene:     {name, dim, dx, domain, gravity, dt, bodies{...}, boundaries{...}, resolution, ...}
-    task:      {name, ...}                             # task/ (simulate, replay; later issues add more)
+    task:      {name, ...}                             # task/ (simulate, replay, inverse, bench, plugins')
     output:    {trajectory, recording, record_every, color_by, fields, plots, overwrite}
     steps, frame_every, seed, input, debug, progress   # top-level keys
 
@@ -31,8 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-
-import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,6 +91,9 @@ class MaterialConfig:
     density: float = 1000.0
     #: a human name for plots and recordings (``jelly``, ``sand``)
     label: str = ""
+    #: the law's configuration (its instance fields, e.g. a network's width or a weights file);
+    #: bodies with the same law and options share one law instance and its weights
+    options: Dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -220,106 +225,6 @@ class TaskConfig:
 
 
 @dataclass
-class SimulateTaskConfig(TaskConfig):
-    name: str = "simulate"
-
-
-@dataclass
-class ReplayTaskConfig(TaskConfig):
-    """Turn an ``mpmlab.trajectory`` HDF5 file (top-level ``input``) into a recording."""
-
-    name: str = "replay"
-
-
-@dataclass
-class BenchTaskConfig(TaskConfig):
-    """One run-time-versus-error point (``mpmlab.tasks.bench``; ``benchmarks/pareto.py``). The backend,
-    transfer and precision are the top-level groups."""
-
-    name: str = "bench"
-    #: bar | ritter | hydrostatic | mms | mms_slip
-    scene: str = "mms"
-    #: cells (bar: along L; mms: per unit length) or dx in metres (ritter, hydrostatic)
-    resolution: Optional[float] = None
-    #: time-step factor dt = cfl dx / c (None: the scene's default)
-    cfl: Optional[float] = None
-    #: k: k^dim particles per cell (None: the scene's default)
-    particles_per_axis: Optional[int] = None
-    #: steady-state timing repeats (best of)
-    repeats: int = 1
-    #: JSON list that each job appends its record to (absolute path; empty: summary.json only)
-    out: str = ""
-
-
-@dataclass
-class FitParameterConfig:
-    """One fitted quantity of ``task=inverse`` (see ``mpmlab.inverse.parameters``)."""
-
-    #: initial_velocity | law | boundary | gravity
-    target: str = MISSING
-    #: scalar | array | mlp
-    form: str = "scalar"
-    body: Optional[str] = None
-    #: initial_velocity: x | y | z
-    component: Optional[str] = None
-    #: law: the parameter name
-    param: Optional[str] = None
-    #: boundary: its name under scene.boundaries, and its data (mu, friction)
-    boundary: Optional[str] = None
-    field: Optional[str] = None
-    #: initial_velocity, form scalar: v = value * basis(x, y, z)
-    basis: Optional[str] = None
-    #: form mlp: input coordinates, hidden widths, activation (relu | tanh | softplus), weight seed
-    inputs: List[str] = dataclasses.field(default_factory=lambda: ["y"])
-    hidden: List[int] = dataclasses.field(default_factory=lambda: [30, 30, 30])
-    activation: str = "relu"
-    seed: int = 0
-    #: starting value (physical units; a list for arrays)
-    init: Optional[Any] = None
-    #: the truth (value, list, or an expression of x, y, z and task.constants) for generated data
-    truth: Optional[Any] = None
-    #: identity | softplus | exp
-    transform: str = "identity"
-
-
-@dataclass
-class InverseTaskConfig(TaskConfig):
-    """Fit parameters to observations of a reference rollout (JAX-MPM Sec. 3.2, Eq. 28)."""
-
-    name: str = "inverse"
-    parameters: Dict[str, FitParameterConfig] = field(default_factory=dict)
-    #: the observation operator: {kind: lagrangian, quantity: x, particles: 100} or {kind: eulerian, ...}
-    observation: Dict[str, Any] = field(default_factory=lambda: {"kind": "lagrangian", "quantity": "x"})
-    #: named observation presets of an experiment; ``observation: ${task.observations.${task.supervision}}``
-    observations: Dict[str, Any] = field(default_factory=dict)
-    supervision: Optional[str] = None
-    #: observation steps: {steps: [...]}, {frames: F, every: K} (the last F frames, K steps apart) or
-    #: {frames: F, spread: true} (evenly over the rollout)
-    schedule: Dict[str, Any] = field(default_factory=lambda: {"frames": 10, "every": 10})
-    #: Gaussian noise (std) added to the reference observations, and its seed
-    noise: float = 0.0
-    noise_seed: int = 0
-    #: names usable in field expressions (e.g. H0)
-    constants: Dict[str, float] = field(default_factory=dict)
-    epochs: int = 100
-    #: per backend: an optax transform (jax) / a torch.optim class (warp), by _target_
-    optimizer: Dict[str, Any] = field(default_factory=dict)
-    lr_schedule: Dict[str, Any] = field(default_factory=dict)
-    #: used when the optimiser config sets no learning rate and no schedule is given
-    learning_rate: float = 0.1
-    #: steps per recomputed segment of the backward pass (memory O(steps / segment + segment))
-    segment: int = 100
-    checkpoint_every: int = 10
-    #: continue from fit_checkpoint.* in the run directory if present
-    resume: bool = True
-    #: stop early once the loss is at or below this
-    loss_tolerance: float = 0.0
-    #: keep XLA CPU's YNNPACK fusions (JAX backend); off by default here because they make the
-    #: backward pass ~2x slower (mpmlab/backends/jax/xla_options.py); XLA_FLAGS set by you wins
-    jax_ynn_fusions: bool = False
-
-
-@dataclass
 class OutputConfig:
     """What a run writes into its Hydra run directory."""
 
@@ -386,11 +291,11 @@ def register_configs() -> None:
     register_resolvers()
     cs = ConfigStore.instance()
     cs.store(name=SCHEMA_NAME, node=MpmlabConfig)
-    # per-task schemas, extended by conf/task/<name>.yaml (defaults: [/mpmlab_task_<name>@_here_, _self_])
-    register_task_schema("simulate", SimulateTaskConfig)
-    register_task_schema("replay", ReplayTaskConfig)
-    register_task_schema("inverse", InverseTaskConfig)
-    register_task_schema("bench", BenchTaskConfig)
+    # per-task schemas, extended by conf/task/<name>.yaml (defaults: [/mpmlab_task_<name>@_here_, _self_]):
+    # each built-in task module registers its own when it is imported
+    from .tasks import load_builtin_schemas
+
+    load_builtin_schemas()
     _REGISTERED = True
 
 
@@ -400,9 +305,6 @@ def register_task_schema(name: str, node: type) -> None:
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(name=f"mpmlab_task_{name}", node=node)
-
-
-register_configs()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -443,167 +345,6 @@ def register_search_path_plugin() -> None:
     except ImportError:  # pragma: no cover - a broken install; Hydra's own scan may still find it
         return
     Plugins.instance().register(MpmlabSearchPathPlugin)
-
-
-# ---------------------------------------------------------------------------------------------
-# config -> Scene
-# ---------------------------------------------------------------------------------------------
-def _plain(node: Any) -> Any:
-    """A resolved plain-Python copy (lists -> lists, dicts -> dicts), None for None."""
-    if isinstance(node, (DictConfig, ListConfig)):
-        return OmegaConf.to_container(node, resolve=True)
-    return node
-
-
-def _tuples(v: Any) -> Any:
-    """Lists -> tuples, recursively (boundaries are frozen dataclasses)."""
-    if isinstance(v, list):
-        return tuple(_tuples(a) for a in v)
-    if isinstance(v, dict):
-        return {k: _tuples(a) for k, a in v.items()}
-    return v
-
-
-def _shape_dict(shape: Any) -> dict:
-    return {k: v for k, v in _plain(shape).items() if v is not None}
-
-
-def check_resolution(scene_cfg: DictConfig) -> None:
-    """Refuse an unknown ``scene.resolution`` with the list of the scene's resolutions."""
-    known = list(scene_cfg.resolutions.keys()) or ["default"]
-    name = scene_cfg.resolution
-    if name not in known:
-        raise ConfigError(
-            f"scene '{scene_cfg.name}' has no resolution '{name}'; choose one of {', '.join(known)} "
-            f"(scene.resolution={known[0]})."
-        )
-
-
-def material_of(cfg: DictConfig, body_cfg: DictConfig | None = None) -> dict:
-    """The material a body uses (its own, else the top-level ``material``) as a plain dict."""
-    mat = body_cfg.material if body_cfg is not None and body_cfg.material is not None else cfg.material
-    return _plain(mat)
-
-
-def _body(cfg: DictConfig, name: str, b: DictConfig):
-    from .core.scene import Body
-
-    where = f"scene '{cfg.scene.name}', body '{name}'"
-    if OmegaConf.is_missing(b, "shape") or OmegaConf.is_missing(b.shape, "kind"):
-        raise ConfigError(f"{where}: no shape; set scene.bodies.{name}.shape.kind (box, sphere, cylinder, mesh).")
-    mat_node = b.material if b.material is not None else cfg.material
-    if mat_node is None or OmegaConf.is_missing(mat_node, "law"):
-        raise ConfigError(f"{where}: no material; choose one with material=<name> or set scene.bodies.{name}.material.law.")
-    mat = _plain(mat_node)
-    registry.laws.get(mat["law"])  # unknown law -> the list of known laws
-    density = mat.get("density")
-    if isinstance(density, bool) or not isinstance(density, (int, float)) or not density > 0 \
-            or not math.isfinite(density):
-        key = f"scene.bodies.{name}.material.density" if b.material is not None else "material.density"
-        raise ConfigError(f"{where}: {key} = {density} must be > 0 kg/m^3; set {key} to the material's "
-                          f"rest density (water: 1000).")
-    return Body(
-        shape=_shape_dict(b.shape), material=mat["law"], params=dict(mat["params"]), density=float(mat["density"]),
-        velocity=_plain(b.velocity), angular_velocity=_plain(b.angular_velocity),
-        particles_per_cell=int(b.particles_per_cell), sampling=b.sampling, count=b.count,
-        particle_volume=b.particle_volume, name=name,
-    )
-
-
-def make_boundary_from_config(name: str, bc: DictConfig):
-    """A boundary object from a ``BoundaryConfig`` node (options left null are not passed)."""
-    import dataclasses
-
-    spec = _plain(bc)
-    kind = spec.pop("kind")
-    spec.pop("enabled", None)
-    extra = spec.pop("extra", None) or {}
-    cls = registry.boundaries.get(kind)
-    opts = {k: v for k, v in spec.items() if v is not None}
-    if isinstance(opts.get("region"), dict):
-        opts["region"] = {k: v for k, v in opts["region"].items() if v is not None}
-    opts.update(extra)
-    accepted = [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else None
-    if accepted is not None:
-        wrong = sorted(set(opts) - set(accepted))
-        if wrong:
-            raise ConfigError(
-                f"boundary '{name}' ({kind}) does not take option(s) {', '.join(wrong)}; it takes "
-                f"{', '.join(accepted) or 'none'}. Remove them from scene.boundaries.{name}."
-            )
-    opts = {k: (v if k in ("faces", "region") else _tuples(v)) for k, v in opts.items()}
-    try:
-        return cls(**opts)
-    except TypeError as exc:
-        raise ConfigError(f"boundary '{name}' ({kind}): {exc}; check scene.boundaries.{name}.") from None
-
-
-def _builder(name: str):
-    if name in registry.scenes:
-        return registry.scenes.get(name)
-    if ":" in name or "." in name:
-        try:
-            return registry.load_object(name)
-        except (ImportError, AttributeError) as exc:
-            raise ConfigError(f"scene builder '{name}' cannot be imported ({exc}); check scene.builder.") from None
-    registry.scenes.get(name)  # raises UnknownPluginError with the known names
-
-
-def build_scene(cfg: DictConfig, validate: bool = True):
-    """The ``mpmlab.Scene`` described by a composed config (``cfg.scene`` + ``cfg.material``).
-
-    With ``validate`` (default) every check that can fail before a run is done here: law names and
-    parameter ranges, shapes, particles inside the domain, boundary options, the CFL bound of a fixed
-    ``dt``. Raises ``ConfigError`` (one sentence: what, where, what to do).
-    """
-    from .core.scene import Scene
-
-    sc = cfg.scene
-    check_resolution(sc)
-    seed = int(cfg.get("seed", 0))
-    if sc.builder:
-        fn = _builder(sc.builder)
-        args = _plain(sc.builder_args) or {}
-        try:
-            scene = fn(**args)
-        except TypeError as exc:
-            raise ConfigError(f"scene '{sc.name}': builder '{sc.builder}' rejected scene.builder_args ({exc}).") from None
-        scene.name = sc.name
-    else:
-        bodies = [_body(cfg, name, b) for name, b in sc.bodies.items() if b.enabled]
-        if not bodies:
-            raise ConfigError(f"scene '{sc.name}' has no enabled body; add one under scene.bodies.")
-        boundaries = [make_boundary_from_config(name, b) for name, b in sc.boundaries.items() if b.enabled]
-        lo = [float(a) for a in sc.domain.lo]
-        hi = [float(a) for a in sc.domain.hi]
-        if len(lo) != sc.dim or len(hi) != sc.dim:
-            raise ConfigError(f"scene '{sc.name}': scene.domain.lo and .hi need {sc.dim} coordinates each (dim = {sc.dim}).")
-        pad = int(sc.domain.pad_cells) * float(sc.dx)
-        dt = sc.dt
-        if isinstance(dt, str) and dt != "auto":
-            try:
-                dt = float(dt)
-            except ValueError:
-                raise ConfigError(f"scene '{sc.name}': scene.dt = '{dt}' must be a number of seconds or 'auto'.") from None
-        if dt != "auto":
-            dt = float(dt)
-            if not dt > 0 or not math.isfinite(dt):
-                raise ConfigError(f"scene '{sc.name}': scene.dt = {dt:g} must be > 0 (seconds) or auto; "
-                                  f"set scene.dt to a positive time step or scene.dt=auto.")
-        scene = Scene(
-            dim=int(sc.dim), dx=float(sc.dx), domain=([a - pad for a in lo], [b + pad for b in hi]), bodies=bodies,
-            gravity=_plain(sc.gravity), boundaries=boundaries, dt=dt, cfl=float(sc.cfl),
-            cfl_limit=float(sc.cfl_limit), name=sc.name, seed=seed, dt_every=int(sc.dt_every),
-        )
-    if validate:
-        from .core.budget import memory_preflight
-
-        memory_preflight(cfg, scene)   # before sampling: refuse what cannot fit (issue #12 item 5)
-        scene.particles()
-        for b in scene.boundaries:
-            b.validate(scene)
-        scene.resolve_dt()
-    return scene
 
 
 # ---------------------------------------------------------------------------------------------
@@ -800,13 +541,6 @@ def check_known_keys(cfg: DictConfig) -> None:
     raise ConfigError(msg)
 
 
-def make_transfer_from_config(cfg: DictConfig):
-    from .transfers import make_transfer
-
-    opts = {k: v for k, v in _plain(cfg.transfer).items() if k != "name" and v is not None}
-    return make_transfer(cfg.transfer.name, **opts)
-
-
 def check_run_options(cfg: DictConfig) -> None:
     """Top-level options that no class downstream checks with a clear message, and keys that no
     schema reads (:func:`check_known_keys`)."""
@@ -827,13 +561,23 @@ def check_run_options(cfg: DictConfig) -> None:
         check_device(str(cfg.backend.device), "backend.device")
 
 
-def describe_scene(scene) -> dict:
-    """Small JSON-able facts about a built scene (for summaries and logs)."""
-    P = scene.particles()
-    return {
-        "scene": scene.name, "dim": scene.dim, "dx": scene.dx, "grid_cells": list(scene.cells),
-        "particles": int(P.count), "laws": [g.law.name for g in P.groups],
-        "bodies": [b.name for b in scene.bodies], "boundaries": [b.name for b in scene.boundaries],
-        "dt": float(scene.resolve_dt()),
-        "cfl_number": float(scene.cfl_number(scene.resolve_dt())) if math.isfinite(scene.wave_speed()) else None,
-    }
+# ---------------------------------------------------------------------------------------------
+# config -> objects lives in mpmlab.build; the built-in task schemas in their task modules
+# ---------------------------------------------------------------------------------------------
+from .build import (build_scene, check_resolution, describe_scene, make_boundary_from_config,  # noqa: E402,F401
+                    make_transfer_from_config, material_of)
+
+#: names that moved out of this module: ``mpmlab.config.<name>`` still finds them
+_MOVED = {"SimulateTaskConfig": "tasks.simulate", "ReplayTaskConfig": "tasks.replay", "BenchTaskConfig": "tasks.bench",
+          "FitParameterConfig": "tasks.inverse", "InverseTaskConfig": "tasks.inverse"}
+
+
+def __getattr__(name: str):
+    if name in _MOVED:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_MOVED[name]}", __package__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+register_configs()

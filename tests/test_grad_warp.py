@@ -13,17 +13,16 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
+import torch
+import warp as wp
 
-torch = pytest.importorskip("torch")
-wp = pytest.importorskip("warp")
+import mpmlab
+from mpmlab.boundaries import FrictionWalls, Plane, Walls
+from mpmlab.core import registry
+from mpmlab.core.errors import GradientError, SimulationDiverged
+from mpmlab.observations import Eulerian, Lagrangian, apply_numpy
 
-import mpmlab  # noqa: E402
-from mpmlab.boundaries import FrictionWalls, Plane, Walls  # noqa: E402
-from mpmlab.core import registry  # noqa: E402
-from mpmlab.core.errors import GradientError, SimulationDiverged  # noqa: E402
-from mpmlab.observations import Eulerian, Lagrangian, apply_numpy  # noqa: E402
-
-from .scenes import LAW_PARAMS  # noqa: E402
+from .scenes import LAW_PARAMS
 
 LAWS = registry.laws.names()
 TRANSFERS = registry.transfers.names()

@@ -776,7 +776,7 @@ def memory_preflight(cfg, scene, *, frames: int = 0, fields: Sequence[str] = (),
                      frame_every: int | None = None, available: int | None = None) -> dict[str, int]:
     """:func:`check_memory` with a composed config's backend, precision, transfer and Warp device
     (for ``build_scene``, before ``scene.particles()``). Returns the estimate."""
-    from ..config import make_transfer_from_config
+    from ..build import make_transfer_from_config
 
     backend = cfg.get("backend", None) or {}
     precision = cfg.get("precision", None) or {}
@@ -804,7 +804,7 @@ def output_preflight(cfg, scene, output_dir: str | os.PathLike, *, steps: int | 
     Returns:
         ``{file name: bytes}`` of the outputs.
     """
-    from ..config import make_transfer_from_config
+    from ..build import make_transfer_from_config
     from . import registry
 
     tr = make_transfer_from_config(cfg)

@@ -1,4 +1,5 @@
-"""Input/output: HDF5 trajectories (``mpmlab.trajectory`` v1), rerun recordings, per-frame metrics.
+"""Input/output: HDF5 trajectories (``mpmlab.trajectory`` v1), rerun recordings, per-frame metrics and
+the LagrangeBench export.
 
 Names are imported lazily, so ``import mpmlab.io`` costs nothing until one is used (h5py and rerun
 are imported by the submodules ``mpmlab.io.h5`` and ``mpmlab.io.rerun``).
@@ -9,7 +10,7 @@ import importlib
 
 _EXPORTS = {
     "write_trajectory": "h5", "read_trajectory": "h5", "read_attrs": "h5", "TrajectoryWriter": "h5",
-    "export_lagrangebench": "h5", "SCHEMA": "h5", "SCHEMA_VERSION": "h5",
+    "export_lagrangebench": "lagrangebench", "SCHEMA": "h5", "SCHEMA_VERSION": "h5",
     "write_recording": "rerun", "RecordingWriter": "rerun", "read_recording_positions": "rerun",
     "read_recording_metrics": "rerun", "read_recording_component": "rerun", "color_choices": "rerun",
     "read_particle_values": "rerun", "read_blueprint_views": "rerun", "read_series_names": "rerun",

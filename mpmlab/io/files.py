@@ -3,6 +3,8 @@
 * Every output is written to a temporary file next to its target, ``.<name>.<pid>.<random>.tmp``
   (same file system, so the final rename is atomic), and published in one step: a target path never
   holds a half-written file, and an existing one is replaced only with ``overwrite=True``.
+* :class:`AtomicWriter` is that lifecycle for the writers that stream into a file (HDF5
+  trajectories, rerun recordings): open on a temporary file, publish or discard it on close.
 * :func:`ensure_space` refuses a write that would not fit on the target's file system *before* the
   library writing it hits ``ENOSPC``: HDF5 cannot recover from a failed write (it floods stderr from
   finalisers and can segfault), rerun's file sink stops with "File-writer thread shut down".
@@ -155,6 +157,81 @@ def write_atomically(path: str | os.PathLike, write: Callable[[Path], None], ove
         discard(tmp)
         raise
     return path
+
+
+class AtomicWriter:
+    """The lifecycle of a streaming writer (``mpmlab.io.h5.TrajectoryWriter``,
+    ``mpmlab.io.rerun.RecordingWriter``, ``mpmlab.io.rerun.EpochRecorder``): the target is checked
+    when the writer is made (:func:`check_target`), the format's writer opens on a temporary file
+    next to it (:meth:`open`, or entering a ``with`` block), and :meth:`close` (leaving the block,
+    with the exception that ended it, if any) finishes that file and publishes it in one step, or
+    discards it.
+
+    A subclass implements ``_is_open()``, ``_start(tmp)`` (open the format's writer on ``tmp``),
+    ``_abort_start()`` (release what a failed ``_start`` holds; the temporary file is then removed)
+    and ``_finish(exc)`` (finish the file, then :meth:`_publish` it or :func:`discard` ``self._tmp``;
+    returns the published path or None). ``close`` again returns what the first ``close`` published.
+    """
+
+    def __init__(self, path: str | os.PathLike, overwrite: bool = False):
+        self.path = check_target(path, overwrite)
+        self.overwrite = overwrite
+        self._tmp: Path | None = None
+        self._closed = False
+        self._published: Path | None = None
+
+    # ---- what a format implements --------------------------------------------------------------
+    def _is_open(self) -> bool:
+        raise NotImplementedError
+
+    def _start(self, tmp: Path) -> None:
+        raise NotImplementedError
+
+    def _abort_start(self) -> None:
+        raise NotImplementedError
+
+    def _finish(self, exc: BaseException | None) -> Path | None:
+        raise NotImplementedError
+
+    # ---- the shared lifecycle ------------------------------------------------------------------
+    def open(self):
+        """Open the format's writer on a fresh temporary file next to ``path`` (once)."""
+        if self._is_open():
+            return self
+        self._tmp = temp_path(self.path)
+        try:
+            self._start(self._tmp)
+        except BaseException:
+            self._abort_start()
+            discard(self._tmp)
+            raise
+        return self
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        self.close(exc)
+        return False
+
+    def close(self, exc: BaseException | None = None) -> Path | None:
+        """Finish and publish (``exc``: the exception that ended the writing, if any); returns the
+        path, or None when nothing was published. A writer that ``exc`` ended before it opened
+        publishes nothing; one closed without having opened publishes an empty file."""
+        if self._closed:
+            return self._published
+        self._closed = True
+        if not self._is_open():
+            if exc is not None:
+                return None
+            self.open()
+        return self._finish(exc)
+
+    def _publish(self) -> Path:
+        """Move the finished temporary file onto ``path`` (:func:`publish`)."""
+        publish(self._tmp, self.path, self.overwrite)
+        self._published = self.path
+        return self.path
 
 
 # ---- what killed runs leave ---------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""HDF5 trajectories: schema ``mpmlab.trajectory`` version 1, atomic writes, LagrangeBench export.
+"""HDF5 trajectories: schema ``mpmlab.trajectory`` version 1: write, stream, read.
 
 Layout (every array keeps the dtype of the ``Trajectory`` it came from, so a round trip is exact)::
 
@@ -17,7 +17,8 @@ Layout (every array keeps the dtype of the ``Trajectory`` it came from, so a rou
 
 A file is written to a temporary file in the target's directory, ``complete`` is set last, and the
 file is published with one rename: a target path never holds a half-written file, and an existing
-file is replaced only with ``overwrite=True``.
+file is replaced only with ``overwrite=True`` (:mod:`mpmlab.io.files`, shared with the rerun writers).
+The LagrangeBench export of these files is :mod:`mpmlab.io.lagrangebench`.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ import json
 import os
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -44,8 +45,8 @@ _RESERVED_ATTRS = {"schema", "schema_version", "dim", "dt", "substeps_per_frame"
 
 
 # ---- atomic publication: mpmlab.io.files (re-exported here for the callers that import it from h5)
-from .files import (OutputError, OutputExistsError, check_target, discard, ensure_space,  # noqa: E402,F401
-                    is_disk_full, publish, temp_path, write_atomically)
+from .files import (AtomicWriter, OutputError, OutputExistsError, check_target, discard,  # noqa: E402,F401
+                    ensure_space, is_disk_full, publish, temp_path, write_atomically)
 
 
 # ---- JSON helpers ------------------------------------------------------------------------------
@@ -232,7 +233,7 @@ def write_trajectory(path: str | os.PathLike, traj: Trajectory, config_yaml: str
     return write_atomically(path, write, overwrite)
 
 
-class TrajectoryWriter:
+class TrajectoryWriter(AtomicWriter):
     """Stream frames into an ``mpmlab.trajectory`` file as a rollout produces them.
 
     Usable as the rollout's ``on_frame`` callback::
@@ -274,7 +275,7 @@ class TrajectoryWriter:
             static = stepper._trajectory([], [], ())
         if every is not None and every < 1:
             raise ConfigError(f"TrajectoryWriter: every must be >= 1 (got {every}).")
-        self.path = check_target(path, overwrite)
+        AtomicWriter.__init__(self, path, overwrite)
         self.static = static
         self.fields = tuple(fields)
         for name in self.fields:
@@ -284,49 +285,28 @@ class TrajectoryWriter:
         self.config_yaml = config_yaml
         self.extra_attrs = extra_attrs
         self.comp = _compression_kwargs(compression)
-        self.overwrite = overwrite
         self.dt = float((static.meta or {}).get("dt", np.nan))
         self.frame_count = 0
-        self._tmp: Path | None = None
         self._f = None
         self._steps: list[int] = []
-        self._closed = False
-        self._published: Path | None = None
 
-    # ---- lifecycle -------------------------------------------------------------------------
-    def open(self) -> "TrajectoryWriter":
+    # ---- lifecycle (mpmlab.io.files.AtomicWriter: open, with, close) -------------------------
+    def _is_open(self) -> bool:
+        return self._f is not None
+
+    def _start(self, tmp: Path) -> None:
         import h5py
 
+        self._f = h5py.File(tmp, "w")
+        _write_static(self._f, self.static, self.config_yaml, self.extra_attrs)
+
+    def _abort_start(self) -> None:
         if self._f is not None:
-            return self
-        self._tmp = temp_path(self.path)
-        try:
-            self._f = h5py.File(self._tmp, "w")
-            _write_static(self._f, self.static, self.config_yaml, self.extra_attrs)
-        except BaseException:
-            if self._f is not None:
-                self._f.close()
-            discard(self._tmp)
-            raise
-        return self
+            self._f.close()
 
-    def __enter__(self) -> "TrajectoryWriter":
-        return self.open()
-
-    def __exit__(self, exc_type, exc, tb) -> bool:
-        self.close(exc)
-        return False
-
-    def close(self, exc: BaseException | None = None) -> Path | None:
+    def _finish(self, exc: BaseException | None) -> Path | None:
         """Finalise and publish (``complete`` unless ``exc`` is given); returns the path, or None if
         an exception ended a stream that had no frame (then nothing is written)."""
-        if self._closed:
-            return self._published
-        self._closed = True
-        if self._f is None:
-            if exc is not None:
-                return None
-            self.open()
         f, tmp = self._f, self._tmp
         try:
             if exc is not None and self.frame_count == 0:
@@ -346,7 +326,7 @@ class TrajectoryWriter:
             f.attrs["substeps_per_frame"] = _frame_spacing(np.asarray(self._steps))
             _finish(f, self.frame_count, complete=exc is None, exc=exc)
             f.close()
-            publish(tmp, self.path, self.overwrite)
+            self._publish()
         except BaseException as err:
             self._f = f
             self._abandon()
@@ -354,7 +334,6 @@ class TrajectoryWriter:
                 raise OutputError(self.path, "no space left on device", "while closing it; the partial file "
                                   "was removed") from None
             raise
-        self._published = self.path
         return self.path
 
     # ---- frames ----------------------------------------------------------------------------
@@ -603,109 +582,10 @@ def _read(f, path: Path, require_complete: bool, lazy: bool = False) -> Trajecto
     )
 
 
-# ---- LagrangeBench export ----------------------------------------------------------------------
-def _as_trajectories(src) -> list[Trajectory]:
-    if isinstance(src, (Trajectory, str, os.PathLike)):
-        src = [src]
-    out = []
-    for s in src:
-        out.append(s if isinstance(s, Trajectory) else read_trajectory(s))
-    if not out:
-        raise ConfigError("export_lagrangebench needs at least one trajectory.")
-    return out
+# ---- moved: the LagrangeBench export (mpmlab.io.lagrangebench), found here as before
+def __getattr__(name: str):
+    if name in ("export_lagrangebench", "_as_trajectories", "_stats"):
+        from . import lagrangebench
 
-
-def _stats(arrays: list[np.ndarray], dim: int) -> tuple[list, list]:
-    """Per-dimension mean and std over all frames and particles (std < 1e-7 -> 1, as LagrangeBench)."""
-    arrays = [a.reshape(-1, dim) for a in arrays if a.size]
-    if not arrays:
-        return [0.0] * dim, [1.0] * dim
-    a = np.concatenate(arrays).astype(np.float64)
-    mean, std = a.mean(0), a.std(0)
-    std = np.where(std < 1e-7, 1.0, std)
-    return mean.tolist(), std.tolist()
-
-
-def export_lagrangebench(traj_or_path: Trajectory | str | os.PathLike | Iterable, out_dir: str | os.PathLike,
-                         split: str = "train", case: str | None = None, overwrite: bool = False) -> Path:
-    """Export trajectories in the LagrangeBench dataset layout (tumaer/lagrangebench).
-
-    Writes ``out_dir/{split}.h5`` with one group per trajectory (``"00000"``, ``"00001"``, ...) holding
-    ``position`` [T, N, D] float32 and ``particle_type`` [N] (= material_id), and ``out_dir/metadata.json``
-    with ``case, solver, dim, dx (grid spacing), dt (solver step), write_every (steps per frame),
-    sequence_length (T - 1), sequence_length_<split>, num_trajs_<split>, num_particles_max, bounds,
-    periodic_boundary_conditions, default_connectivity_radius (1.45 x particle spacing),
-    vel_mean/vel_std, acc_mean/acc_std``. As in LagrangeBench, velocities and accelerations are
-    per-frame position differences (not divided by dt), and a std below 1e-7 is stored as 1.
-    An existing metadata.json (another split) is updated; the statistics come from the ``train`` split
-    when it is exported, else from this split if none are stored yet.
-
-    Args:
-        traj_or_path: a ``Trajectory``, an ``mpmlab.trajectory`` file, or a list of them.
-        out_dir: dataset folder (created).
-        split: ``train``, ``valid`` or ``test`` (the file name).
-        case: the case name (default: the scene name, upper case).
-        overwrite: replace an existing ``{split}.h5``.
-    """
-    import h5py
-
-    trajs = _as_trajectories(traj_or_path)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    first = trajs[0]
-    meta = first.meta or {}
-    dim = int(meta.get("dim", first.x.shape[-1]))
-    dx = float(meta.get("dx", np.nan))
-    for t in trajs:
-        if t.x.shape[-1] != dim:
-            raise ConfigError(f"export_lagrangebench: trajectories mix dimensions ({dim} and {t.x.shape[-1]}); "
-                              f"export them to separate datasets.")
-
-    def write(tmp: Path) -> None:
-        with h5py.File(tmp, "w") as f:
-            for i, t in enumerate(trajs):
-                g = f.create_group(f"{i:05d}")
-                g.create_dataset("position", data=np.asarray(t.x, dtype=np.float32), compression="gzip")
-                g.create_dataset("particle_type", data=np.asarray(t.material_id, dtype=np.int64))
-
-    h5_path = write_atomically(out_dir / f"{split}.h5", write, overwrite)
-
-    md_path = out_dir / "metadata.json"
-    md: dict[str, Any] = {}
-    if md_path.exists():
-        try:
-            md = json.loads(md_path.read_text())
-        except (OSError, ValueError):
-            md = {}
-    if "grid_origin" in meta and "grid_shape" in meta and np.isfinite(dx):
-        lo = np.asarray(meta["grid_origin"], dtype=float)
-        hi = lo + (np.asarray(meta["grid_shape"], dtype=float) - 1.0) * dx
-    else:
-        allx = np.concatenate([t.x.reshape(-1, dim) for t in trajs])
-        lo, hi = allx.min(0), allx.max(0)
-    spacing = float(np.median(first.volume) ** (1.0 / dim)) if len(first.volume) else dx
-    seq = [t.frame_count - 1 for t in trajs]
-    md.update({
-        "case": case or str(meta.get("scene", "mpmlab")).upper(),
-        "solver": "mpmlab",
-        "backend": meta.get("backend", ""), "transfer": meta.get("transfer", ""),
-        "dim": dim, "dx": dx, "dt": float(meta.get("dt", np.nan)),
-        "write_every": _frame_spacing(first.step),
-        "sequence_length": int(min(seq)),
-        f"sequence_length_{split}": int(min(seq)), f"num_trajs_{split}": len(trajs),
-        "num_particles_max": int(max(max(t.particle_count for t in trajs), md.get("num_particles_max", 0))),
-        "periodic_boundary_conditions": [False] * dim,
-        "bounds": np.stack([lo, hi], axis=1).tolist(),
-        "particle_spacing": spacing,
-        "default_connectivity_radius": 1.45 * spacing,
-    })
-    if split == "train" or "vel_mean" not in md:
-        x32 = [np.asarray(t.x, dtype=np.float32).astype(np.float64) for t in trajs]
-        vel = [np.diff(x, axis=0) for x in x32]
-        acc = [np.diff(u, axis=0) for u in vel]
-        md["vel_mean"], md["vel_std"] = _stats(vel, dim)
-        md["acc_mean"], md["acc_std"] = _stats(acc, dim)
-
-    write_atomically(md_path, lambda tmp: tmp.write_text(json.dumps(md, indent=2, default=_json_default)),
-                     overwrite=True)
-    return h5_path
+        return getattr(lagrangebench, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -44,7 +44,8 @@ import numpy as np
 
 from ..core.errors import ConfigError, SimulationDiverged
 from ..core.state import Trajectory
-from .files import OutputError, check_target, discard, ensure_space, free_bytes, publish, temp_path, SPACE_MARGIN
+from .files import (SPACE_MARGIN, AtomicWriter, OutputError, check_target, discard, ensure_space, free_bytes, publish,
+                    temp_path)
 from .h5 import to_json
 
 #: Material / body colours (Tableau 10), cycled.
@@ -319,7 +320,7 @@ def _series_style(entity: str, family: str, label: str, unit: str, index: int) -
     return (f"{name} [{unit}]" if unit else name), color
 
 
-class RecordingWriter:
+class RecordingWriter(AtomicWriter):
     """Stream frames into an .rrd recording; also the rollout ``on_frame`` callback.
 
         with RecordingWriter("run.rrd", stepper=stepper, color_by="speed", color_range=(0, 2)) as rec:
@@ -358,7 +359,7 @@ class RecordingWriter:
             raise ConfigError(f"RecordingWriter: every must be >= 1 (got {every}).")
         if color_by not in ("material", "body", *_SCALAR_NEEDS):
             _check_color_by(color_by, ())
-        self.path = check_target(path, overwrite)
+        AtomicWriter.__init__(self, path, overwrite)
         self.static = static
         self.color_by = color_by
         self.color_range = color_range
@@ -367,7 +368,6 @@ class RecordingWriter:
         self.app_id = app_id
         self.recording_id = recording_id if recording_id is not None else unique_recording_id(
             (static.meta or {}).get("scene", "mpmlab"), Path(path).absolute().parent.name)
-        self.overwrite = overwrite
         self.extent = extent
         self.ranges = dict(ranges or {})
         self.compile_time_s = compile_time_s
@@ -380,8 +380,6 @@ class RecordingWriter:
             raise ConfigError(f"RecordingWriter: dim must be 2 or 3 (got {self.dim}).")
         self.frames_logged: list[int] = []
         self._rec = None
-        self._tmp: Path | None = None
-        self._closed = False
         self._fields_checked = False
         self._logged_bytes = 0
         self._quantities: list[str] | None = None      # per-particle quantities, from the first frame
@@ -390,35 +388,25 @@ class RecordingWriter:
         self._g0: float | None = None                   # gravitational energy of the first frame
         self._has_time = True                           # every frame so far had a finite sim_time
 
-    # ---- lifecycle -------------------------------------------------------------------------
+    # ---- lifecycle (mpmlab.io.files.AtomicWriter: open, with, close) -------------------------
     def _points(self):
         import rerun as rr
 
         return rr.Points2D if self.dim == 2 else rr.Points3D
 
-    def open(self) -> "RecordingWriter":
+    def _is_open(self) -> bool:
+        return self._rec is not None
+
+    def _start(self, tmp: Path) -> None:
         import rerun as rr
 
-        if self._rec is not None:
-            return self
-        self._tmp = temp_path(self.path)
-        try:
-            rec = rr.RecordingStream(self.app_id, recording_id=self.recording_id)
-            rec.save(self._tmp)   # the blueprint follows at close(), when the logged series are known
-            self._rec = rec
-            self._log_static()
-        except BaseException:
-            self._shutdown()
-            discard(self._tmp)
-            raise
-        return self
+        rec = rr.RecordingStream(self.app_id, recording_id=self.recording_id)
+        rec.save(tmp)   # the blueprint follows at close(), when the logged series are known
+        self._rec = rec
+        self._log_static()
 
-    def __enter__(self) -> "RecordingWriter":
-        return self.open()
-
-    def __exit__(self, exc_type, exc, tb) -> bool:
-        self.close(exc)
-        return False
+    def _abort_start(self) -> None:
+        self._shutdown()
 
     def _shutdown(self) -> None:
         if self._rec is not None:
@@ -429,16 +417,14 @@ class RecordingWriter:
     def close(self, exc: BaseException | None = None) -> Path | None:
         """Flush and publish the recording; with ``exc`` and no frame logged (or a full disk, which
         ``OutputError`` reports), nothing is published: the recording can be made again from the
-        trajectory with ``task=replay``."""
-        import rerun as rr
-
+        trajectory with ``task=replay``. Closing again returns ``path``."""
         if self._closed:
             return self.path
-        self._closed = True
-        if self._rec is None:
-            if exc is not None:
-                return None
-            self.open()
+        return AtomicWriter.close(self, exc)
+
+    def _finish(self, exc: BaseException | None) -> Path | None:
+        import rerun as rr
+
         try:
             if exc is not None:
                 if not self.frames_logged or isinstance(exc, OutputError):  # a full disk: keep nothing
@@ -453,7 +439,7 @@ class RecordingWriter:
                               static=True)
             self._rec.send_blueprint(self.blueprint(), make_active=True, make_default=True)
             self._shutdown()
-            publish(self._tmp, self.path, self.overwrite)
+            self._publish()
         except BaseException as err:
             self._rec = None
             full = self._disk_full(err)
@@ -1055,7 +1041,7 @@ def read_series_names(path: str | os.PathLike, prefix: str = "") -> dict[str, st
 
 
 # ---- other workflows: fits and trainings, reduced versus full order ---------------------------------
-class EpochRecorder:
+class EpochRecorder(AtomicWriter):
     """A recording of an optimisation (an inverse fit, an NCLaw training): scalars per epoch on the
     timeline ``epoch`` (``metrics/loss``, ``metrics/<parameter>[/k]``), ``log10`` of the loss beside it
     (``derived/log10_loss``), and, at chosen epochs, rollouts (``rollouts/epoch_<k>/particles`` on the
@@ -1069,19 +1055,29 @@ class EpochRecorder:
 
     def __init__(self, path: str | os.PathLike, recording_id: str | None = None, *, title: str = "fit",
                  app_id: str = "mpmlab", overwrite: bool = True, units: dict[str, str] | None = None):
-        import rerun as rr
-
-        self.path = check_target(path, overwrite)
-        self.overwrite = overwrite
+        AtomicWriter.__init__(self, path, overwrite)
         self.title = title
         self.units = dict(units or {})
-        self.tmp = temp_path(self.path)
-        self.rec = rr.RecordingStream(app_id, recording_id=recording_id or unique_recording_id("fit"))
-        self.rec.save(self.tmp)
+        self.app_id = app_id
+        self.recording_id = recording_id or unique_recording_id("fit")
+        self.rec = None
         self._families: dict[str, list[str]] = {}
         self._named: set[str] = set()
         self._rollouts: list[tuple[int, int]] = []   # (epoch, dim)
-        self._closed = False
+        self.open()
+
+    # ---- lifecycle (mpmlab.io.files.AtomicWriter; opened when made) --------------------------
+    def _is_open(self) -> bool:
+        return self.rec is not None
+
+    def _start(self, tmp: Path) -> None:
+        import rerun as rr
+
+        self.rec = rr.RecordingStream(self.app_id, recording_id=self.recording_id)
+        self.rec.save(tmp)
+
+    def _abort_start(self) -> None:
+        pass
 
     def _scalar(self, entity: str, value: float, family: str, name: str) -> None:
         import rerun as rr
@@ -1172,14 +1168,16 @@ class EpochRecorder:
         """Send the blueprint, flush and publish (a failed fit publishes the epochs so far)."""
         if self._closed:
             return self.path
-        self._closed = True
+        return AtomicWriter.close(self, exc)
+
+    def _finish(self, exc: BaseException | None) -> Path | None:
         try:
             self.rec.send_blueprint(self.blueprint(), make_active=True, make_default=True)
             self.rec.flush()
             self.rec.disconnect()
-            publish(self.tmp, self.path, self.overwrite)
+            self._publish()
         except BaseException:
-            discard(self.tmp)
+            discard(self._tmp)
             raise
         return self.path
 

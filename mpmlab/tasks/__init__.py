@@ -2,16 +2,18 @@
 
 A task is a function ``run(cfg, ctx) -> dict``: it reads the composed config (``DictConfig``), writes
 its outputs into ``ctx.output_dir`` (the Hydra run directory) and returns the summary that the CLI
-writes as ``summary.json``. Built-in tasks: ``simulate`` (:mod:`mpmlab.tasks.simulate`) and ``replay``
-(:mod:`mpmlab.tasks.replay`). Later issues add theirs here (``inverse``, ``rom``, ``bench``) with
-:func:`register_task` and a ``conf/task/<name>.yaml``; other packages add tasks through the
-``mpmlab.tasks`` entry-point group (and their YAML through ``mpmlab.configs``).
+writes as ``summary.json``. Built-in tasks: ``simulate``, ``replay``, ``inverse`` and ``bench`` (:data:`BUILTIN_TASKS`), each
+one module ``mpmlab.tasks.<name>`` with a ``conf/task/<name>.yaml``; other packages add tasks with
+:func:`register_task` or through the ``mpmlab.tasks`` entry-point group (and their YAML through
+``mpmlab.configs``).
 
 Each task declares its options as a ``TaskConfig`` subclass registered with
-:func:`mpmlab.config.register_task_schema`, so that a misspelled task option fails at compose time.
+:func:`mpmlab.config.register_task_schema` (the built-ins: next to their ``run``), so that a
+misspelled task option fails at compose time.
 """
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -22,12 +24,10 @@ from ..core.registry import load_object
 
 ENTRY_POINT_GROUP = "mpmlab.tasks"
 
-_TASKS: dict[str, Any] = {
-    "simulate": "mpmlab.tasks.simulate:run",
-    "replay": "mpmlab.tasks.replay:run",
-    "inverse": "mpmlab.tasks.inverse:run",
-    "bench": "mpmlab.tasks.bench:run",
-}
+#: the built-in tasks: each is one module ``mpmlab.tasks.<name>`` holding its option schema, its
+#: ``run`` and the schema's registration
+BUILTIN_TASKS = ("simulate", "replay", "inverse", "bench")
+_TASKS: dict[str, Any] = {name: f"mpmlab.tasks.{name}:run" for name in BUILTIN_TASKS}
 _entry_points_loaded = False
 
 
@@ -48,6 +48,14 @@ class RunContext:
     progress: bool | None = None
     multirun: bool = False
     job: dict[str, Any] = field(default_factory=dict)
+
+
+def load_builtin_schemas() -> None:
+    """Import the built-in task modules: each registers its option schema (``mpmlab_task_<name>``)
+    with :func:`mpmlab.config.register_task_schema` when imported (:func:`mpmlab.config.register_configs`
+    calls this before anything is composed)."""
+    for name in BUILTIN_TASKS:
+        importlib.import_module(f"{__name__}.{name}")
 
 
 def register_task(name: str, target: Callable | str) -> None:
@@ -86,4 +94,5 @@ def run_task(cfg, ctx: RunContext) -> dict:
     return get_task(cfg.task.name)(cfg, ctx)
 
 
-__all__ = ["RunContext", "get_task", "register_task", "run_task", "task_names", "ENTRY_POINT_GROUP"]
+__all__ = ["BUILTIN_TASKS", "RunContext", "get_task", "load_builtin_schemas", "register_task", "run_task", "task_names",
+           "ENTRY_POINT_GROUP"]

@@ -34,10 +34,36 @@ import json
 import logging
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
+
+from ..config import TaskConfig, register_task_schema
 
 log = logging.getLogger("mpmlab")
+
+
+@dataclass
+class BenchTaskConfig(TaskConfig):
+    """One run-time-versus-error point (``mpmlab.tasks.bench``; ``benchmarks/pareto.py``). The backend,
+    transfer and precision are the top-level groups."""
+
+    name: str = "bench"
+    #: bar | ritter | hydrostatic | mms | mms_slip
+    scene: str = "mms"
+    #: cells (bar: along L; mms: per unit length) or dx in metres (ritter, hydrostatic)
+    resolution: Optional[float] = None
+    #: time-step factor dt = cfl dx / c (None: the scene's default)
+    cfl: Optional[float] = None
+    #: k: k^dim particles per cell (None: the scene's default)
+    particles_per_axis: Optional[int] = None
+    #: steady-state timing repeats (best of)
+    repeats: int = 1
+    #: JSON list that each job appends its record to (absolute path; empty: summary.json only)
+    out: str = ""
+
+
+register_task_schema("bench", BenchTaskConfig)
 
 SCENES = ("bar", "ritter", "hydrostatic", "mms", "mms_slip")
 

@@ -23,7 +23,7 @@ ENERGY_PLOT = "energy.png"
 
 def check_outputs(output_dir: Path, names: Iterable[str], overwrite: bool) -> None:
     """Refuse to run when an output would replace an existing file (before any work is done)."""
-    from ..io.h5 import check_target
+    from ..io.files import check_target
 
     output_dir = Path(output_dir)
     if output_dir.exists() and not output_dir.is_dir():
@@ -33,7 +33,7 @@ def check_outputs(output_dir: Path, names: Iterable[str], overwrite: bool) -> No
 
 
 def write_text(path: Path, text: str, overwrite: bool = False) -> Path:
-    from ..io.h5 import write_atomically
+    from ..io.files import write_atomically
 
     return write_atomically(path, lambda tmp: Path(tmp).write_text(text), overwrite)
 
@@ -173,7 +173,7 @@ def plot_energy(path: Path, time_s: np.ndarray, metrics: dict, title: str, overw
         return None
     from matplotlib.figure import Figure  # no pyplot: no GUI backend, no global state (Agg canvas)
 
-    from ..io.h5 import write_atomically
+    from ..io.files import write_atomically
 
     fig = Figure(figsize=(7, 4), dpi=110)
     ax = fig.subplots()

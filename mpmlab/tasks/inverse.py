@@ -13,19 +13,95 @@ command with the same ``hydra.run.dir``).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Dict, List, Optional
 
 import numpy as np
+from omegaconf import MISSING
 
+from ..config import TaskConfig, register_task_schema
 from ..config import build_scene, check_run_options, make_transfer_from_config
 from ..core.errors import ConfigError
 from .common import RECORDING, SUMMARY, write_config, write_json
 
 log = logging.getLogger("mpmlab")
 FIT_PLOT = "fit.png"
+
+
+@dataclass
+class FitParameterConfig:
+    """One fitted quantity of ``task=inverse`` (see ``mpmlab.inverse.parameters``)."""
+
+    #: initial_velocity | law | boundary | gravity
+    target: str = MISSING
+    #: scalar | array | mlp
+    form: str = "scalar"
+    body: Optional[str] = None
+    #: initial_velocity: x | y | z
+    component: Optional[str] = None
+    #: law: the parameter name
+    param: Optional[str] = None
+    #: boundary: its name under scene.boundaries, and its data (mu, friction)
+    boundary: Optional[str] = None
+    field: Optional[str] = None
+    #: initial_velocity, form scalar: v = value * basis(x, y, z)
+    basis: Optional[str] = None
+    #: form mlp: input coordinates, hidden widths, activation (relu | tanh | softplus), weight seed
+    inputs: List[str] = dataclasses.field(default_factory=lambda: ["y"])
+    hidden: List[int] = dataclasses.field(default_factory=lambda: [30, 30, 30])
+    activation: str = "relu"
+    seed: int = 0
+    #: starting value (physical units; a list for arrays)
+    init: Optional[Any] = None
+    #: the truth (value, list, or an expression of x, y, z and task.constants) for generated data
+    truth: Optional[Any] = None
+    #: identity | softplus | exp
+    transform: str = "identity"
+
+
+@dataclass
+class InverseTaskConfig(TaskConfig):
+    """Fit parameters to observations of a reference rollout (JAX-MPM Sec. 3.2, Eq. 28)."""
+
+    name: str = "inverse"
+    parameters: Dict[str, FitParameterConfig] = field(default_factory=dict)
+    #: the observation operator: {kind: lagrangian, quantity: x, particles: 100} or {kind: eulerian, ...}
+    observation: Dict[str, Any] = field(default_factory=lambda: {"kind": "lagrangian", "quantity": "x"})
+    #: named observation presets of an experiment; ``observation: ${task.observations.${task.supervision}}``
+    observations: Dict[str, Any] = field(default_factory=dict)
+    supervision: Optional[str] = None
+    #: observation steps: {steps: [...]}, {frames: F, every: K} (the last F frames, K steps apart) or
+    #: {frames: F, spread: true} (evenly over the rollout)
+    schedule: Dict[str, Any] = field(default_factory=lambda: {"frames": 10, "every": 10})
+    #: Gaussian noise (std) added to the reference observations, and its seed
+    noise: float = 0.0
+    noise_seed: int = 0
+    #: names usable in field expressions (e.g. H0)
+    constants: Dict[str, float] = field(default_factory=dict)
+    epochs: int = 100
+    #: per backend: an optax transform (jax) / a torch.optim class (warp), by _target_
+    optimizer: Dict[str, Any] = field(default_factory=dict)
+    lr_schedule: Dict[str, Any] = field(default_factory=dict)
+    #: used when the optimiser config sets no learning rate and no schedule is given
+    learning_rate: float = 0.1
+    #: steps per recomputed segment of the backward pass (memory O(steps / segment + segment))
+    segment: int = 100
+    checkpoint_every: int = 10
+    #: continue from fit_checkpoint.* in the run directory if present
+    resume: bool = True
+    #: stop early once the loss is at or below this
+    loss_tolerance: float = 0.0
+    #: keep XLA CPU's YNNPACK fusions (JAX backend); off by default here because they make the
+    #: backward pass ~2x slower (mpmlab/backends/jax/xla_options.py); XLA_FLAGS set by you wins
+    jax_ynn_fusions: bool = False
+
+
+register_task_schema("inverse", InverseTaskConfig)
 
 
 def _plain(node):

@@ -9,12 +9,24 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
+from ..config import TaskConfig, register_task_schema
 from ..core.errors import ConfigError
 from .common import CONFIG, ENERGY_PLOT, RECORDING, SUMMARY, check_outputs, plot_energy, write_config, write_json
 
 log = logging.getLogger("mpmlab")
+
+
+@dataclass
+class ReplayTaskConfig(TaskConfig):
+    """Turn an ``mpmlab.trajectory`` HDF5 file (top-level ``input``) into a recording."""
+
+    name: str = "replay"
+
+
+register_task_schema("replay", ReplayTaskConfig)
 
 
 def run(cfg, ctx) -> dict:

@@ -16,12 +16,13 @@ import logging
 import os
 import platform
 import time
+from dataclasses import dataclass
 from pathlib import Path
-
 
 import numpy as np
 
-from ..config import build_scene, check_run_options, make_transfer_from_config
+from ..build import build_scene, make_transfer_from_config
+from ..config import TaskConfig, check_run_options, register_task_schema
 from ..core.errors import ConfigError, SimulationDiverged
 from ..core.signals import stop_reason
 from ..io.containment import WallPenetration
@@ -29,6 +30,15 @@ from .common import (CONFIG, ENERGY_PLOT, RECORDING, SUMMARY, TRAJECTORY, FrameC
                      fmt_rate, plot_energy, write_config, write_json)
 
 log = logging.getLogger("mpmlab")
+
+
+@dataclass
+class SimulateTaskConfig(TaskConfig):
+    name: str = "simulate"
+
+
+register_task_schema("simulate", SimulateTaskConfig)
+
 
 def known_fields() -> list[str]:
     """Every per-particle field a run can store: ``C`` and the state fields the registered laws declare."""
