@@ -30,11 +30,7 @@ SHRINK = [
 ]
 
 #: block id -> (the exception it raises as written, why); fix the README, then remove the entry
-KNOWN_BROKEN = {
-    "gradients-through-rollouts": (
-        NameError, "uses `mpmlab` (mpmlab.Scene, mpmlab.build_stepper) without `import mpmlab`: it runs only "
-                   "after the Python API block"),
-}
+KNOWN_BROKEN: dict = {}
 
 
 def _slug(text: str) -> str:

@@ -11,7 +11,7 @@ import math
 from abc import ABC, abstractmethod
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -107,6 +107,24 @@ class _Pluggable:
         if backend not in cls.implementations:
             raise MissingImplementationError(kind, cls.name, backend, list(cls.implementations))
         return load_object(cls.implementations[backend])
+
+
+@runtime_checkable
+class LawFunctions(Protocol):
+    """What a law's backend factory returns, on every backend (``make(law, dim)`` on JAX,
+    ``make(law, dim, precision)`` on Warp, and the ``reference`` module itself):
+
+    * ``kirchhoff(state, prm, w) -> tau [D, D]``
+    * ``update(state, grad_v [D, D], dt, prm, w) -> state``
+
+    ``state``: the declared fields (JAX/NumPy: a dict of one particle's arrays; Warp: the generated
+    ``LawState`` struct); ``prm``: the parameters by name (JAX/NumPy: a mapping of scalars; Warp: the
+    generated ``Params`` struct); ``w``: the shared weights (JAX/NumPy: a dict of arrays, un-batched;
+    Warp: the generated ``Weights`` struct of ``wp.array``s)."""
+
+    def kirchhoff(self, state, prm, w): ...
+
+    def update(self, state, grad_v, dt, prm, w): ...
 
 
 class AbstractConstitutiveLaw(_Pluggable, ABC):
