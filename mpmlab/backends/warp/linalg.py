@@ -82,6 +82,18 @@ def warp_linalg(dim: int, precision: str) -> SimpleNamespace:
         # values); values derived from s only choose branches (yield tests) or feed ``spectral_func``.
         return
 
+    @wp.func
+    def singular_values(F: mat):
+        """The s of ``svd_rotations`` with its derivative ds_i = (U^T dF V)_ii, finite at repeated
+        singular values (for laws whose state depends on principal stretches, e.g. a hardening variable)."""
+        U, s, V = svd_rotations(F)
+        return s
+
+    @wp.func_grad(singular_values)
+    def adj_singular_values(F: mat, adj_ret: vec):
+        U, s, V = svd_rotations(F)
+        wp.adjoint[F] += U @ diag(adj_ret) @ wp.transpose(V)
+
     pv1 = wp.types.vector(1, scalar)
     polar_map = spectral_func(dim, precision, None, left=False, nparams=1, ones=True)
 
@@ -91,8 +103,8 @@ def warp_linalg(dim: int, precision: str) -> SimpleNamespace:
         U, s, V = svd_const(F); its derivative is finite at F = I."""
         return polar_map(F, U, s, V, vec(), pv1())
 
-    return SimpleNamespace(svd_rotations=svd_rotations, svd_const=svd_const, diag=diag, lame=lame,
-                           hencky_strain=hencky_strain, polar=polar, identity=lambda: None)
+    return SimpleNamespace(svd_rotations=svd_rotations, svd_const=svd_const, singular_values=singular_values,
+                           diag=diag, lame=lame, hencky_strain=hencky_strain, polar=polar, identity=lambda: None)
 
 
 def spectral_func(dim: int, precision: str, jac, left: bool, nparams: int, ones: bool = False):

@@ -53,12 +53,18 @@ def _returned_stretch(s, prm):
     return jnp.where(tr > 0.0, jnp.ones_like(s), on_cone)
 
 
+def project(F, prm):
+    """The Drucker-Prager return map of a trial elastic F (NCLaw Eq. 16); ``prm`` needs E, nu and the
+    friction angle [deg] (laws that compute the angle themselves, e.g. with hardening, call this)."""
+    _, s, _ = svd_rotations(jax.lax.stop_gradient(F))
+    _, tr, _, n, dg = _cone(s, jax.lax.stop_gradient(prm))
+    plastic = (tr > 0.0) | ((dg > 0.0) & (n > 0.0))
+    return jnp.where(plastic, spectral(_returned_stretch, False, F, prm), F)
+
+
 def make(law, dim: int) -> SimpleNamespace:
     def update(state, grad_v, dt, prm, w):
         F = (jnp.eye(dim, dtype=grad_v.dtype) + dt * grad_v) @ state["F"]
-        _, s, _ = svd_rotations(jax.lax.stop_gradient(F))
-        _, tr, _, n, dg = _cone(s, jax.lax.stop_gradient(prm))
-        plastic = (tr > 0.0) | ((dg > 0.0) & (n > 0.0))
-        return {"F": jnp.where(plastic, spectral(_returned_stretch, False, F, prm), F)}
+        return {"F": project(F, prm)}
 
     return SimpleNamespace(kirchhoff=hencky_kirchhoff, update=update)

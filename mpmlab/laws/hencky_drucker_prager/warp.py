@@ -128,36 +128,39 @@ def hencky_funcs(dim: int, precision: str) -> SimpleNamespace:
         """NCLaw Eq. 16, third case: dg = n + c tr alpha, c = (d lambda + 2 mu) / (2 mu)."""
         return dp_map(F, U, sv, V, returned(eps, eps_hat, n, n + c * tr * alpha), p2(c, alpha))
 
-    return SimpleNamespace(logs=logs, trace_split=trace_split, kirchhoff=kirchhoff, vm_return=vm_return,
-                           dp_return=dp_return)
-
-
-@lru_cache(maxsize=None)
-def make(law, dim: int, precision: str) -> SimpleNamespace:
-    T = law_types(law, dim, precision)
-    La = warp_linalg(dim, precision)
-    H = hencky_funcs(dim, precision)
-    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
-    fdim = float(dim)   # scalar(dim) on the int closure constant confuses Warp's range(dim) (Warp 1.19)
-
     @wp.func
-    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
-        out = s
-        F = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
-        mu, lam = La.lame(prm.E, prm.nu)
-        sp = wp.sin(prm.friction_angle * (scalar(wp.pi) / scalar(180.0)))
+    def dp_project(F: mat, E: scalar, nu: scalar, friction_angle: scalar):
+        """The Drucker-Prager return map of a trial elastic F (NCLaw Eq. 16), friction angle in degrees;
+        also used by laws that compute the angle themselves (e.g. with hardening, the example plugin)."""
+        mu, lam = La.lame(E, nu)
+        sp = wp.sin(friction_angle * (scalar(wp.pi) / scalar(180.0)))
         alpha = wp.sqrt(scalar(2.0) / scalar(3.0)) * scalar(2.0) * sp / (scalar(3.0) - sp)   # NCLaw Eq. 15
         U, sv, V = La.svd_const(F)
-        eps = H.logs(sv)
-        tr, eps_hat, n = H.trace_split(eps)
+        eps = logs(sv)
+        tr, eps_hat, n = trace_split(eps)
         if tr > scalar(0.0):                       # tension: cone tip (Eq. 16, first case)
             F = La.polar(F, U, sv, V)
         else:
             c = (scalar(fdim) * lam + scalar(2.0) * mu) / (scalar(2.0) * mu)
             dg = n + c * tr * alpha
             if dg > scalar(0.0) and n > scalar(0.0):   # outside the cone: project onto it (third case)
-                F = H.dp_return(F, U, sv, V, eps, eps_hat, n, tr, c, alpha)
-        out.F = F
+                F = dp_return(F, U, sv, V, eps, eps_hat, n, tr, c, alpha)
+        return F
+
+    return SimpleNamespace(logs=logs, trace_split=trace_split, kirchhoff=kirchhoff, vm_return=vm_return,
+                           dp_return=dp_return, dp_project=dp_project)
+
+
+@lru_cache(maxsize=None)
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    T = law_types(law, dim, precision)
+    H = hencky_funcs(dim, precision)
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
+
+    @wp.func
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
+        out = s
+        out.F = H.dp_project((wp.identity(dim, scalar) + dt * grad_v) @ s.F, prm.E, prm.nu, prm.friction_angle)
         return out
 
     @wp.func
