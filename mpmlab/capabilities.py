@@ -56,26 +56,36 @@ def markdown(builtin_only: bool = False) -> str:
     transfers = _transfers()
     rows = capabilities()
     ok = {(r["law"], r["transfer"], r["backend"]): r["supported"] for r in rows}
-    head = ["law", "parameters"] + [f"{b}: {t}" for b in backends for t in transfers] + ["from"]
+    head = ["law", "parameters"] + [f"{b}: {t}" for b in backends for t in transfers] + ["gradients", "from"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for law_name in _laws(builtin_only):
         law = registry.laws.get(law_name)
         params = ", ".join(f"{p.name} [{p.unit}]" for p in getattr(law, "params", ()))
         cells = ["✓" if ok[(law_name, t, b)] else "–" for b in backends for t in transfers]
-        lines.append("| " + " | ".join([f"`{law_name}`", params] + cells + [registry.laws.provenance(law_name)]) + " |")
-    lines += ["", "| boundary | " + " | ".join(backends) + " | from |", "|---|" + "---|" * (len(backends) + 1)]
+        # a law's functions are the same on the fast and the differentiable path of each backend
+        grads = ", ".join(b for b in backends if b in getattr(law, "implementations", {})) or "–"
+        lines.append("| " + " | ".join([f"`{law_name}`", params] + cells + [grads, registry.laws.provenance(law_name)])
+                     + " |")
+    grad_head = " | ".join(f"{b} gradient" for b in backends)
+    lines += ["", "| boundary | " + " | ".join(backends) + f" | {grad_head} | from |",
+              "|---|" + "---|" * (2 * len(backends) + 1)]
     for name in registry.boundaries.names():
         if builtin_only and registry.boundaries.provenance(name) != "mpmlab":
             continue
         b = registry.boundaries.get(name)
         cells = ["✓" if be in getattr(b, "implementations", {}) else "–" for be in backends]
+        cells += ["✓" if be in getattr(b, "implementations", {}) and be in getattr(b, "gradients", ()) else "–"
+                  for be in backends]
         lines.append("| " + " | ".join([f"`{name}`"] + cells + [registry.boundaries.provenance(name)]) + " |")
-    lines += ["", "| observation | " + " | ".join(backends) + " | from |", "|---|" + "---|" * (len(backends) + 1)]
+    lines += ["", "| observation | " + " | ".join(backends) + f" | {grad_head} | from |",
+              "|---|" + "---|" * (2 * len(backends) + 1)]
     for name in registry.observations.names():
         if builtin_only and registry.observations.provenance(name) != "mpmlab":
             continue
         o = registry.observations.get(name)
         cells = ["✓" if be in getattr(o, "implementations", {}) else "–" for be in backends]
+        cells += ["✓" if be in getattr(o, "implementations", {}) and be in getattr(o, "gradients", ()) else "–"
+                  for be in backends]
         lines.append("| " + " | ".join([f"`{name}`"] + cells + [registry.observations.provenance(name)]) + " |")
     return "\n".join(lines) + "\n"
 

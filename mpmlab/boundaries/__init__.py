@@ -41,6 +41,7 @@ class Walls(AbstractBoundary):
 
     name: ClassVar[str] = "walls"
     implementations: ClassVar[dict] = _impl("walls")
+    gradients: ClassVar[tuple] = ("jax", "warp")
     default: str = "separate"
     faces: Mapping[str, str] = field(default_factory=dict)
     thickness: int = 3
@@ -71,6 +72,7 @@ class FrictionWalls(AbstractBoundary):
 
     name: ClassVar[str] = "friction_walls"
     implementations: ClassVar[dict] = _impl("friction_walls")
+    gradients: ClassVar[tuple] = ("jax", "warp")
     face: str = "y-"
     mu: Sequence[float] = (0.0,)
     along: str = "x"
@@ -114,6 +116,7 @@ class Plane(AbstractBoundary):
 
     name: ClassVar[str] = "plane"
     implementations: ClassVar[dict] = _impl("plane")
+    gradients: ClassVar[tuple] = ("jax", "warp")
     point: Sequence[float] = (0.0, 0.0, 0.0)
     normal: Sequence[float] = (0.0, 1.0, 0.0)
     condition: str = "separate"
@@ -141,6 +144,7 @@ class BoxObstacle(AbstractBoundary):
 
     name: ClassVar[str] = "box_obstacle"
     implementations: ClassVar[dict] = _impl("box_obstacle")
+    gradients: ClassVar[tuple] = ("jax", "warp")
     lo: Sequence[float] = (0.0, 0.0, 0.0)
     hi: Sequence[float] = (0.0, 0.0, 0.0)
 
@@ -156,6 +160,7 @@ class ParticleVelocity(AbstractBoundary):
 
     name: ClassVar[str] = "particle_velocity"
     implementations: ClassVar[dict] = _impl("particle_velocity")
+    gradients: ClassVar[tuple] = ("jax", "warp")
     stage: ClassVar[str] = "particle_velocity"
     region: Mapping[str, Any] = field(default_factory=dict)
     velocity: Sequence[float] = (0.0, 0.0, 0.0)
@@ -187,6 +192,7 @@ class ParticleLoad(ParticleVelocity):
 
     name: ClassVar[str] = "particle_load"
     implementations: ClassVar[dict] = _impl("particle_load")
+    gradients: ClassVar[tuple] = ("jax", "warp")
     stage: ClassVar[str] = "particle_force"
     force: Sequence[float] = (0.0, 0.0, 0.0)
 

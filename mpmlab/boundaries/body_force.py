@@ -140,6 +140,7 @@ class BodyForce(AbstractBoundary):
     name: ClassVar[str] = "body_force"
     implementations: ClassVar[dict] = {"jax": "mpmlab.backends.jax.body_force:body_force",
                                        "warp": "mpmlab.backends.warp.body_force:body_force"}
+    gradients: ClassVar[tuple] = ("jax", "warp")
     stage: ClassVar[str] = "particle_force"
     field: str = "mms_axis_aligned"
     values: Mapping[str, Any] = dc_field(default_factory=dict)

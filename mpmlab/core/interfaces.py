@@ -345,6 +345,10 @@ class AbstractBoundary(_Pluggable, ABC):
     """
 
     stage: ClassVar[str] = "grid"
+    #: backends whose differentiable path runs through this boundary (the capability table's gradient
+    #: columns). JAX differentiates its (pure) implementation; on Warp the factory's result must give
+    #: ``tape()``, a tape-safe implementation (``mpmlab/backends/warp/boundaries.py``).
+    gradients: ClassVar[tuple] = ("jax",)
 
     @abstractmethod
     def validate(self, scene) -> None:
@@ -353,6 +357,9 @@ class AbstractBoundary(_Pluggable, ABC):
 
 class AbstractObservation(_Pluggable, ABC):
     """Maps a state to what an instrument sees (JAX-MPM Eqs. 26-27)."""
+
+    #: backends on which gradients flow through it (its Warp implementation records on the tape)
+    gradients: ClassVar[tuple] = ("jax",)
 
 
 class AbstractStepper(ABC):

@@ -52,6 +52,7 @@ class Lagrangian(AbstractObservation):
 
     name: ClassVar[str] = "lagrangian"
     implementations: ClassVar[dict] = _impl("lagrangian")
+    gradients: ClassVar[tuple] = ("jax", "warp")
     quantity: str = "x"
     particles: Any = None
     seed: int = 0
@@ -85,6 +86,7 @@ class Eulerian(AbstractObservation):
 
     name: ClassVar[str] = "eulerian"
     implementations: ClassVar[dict] = _impl("eulerian")
+    gradients: ClassVar[tuple] = ("jax", "warp")
     centers: Sequence[Sequence[float]] = ()
     half_size: float = 0.01
     quantity: str = "v"

@@ -65,7 +65,8 @@ def _field_func(field: str, law: str, dim: int, precision: str):
 
 
 @lru_cache(maxsize=None)
-def body_force_kernel(field: str, law: str, dim: int, precision: str):
+def body_force_kernel(field: str, law: str, dim: int, precision: str, atomic: bool = False):
+    """``atomic``: the tape-safe form (an atomic add instead of a read-add-write of ext)."""
     T = warp_types(dim, precision)
     scalar, vec = T.scalar, T.vec
     bfunc = _field_func(field, law, dim, precision)
@@ -75,7 +76,10 @@ def body_force_kernel(field: str, law: str, dim: int, precision: str):
                        idx: wp.array(dtype=int), p: wp.array(dtype=scalar), t: scalar):
         k = wp.tid()
         i = idx[k]
-        ext[i] = ext[i] + mass[i] * bfunc(X0[i], t, p)
+        if wp.static(atomic):
+            wp.atomic_add(ext, i, mass[i] * bfunc(X0[i], t, p))
+        else:
+            ext[i] = ext[i] + mass[i] * bfunc(X0[i], t, p)
 
     return add_body_force
 
@@ -98,5 +102,18 @@ def body_force(b, scene, stepper):
             return True
         return False
 
+    def tape():
+        # the differentiable path: the mass is the control's (gradients reach it), X0 the scene's
+        # reference positions, as on JAX (backends/jax/body_force.py)
+        k_tape = body_force_kernel(b.field, b.options.get("law", ""), scene.dim, stepper.precision, atomic=True)
+
+        def force(ext, p, t, ctl):
+            if b.t_start <= t < b.t_end and len(idx):
+                wp.launch(k_tape, dim=len(idx), inputs=[ext, X0, ctl.mass, ia, p["field"], T.scalar(t)], device=dev)
+
+        return SimpleNamespace(stage="particle_force", params={"field": np.asarray(b.packed(scene.dim), float)},
+                               param_kinds={"field": "scalar"}, force=force)
+
     bc.add_force = add_force
+    bc.tape = tape
     return bc

@@ -3,6 +3,22 @@
 Domain walls are fused into the grid-update kernel (their face kinds are kernel arguments); the
 others are small kernels launched only when the scene has them. Node sets and normals come from the
 same NumPy code as the JAX side (``mpmlab.backends.boundary_geometry``).
+
+Each factory returns the fast, in-place implementation and, as ``tape()``, its tape-safe one for
+the differentiable path (``grad.py``), which asks every boundary for it instead of knowing them by
+name (a plugin boundary is differentiable on Warp when its factory gives a ``tape``). The protocol,
+``TapeBoundary`` (a namespace), by ``stage``:
+
+* every stage: ``params`` ``{name: numpy array}``, the boundary's differentiable data (its entry of
+  ``controls()["boundary"]``), and ``param_kinds`` ``{name: "scalar" | "vec"}`` (a ``vec`` entry is
+  one D-vector, passed as a ``[1]`` array of vectors);
+* ``"walls"``: ``codes`` and ``thickness``, fused into the grid update;
+* ``"grid"``: ``grid(grid_v, out, p)`` writes every node of ``out`` (out of place: the tape never
+  sees an overwrite); ``p`` holds the Warp arrays of ``params``;
+* ``"particle_velocity"``: ``particles(x_in, x, v, p, t_end, dt, x_out, v_out) -> bool`` (False:
+  inactive at this time, nothing written);
+* ``"particle_force"``: ``force(ext, p, t, ctl)`` adds (atomically) into the external forces;
+  ``ctl`` gives the differentiable controls (``ctl.mass``, ...).
 """
 
 from functools import lru_cache
@@ -41,7 +57,7 @@ def _coulomb_func(dim, precision):
 @lru_cache(maxsize=None)
 def _node_funcs(dim, precision):
     """The per-node velocity maps of planes and obstacles, shared by the fast kernels below and the
-    differentiable path (``grad.boundary_kernels``). They build new vectors (no component overwrite),
+    tape-safe kernels (``_tape_kernels``). They build new vectors (no component overwrite),
     so Warp's adjoint is right."""
     T = warp_types(dim, precision)
     scalar, vec = T.scalar, T.vec
@@ -124,9 +140,71 @@ class _GridBC:
         self.K = _node_kernels(stepper.dim, stepper.precision)
 
 
+@lru_cache(maxsize=None)
+def _tape_kernels(dim: int, precision: str):
+    """Out-of-place versions of ``_node_kernels`` over every node / particle (a node or particle outside
+    the boundary's set is copied), so the tape never sees an overwrite."""
+    T = warp_types(dim, precision)
+    scalar, vec = T.scalar, T.vec
+    coulomb = _coulomb_func(dim, precision)
+    F = _node_funcs(dim, precision)
+
+    @wp.kernel(module="unique")
+    def friction(grid_v: wp.array(dtype=vec), mu_index: wp.array(dtype=int), mu: wp.array(dtype=scalar), n: vec,
+                 out: wp.array(dtype=vec)):
+        i = wp.tid()
+        v = grid_v[i]
+        k = mu_index[i]
+        if k >= 0:
+            v = coulomb(v, n, mu[k])                  # JAX-MPM Eqs. 35-36
+        out[i] = v
+
+    @wp.kernel(module="unique")
+    def plane(grid_v: wp.array(dtype=vec), behind: wp.array(dtype=int), n_in: vec, kind: int,
+              friction: wp.array(dtype=scalar), out: wp.array(dtype=vec)):
+        i = wp.tid()
+        v = grid_v[i]
+        if behind[i] != 0:
+            v = F.plane(v, n_in, kind, friction[0])
+        out[i] = v
+
+    @wp.kernel(module="unique")
+    def obstacle(grid_v: wp.array(dtype=vec), normal_index: wp.array(dtype=int), normals: wp.array(dtype=vec),
+                 out: wp.array(dtype=vec)):
+        i = wp.tid()
+        v = grid_v[i]
+        k = normal_index[i]
+        if k >= 0:
+            v = F.obstacle(v, normals[k])
+        out[i] = v
+
+    @wp.kernel(module="unique")
+    def set_velocity(x_in: wp.array(dtype=vec), x: wp.array(dtype=vec), v: wp.array(dtype=vec),
+                     selected: wp.array(dtype=int), target: wp.array(dtype=vec), dt: scalar,
+                     x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec)):
+        p = wp.tid()
+        if selected[p] != 0:
+            v_out[p] = target[0]
+            x_out[p] = x_in[p] + dt * target[0]       # a prescribed particle moves with its velocity
+        else:
+            v_out[p] = v[p]
+            x_out[p] = x[p]
+
+    @wp.kernel(module="unique")
+    def add_force(ext: wp.array(dtype=vec), idx: wp.array(dtype=int), share: wp.array(dtype=scalar),
+                  force: wp.array(dtype=vec)):
+        k = wp.tid()
+        wp.atomic_add(ext, idx[k], share[k] * force[0])
+
+    return SimpleNamespace(friction=friction, plane=plane, obstacle=obstacle, set_velocity=set_velocity,
+                           add_force=add_force)
+
+
 def walls(b, scene, stepper):
     codes = [WALL_CODES[k] for k in b.face_kinds(scene.dim)]
-    return SimpleNamespace(kind="walls", codes=codes, thickness=b.thickness, params={})
+    return SimpleNamespace(kind="walls", codes=codes, thickness=b.thickness, params={},
+                           tape=lambda: SimpleNamespace(stage="walls", params={}, param_kinds={}, codes=codes,
+                                                        thickness=int(b.thickness)))
 
 
 def friction_walls(b, scene, stepper):
@@ -143,7 +221,19 @@ def friction_walls(b, scene, stepper):
         wp.launch(bc.K.friction, dim=len(nodes), inputs=[grid_v, bc.nodes, bc.mu_index, bc.params["mu"], bc.n, grid_v],
                   device=stepper.device)
 
+    def tape():
+        idx = np.where(mask, friction_node_mu_index(b, scene), -1).astype(np.int32)
+        index = wp.array(idx, dtype=int, device=stepper.device)
+        K = _tape_kernels(stepper.dim, stepper.precision)
+
+        def grid(grid_v, out, p):
+            wp.launch(K.friction, dim=len(idx), inputs=[grid_v, index, p["mu"], bc.n, out], device=stepper.device)
+
+        return SimpleNamespace(stage="grid", params={"mu": np.asarray(b.mu, float)}, param_kinds={"mu": "scalar"},
+                               grid=grid)
+
     bc.apply = apply
+    bc.tape = tape
     bc.kind = "grid"
     return bc
 
@@ -164,7 +254,19 @@ def plane(b, scene, stepper):
             wp.launch(bc.K.plane, dim=len(nodes), inputs=[grid_v, bc.nodes, T.vec(*n_in), kind, bc.params["friction"], grid_v],
                       device=stepper.device)
 
+    def tape():
+        index = wp.array(behind.astype(np.int32), dtype=int, device=stepper.device)
+        K = _tape_kernels(stepper.dim, stepper.precision)
+
+        def grid(grid_v, out, p):
+            wp.launch(K.plane, dim=len(behind), inputs=[grid_v, index, T.vec(*n_in), kind, p["friction"], out],
+                      device=stepper.device)
+
+        return SimpleNamespace(stage="grid", params={"friction": np.asarray(b.friction, float)},
+                               param_kinds={"friction": "scalar"}, grid=grid)
+
     bc.apply = apply
+    bc.tape = tape
     bc.kind = "grid"
     return bc
 
@@ -180,7 +282,21 @@ def box_obstacle(b, scene, stepper):
         if len(nodes):
             wp.launch(bc.K.obstacle, dim=len(nodes), inputs=[grid_v, bc.nodes, bc.normals, grid_v], device=stepper.device)
 
+    def tape():
+        idx = np.full(len(inside), -1, np.int32)
+        idx[nodes] = np.arange(len(nodes), dtype=np.int32)
+        index = wp.array(idx, dtype=int, device=stepper.device)
+        normals_ = wp.array(normals[nodes] if len(nodes) else np.zeros((1, scene.dim)), dtype=stepper.T.vec,
+                            device=stepper.device)
+        K = _tape_kernels(stepper.dim, stepper.precision)
+
+        def grid(grid_v, out, p):
+            wp.launch(K.obstacle, dim=len(idx), inputs=[grid_v, index, normals_, out], device=stepper.device)
+
+        return SimpleNamespace(stage="grid", params={}, param_kinds={}, grid=grid)
+
     bc.apply = apply
+    bc.tape = tape
     bc.kind = "grid"
     return bc
 
@@ -197,7 +313,25 @@ def particle_velocity(b, scene, stepper):
             wp.launch(K.set_velocity, dim=len(idx), inputs=[v, x_in, x, ia, bc.params["velocity"], stepper.dt_s],
                       device=stepper.device)
 
+    def tape():
+        N = len(scene.particles().x)
+        sel = np.zeros(N, np.int32)
+        sel[idx] = 1
+        selected = wp.array(sel, dtype=int, device=stepper.device)
+        TK = _tape_kernels(stepper.dim, stepper.precision)
+
+        def particles(x_in, x, v, p, t_end, dt, x_out, v_out):
+            if not b.t_start < t_end <= b.t_end:
+                return False
+            wp.launch(TK.set_velocity, dim=N, inputs=[x_in, x, v, selected, p["velocity"], dt, x_out, v_out],
+                      device=stepper.device)
+            return True
+
+        return SimpleNamespace(stage="particle_velocity", params={"velocity": np.asarray(b.velocity, float)},
+                               param_kinds={"velocity": "vec"}, particles=particles)
+
     bc.apply_particles = apply_particles
+    bc.tape = tape
     return bc
 
 
@@ -216,5 +350,16 @@ def particle_load(b, scene, stepper):
             return True
         return False
 
+    def tape():
+        TK = _tape_kernels(stepper.dim, stepper.precision)
+
+        def force(ext, p, t, ctl):
+            if b.t_start <= t < b.t_end and len(idx):
+                wp.launch(TK.add_force, dim=len(idx), inputs=[ext, ia, share, p["force"]], device=stepper.device)
+
+        return SimpleNamespace(stage="particle_force", params={"force": np.asarray(b.force, float)},
+                               param_kinds={"force": "vec"}, force=force)
+
     bc.add_force = add_force
+    bc.tape = tape
     return bc

@@ -33,9 +33,7 @@ import numpy as np
 import warp as wp
 
 from ...core.errors import ConfigError, GradientError, SimulationDiverged
-from ..boundary_geometry import box_obstacle_normals, friction_node_mu_index, node_positions, wall_masks
 from . import kernels as K
-from .boundaries import _coulomb_func, _node_funcs
 from .types import warp_types
 
 #: Steps per recomputed segment when ``observe`` is not given one.
@@ -204,66 +202,6 @@ def grid_kernel(dim: int, precision: str, split_force: bool):
 
 
 @lru_cache(maxsize=None)
-def boundary_kernels(dim: int, precision: str):
-    """Out-of-place versions of ``boundaries._node_kernels`` over every node / particle (a node or
-    particle outside the boundary's set is copied), so the tape never sees an overwrite."""
-    T = warp_types(dim, precision)
-    scalar, vec = T.scalar, T.vec
-    coulomb = _coulomb_func(dim, precision)
-    F = _node_funcs(dim, precision)
-
-    @wp.kernel(module="unique")
-    def friction(grid_v: wp.array(dtype=vec), mu_index: wp.array(dtype=int), mu: wp.array(dtype=scalar), n: vec,
-                 out: wp.array(dtype=vec)):
-        i = wp.tid()
-        v = grid_v[i]
-        k = mu_index[i]
-        if k >= 0:
-            v = coulomb(v, n, mu[k])                  # JAX-MPM Eqs. 35-36
-        out[i] = v
-
-    @wp.kernel(module="unique")
-    def plane(grid_v: wp.array(dtype=vec), behind: wp.array(dtype=int), n_in: vec, kind: int,
-              friction: wp.array(dtype=scalar), out: wp.array(dtype=vec)):
-        i = wp.tid()
-        v = grid_v[i]
-        if behind[i] != 0:
-            v = F.plane(v, n_in, kind, friction[0])
-        out[i] = v
-
-    @wp.kernel(module="unique")
-    def obstacle(grid_v: wp.array(dtype=vec), normal_index: wp.array(dtype=int), normals: wp.array(dtype=vec),
-                 out: wp.array(dtype=vec)):
-        i = wp.tid()
-        v = grid_v[i]
-        k = normal_index[i]
-        if k >= 0:
-            v = F.obstacle(v, normals[k])
-        out[i] = v
-
-    @wp.kernel(module="unique")
-    def set_velocity(x_in: wp.array(dtype=vec), x: wp.array(dtype=vec), v: wp.array(dtype=vec),
-                     selected: wp.array(dtype=int), target: wp.array(dtype=vec), dt: scalar,
-                     x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec)):
-        p = wp.tid()
-        if selected[p] != 0:
-            v_out[p] = target[0]
-            x_out[p] = x_in[p] + dt * target[0]       # a prescribed particle moves with its velocity
-        else:
-            v_out[p] = v[p]
-            x_out[p] = x[p]
-
-    @wp.kernel(module="unique")
-    def add_force(ext: wp.array(dtype=vec), idx: wp.array(dtype=int), share: wp.array(dtype=scalar),
-                  force: wp.array(dtype=vec)):
-        k = wp.tid()
-        wp.atomic_add(ext, idx[k], share[k] * force[0])
-
-    return SimpleNamespace(friction=friction, plane=plane, obstacle=obstacle, set_velocity=set_velocity,
-                           add_force=add_force)
-
-
-@lru_cache(maxsize=None)
 def finite_kernels(dim: int, precision: str):
     """flags[slot] = 1 where an array holds a non-finite entry (one kernel per element type)."""
     T = warp_types(dim, precision)
@@ -312,59 +250,25 @@ class GradPath:
         self.N, self.G = st.particles.count, st.node_count
         self.split = st.split_force
         self.affine = tr.needs_affine
-        # boundaries, in scene order: what they do each step and their differentiable data
+        # boundaries, in scene order: each one's tape-safe Warp implementation (``tape()`` of its factory,
+        # backends/warp/boundaries.py documents the protocol) and its differentiable data
         self.bcs = []
         self.wall_kind = wp.array(np.asarray([K.WALL_CODES["none"]] * (2 * D), np.int32), dtype=int, device=dev)
         self.thickness = 1
         for b in scene.boundaries:
-            kind = b.name
-            bc = SimpleNamespace(name=kind, stage=b.stage, params={}, b=b)
-            if kind == "walls":
-                self.wall_kind = wp.array(np.asarray([K.WALL_CODES[k] for k in b.face_kinds(D)], np.int32), dtype=int,
-                                          device=dev)
-                self.thickness = int(b.thickness)
-                bc.stage = "walls"
-            elif kind == "friction_walls":
-                mask = wall_masks(scene, b.thickness)[b.face]
-                idx = np.where(mask, friction_node_mu_index(b, scene), -1).astype(np.int32)
-                bc.index = wp.array(idx, dtype=int, device=dev)
-                n = np.zeros(D); n[b.axis] = b.side
-                bc.n = T.vec(*n)
-                bc.params = {"mu": np.asarray(b.mu, float)}
-            elif kind == "plane":
-                n_in = b.unit_normal()
-                behind = ((node_positions(scene) - np.asarray(b.point, float)) @ n_in < 0).astype(np.int32)
-                bc.index = wp.array(behind, dtype=int, device=dev)
-                bc.n = T.vec(*n_in)
-                bc.kind = {"sticky": 1, "slip": 2, "separate": 3}[b.condition]
-                bc.params = {"friction": np.asarray(b.friction, float)}
-            elif kind == "box_obstacle":
-                inside, normals = box_obstacle_normals(b, scene)
-                nodes = np.nonzero(inside)[0]
-                idx = np.full(self.G, -1, np.int32)
-                idx[nodes] = np.arange(len(nodes), dtype=np.int32)
-                bc.index = wp.array(idx, dtype=int, device=dev)
-                bc.normals = wp.array(normals[nodes] if len(nodes) else np.zeros((1, D)), dtype=T.vec, device=dev)
-            elif kind == "particle_velocity":
-                sel = np.zeros(self.N, np.int32)
-                sel[b.select(st.particles.x)] = 1
-                bc.selected = wp.array(sel, dtype=int, device=dev)
-                bc.params = {"velocity": np.asarray(b.velocity, float)}
-            elif kind == "particle_load":
-                P = st.particles
-                idx = b.select(P.x)
-                bc.idx = wp.array(idx.astype(np.int32), dtype=int, device=dev)
-                bc.count = len(idx)
-                bc.share = wp.array(P.mass[idx] / P.mass[idx].sum(), dtype=T.scalar, device=dev)
-                bc.params = {"force": np.asarray(b.force, float)}
-            else:
-                raise ConfigError(f"boundary '{kind}' has no differentiable Warp implementation; "
-                                  f"use the JAX backend for gradients through it.")
+            impl = b.implementation("warp", "boundary")(b, scene, st)
+            if not callable(getattr(impl, "tape", None)):
+                raise ConfigError(f"boundary '{b.name}' has no differentiable Warp implementation (its Warp factory "
+                                  f"gives no tape()); use the JAX backend for gradients through it.")
+            bc = impl.tape()
+            bc.name, bc.b = b.name, b
+            if bc.stage == "walls":
+                self.wall_kind = wp.array(np.asarray(bc.codes, np.int32), dtype=int, device=dev)
+                self.thickness = int(bc.thickness)
             self.bcs.append(bc)
         self.has_ext = any(bc.stage == "particle_force" for bc in self.bcs)
         self.k_p2g = p2g_kernel(D, prec, self.affine, tr.force == "mls", self.split, self.has_ext)
         self.k_grid = grid_kernel(D, prec, self.split)
-        self.k_bc = boundary_kernels(D, prec)
         self.k_g2p = st.k_g2p
         self.k_laws = st.k_laws
         self.k_finite = finite_kernels(D, prec)
@@ -465,8 +369,10 @@ class GradPath:
         out.C = arr(next(it), T.mat, (N, D, D)) if self.affine else None
         for i, bc in enumerate(self.bcs):
             for k, a in bc.params.items():
-                shape = (1, D) if k in ("velocity", "force") else (max(1, int(np.size(a))),)
-                out.bc[i][k] = arr(next(it), T.vec if len(shape) == 2 else T.scalar, shape)
+                if bc.param_kinds.get(k, "scalar") == "vec":
+                    out.bc[i][k] = arr(next(it), T.vec, (1, D))
+                else:
+                    out.bc[i][k] = arr(next(it), T.scalar, (max(1, int(np.size(a))),))
         out.gravity = arr(next(it), T.vec, (1, D))
         out.mass = arr(next(it), T.scalar, (N,))
         out.volume = arr(next(it), T.scalar, (N,))
@@ -562,8 +468,8 @@ class GradPath:
         if self.has_ext:
             ext = buf.ext
             for bc, c in zip(self.bcs, ctl.bc):
-                if bc.stage == "particle_force" and bc.b.t_start <= t < bc.b.t_end and bc.count:
-                    wp.launch(self.k_bc.add_force, dim=bc.count, inputs=[ext, bc.idx, bc.share, c["force"]], device=dev)
+                if bc.stage == "particle_force":
+                    bc.force(ext, c, t, ctl)
         grid_mm, grid_f = buf.grid_mm, buf.grid_f
         wp.launch(self.k_p2g, dim=N, inputs=[s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.origin, st.dx_s,
                                              st.dt_s, st.strides, grid_mm, grid_f], device=dev)
@@ -575,13 +481,7 @@ class GradPath:
             if bc.stage != "grid":
                 continue
             out = next(outs)
-            if bc.name == "friction_walls":
-                wp.launch(self.k_bc.friction, dim=G, inputs=[grid_v, bc.index, c["mu"], bc.n, out], device=dev)
-            elif bc.name == "plane":
-                wp.launch(self.k_bc.plane, dim=G, inputs=[grid_v, bc.index, bc.n, bc.kind, c["friction"], out],
-                          device=dev)
-            else:
-                wp.launch(self.k_bc.obstacle, dim=G, inputs=[grid_v, bc.index, bc.normals, out], device=dev)
+            bc.grid(grid_v, out, c)
             grid_v = out
         o = SimpleNamespace(**vars(buf.state))
         for i, (g, k, ls, lo) in enumerate(zip(st.groups, self.k_g2p, s.law, o.law)):
@@ -594,9 +494,7 @@ class GradPath:
             if bc.stage != "particle_velocity":
                 continue
             x2, v2 = next(pv)
-            if bc.b.t_start < t_end <= bc.b.t_end:
-                wp.launch(self.k_bc.set_velocity, dim=N, inputs=[s.x, o.x, o.v, bc.selected, c["velocity"], st.dt_s,
-                                                                 x2, v2], device=dev)
+            if bc.particles(s.x, o.x, o.v, c, t_end, st.dt_s, x2, v2):
                 o.x, o.v = x2, v2
         return o
 
