@@ -332,6 +332,29 @@ class AbstractTransfer(_Pluggable, ABC):
     def needs_affine(self) -> bool:
         return self.affine is not None
 
+    #: the values each choice may take (what the backends implement)
+    CHOICES: ClassVar[dict] = {"affine": (None, "apic", "velocity_gradient"), "force": ("gradient", "mls"),
+                               "grad_v": ("gradient", "affine")}
+
+    def check(self) -> None:
+        """Refuse a combination the kernels cannot carry out, in one line naming the scheme (called when
+        a stepper is built): an unknown value, ``grad_v="affine"`` without an affine field, ``force="mls"``
+        without APIC's C (the MLS force is the APIC moment form), a FLIP ratio outside [0, 1]."""
+        where = f"transfer '{getattr(self, 'name', type(self).__name__)}' ({type(self).__module__})"
+        for k, allowed in self.CHOICES.items():
+            v = getattr(self, k)
+            if v not in allowed:
+                raise ConfigError(f"{where}: {k} = {v!r} is not one of {list(allowed)}.")
+        if self.grad_v == "affine" and self.affine is None:
+            raise ConfigError(f"{where}: grad_v = 'affine' feeds the affine field C to the law, but affine = None "
+                              f"carries none; set affine = 'apic' or grad_v = 'gradient'.")
+        if self.force == "mls" and self.affine != "apic":
+            raise ConfigError(f"{where}: force = 'mls' is the MLS-MPM force of an APIC transfer (Hu et al. 2018); "
+                              f"it needs affine = 'apic' (got {self.affine!r}).")
+        r = self.flip_ratio
+        if r is not None and not (isinstance(r, (int, float)) and 0.0 <= float(r) <= 1.0):
+            raise ConfigError(f"{where}: flip_ratio = {r!r} must be None (PIC-style G2P) or in [0, 1].")
+
     def options(self) -> dict[str, Any]:
         return {"flip_ratio": self.flip_ratio} if self.flip_ratio is not None else {}
 
