@@ -6,6 +6,8 @@ from ...core.interfaces import AbstractBackend
 
 class JaxBackend(AbstractBackend):
     name = "jax"
+    #: the differentiable workflows' seam to this backend's arrays (mpmlab.core.autodiff)
+    autodiff_adapter = "mpmlab.backends.jax.adapter:JaxAdapter"
 
     def build(self, scene, transfer, precision="fp32", **options):
         from .stepper import JaxStepper

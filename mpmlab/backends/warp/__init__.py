@@ -83,6 +83,8 @@ def check_device(device: str, key: str = "backend.device") -> str:
 
 class WarpBackend(AbstractBackend):
     name = "warp"
+    #: the differentiable workflows' seam to this backend's arrays (mpmlab.core.autodiff)
+    autodiff_adapter = "mpmlab.backends.warp.adapter:WarpAdapter"
 
     def build(self, scene, transfer, precision="fp32", **options):
         from .stepper import WarpStepper
