@@ -99,7 +99,8 @@ class AutodiffAdapter(Protocol):
         ``SimulationDiverged`` itself returns False."""
 
     # ---- gradients -------------------------------------------------------------------------------
-    def value_and_grad(self, loss: Callable[[Tree], tuple[Array, Any]]) -> Callable[[Tree], tuple[float, str | None, Any]]:
+    def value_and_grad(self, loss: Callable[[Tree], tuple[Array, Any]]
+                       ) -> Callable[[Tree], tuple[float, str | None, Any]]:
         """``loss(raw) -> (scalar, invalid)`` -> ``vg(raw) -> (value, why, grad)``. ``why`` says why the rollout
         is unusable (it diverged) or is None. ``grad`` is None when ``why`` is set or the value is not
         finite; otherwise it is what ``check_gradient``, ``grad_norm`` and ``optimizer_step`` take. ``raw``

@@ -23,8 +23,11 @@ backend. ``auto`` is the adapter's ``default_jacobian``:
   (``jax.jacrev``) and ``central`` on request.
 * Warp: ``central`` (the tape has no forward mode: 2P forward rollouts; run the fit in fp64 --
   ``precision=fp64`` -- so that the differences are not round-off); ``reverse`` on request (one
-  rollout, then one backward pass per kept residual: cheaper only when there are fewer residuals than
-  about 2P rollouts' worth of backward passes, which is rare for a fit to observations).
+  rollout, then one backward pass per residual the mask keeps). A backward pass costs 2-3 forward
+  rollouts, so reverse mode pays off only with fewer residuals than about P. Measured on the CPU for
+  the 32-particle, 400-step sliding block of ``tests/test_inverse_lm.py`` with P = 2 and 40 residuals:
+  13 s per Jacobian against 0.8 s for central differences. JAX's ``jacrev`` takes 1.6 s against
+  0.06 s for ``jacfwd`` at 40 residuals, and 46 s against 0.08 s at 640.
 
 Select it as the optimiser of either backend::
 

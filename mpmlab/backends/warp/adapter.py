@@ -9,8 +9,8 @@ A non-finite adjoint inside the rollout raises ``GradientError`` in the bridge i
 Jacobians of least-squares residuals: Warp's tape has no forward mode, so ``jacobian: auto`` means
 central differences (2P rollouts, done by the workflow). ``reverse`` gives the rows by reverse mode
 instead: one forward rollout, then one backward pass (a full segment recompute under the tape) per
-residual that the mask keeps. That pays off only when there are fewer residuals than about the
-parameter count; the cost is measured in the note of issue #13.
+residual that the mask keeps. A backward pass costs 2-3 forward rollouts, so this pays off only with
+fewer residuals than about the parameter count (measured in ``mpmlab/inverse/lm.py``'s docstring).
 """
 from __future__ import annotations
 
