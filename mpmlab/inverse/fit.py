@@ -6,11 +6,13 @@ one gradient, one optimiser step. The loss is the masked mean of Eq. 28's square
 (the mean instead of the sum: Adam is invariant to the scale, and the number reads the same at every
 observation density).
 
-JAX: ``jax.value_and_grad`` of a jitted loss through ``stepper.observe``; optimiser = an optax
-GradientTransformation. Warp: ``stepper.observe`` is a ``torch.autograd.Function``; optimiser = a
-``torch.optim`` optimiser (+ optional lr scheduler). A non-finite loss stops the fit with
-``FitDiverged``; a non-finite gradient is located (``GradientError``: step and particle).
-Checkpoints (every ``checkpoint_every`` epochs, atomic) let an interrupted fit resume where it stopped.
+The fit names no backend: everything array-shaped goes through the stepper's
+:class:`~mpmlab.core.autodiff.AutodiffAdapter` (``Fit.adapter``). On JAX that is ``jax.value_and_grad``
+of a jitted loss through ``stepper.observe`` and an optax GradientTransformation; on Warp
+``stepper.observe`` is a ``torch.autograd.Function`` and the optimiser is ``torch.optim`` (+ an optional
+lr scheduler). A non-finite loss stops the fit with ``FitDiverged``; a non-finite gradient is located
+(``GradientError``: step and particle). Checkpoints (every ``checkpoint_every`` epochs, atomic) let an
+interrupted fit resume where it stopped.
 """
 from __future__ import annotations
 
@@ -24,9 +26,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..core import signals
-from ..core.errors import ConfigError, MpmlabError, SimulationDiverged
+from ..core.autodiff import adapter
+from ..core.errors import ConfigError, MpmlabError
 from ..observations import ObservationSchedule
-from .parameters import FitParameter, ops_for
+from .parameters import FitParameter
 
 log = logging.getLogger("mpmlab")
 
@@ -47,7 +50,8 @@ class Fit:
                  segment: int | None = None, reference: np.ndarray | None = None):
         self.stepper, self.scene = stepper, scene
         self.backend = stepper.backend_name
-        self.ops = ops_for(self.backend, stepper.precision)
+        #: the backend's differentiable surface (mpmlab.core.autodiff); ``ops`` is the same object
+        self.adapter = self.ops = adapter(stepper)
         self.parameters = list(parameters)
         self.observation, self.schedule, self.segment = observation, schedule, segment
         self.steps = schedule.steps_array()
@@ -71,7 +75,7 @@ class Fit:
             raise MpmlabError(f"cannot generate reference observations: parameter(s) {missing} have no 'truth'; "
                               f"give task.parameters.<name>.truth or a reference trajectory (input=PATH.h5).")
         y = self.stepper.observe(self.truth_controls(), self.observation, self.steps, self.segment)
-        ref = self.ops.numpy(y) if self.backend == "warp" else np.asarray(y, float)
+        ref = self.ops.numpy(y)
         self.reference = self.schedule.add_noise(ref)
         return self.reference
 
@@ -104,18 +108,14 @@ class Fit:
         return data_loss
 
     def loss_function(self) -> Callable:
+        """``raw -> (loss, invalid)``: ``invalid`` says the rollout diverged (a backend whose rollout raises
+        ``SimulationDiverged`` itself always reports False)."""
         obs, steps, seg = self.observation, self.steps, self.segment
         data_loss = self.data_loss()
-        if self.backend == "jax":
-            from ..backends.jax import differentiable as JD
 
-            def loss(raw):          # (loss, invalid): the JAX rollout reports a diverged state as aux
-                pred, bad = JD.observe(self.stepper, self.controls_of(raw), obs, steps, seg, health=True)
-                return data_loss(pred), bad
-            return loss
-
-        def loss(raw):              # the Warp rollout raises SimulationDiverged itself
-            return data_loss(self.stepper.observe(self.controls_of(raw), obs, steps, seg))
+        def loss(raw):
+            pred, bad = self.adapter.observe(self.stepper, self.controls_of(raw), obs, steps, seg)
+            return data_loss(pred), bad
 
         return loss
 
@@ -168,9 +168,8 @@ class Fit:
         if isinstance(optimizer_cfg, LevenbergMarquardt):
             return self._run_lm(epochs, optimizer_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
                                 tolerance)
-        runner = self._run_jax if self.backend == "jax" else self._run_torch
-        return runner(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
-                      tolerance)
+        return self._run_gradient(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume, progress,
+                                  on_epoch, tolerance)
 
     def _bar(self, epochs, progress):
         """The progress bar, once the checkpoint (if any) is loaded; a resume is said in the run's log."""
@@ -206,60 +205,43 @@ class Fit:
                            f"last good epoch: {last}); lower the learning rate, bound the parameter with transform: "
                            f"softplus, or check the data.")
 
-    def _run_jax(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol):
-        import jax
-        import optax
-
-        from ..backends.jax import differentiable as JD
-
+    def _run_gradient(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol):
+        """One rollout, one gradient and one optimiser step per epoch (optimiser and schedule as the
+        adapter's ``optimizer_init`` takes them: optax on JAX, torch.optim factories on Warp)."""
+        ad = self.adapter
         loss = self.loss_function()
-        vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
-        opt = opt_cfg(sched_cfg) if callable(opt_cfg) else opt_cfg
-        raw = self.init_raw()
-        state = opt.init(raw)
+        vg = ad.value_and_grad(loss)
+        raw, state = ad.optimizer_init(opt_cfg, sched_cfg, self.init_raw())
         if checkpoint is not None and resume and checkpoint.exists():
-            ck = pickle.load(open(checkpoint, "rb"))
-            raw = jax.tree.map(lambda a: self.ops.asarray(a), ck["raw"])
-            state = jax.tree.map(lambda ref, a: self.ops.jnp.asarray(a, ref.dtype) if hasattr(ref, "dtype") else a,
-                                 state, ck["opt_state"])
-            self.epoch, self.history = ck["epoch"], ck["history"]
+            self.epoch, self.history, raw, state = ad.load_checkpoint(checkpoint, raw, state)
         bar = self._bar(epochs, progress)
         t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)
         try:
             while self.epoch < epochs:
-                (val, bad), g = vg(raw)
-                val = float(val)
-                if bool(bad):
-                    raise self._diverged(self.epoch, val, "the rollout left the domain or became non-finite")
+                val, why, g = vg(raw)
+                if why is not None:
+                    raise self._diverged(self.epoch, val, why)
                 if not np.isfinite(val):
                     raise self._diverged(self.epoch, val)
-                if not JD.check_gradient(g):
-                    self._locate_jax(raw)
-                gn = float(optax.global_norm(g))
+                if not ad.check_gradient(g):
+                    self._locate(raw)
+                gn = ad.grad_norm(g)
                 self._record(self.epoch, val, raw, gn, time.perf_counter() - t0)
-                updates, state = opt.update(g, state, raw)
-                raw = optax.apply_updates(raw, updates)
+                raw, state = ad.optimizer_step(state, raw, g)
                 self._epoch_done(bar, val, on_epoch)
                 if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
-                    _atomic_pickle(checkpoint, {"epoch": self.epoch, "history": self.history,
-                                                "raw": jax.device_get(raw), "opt_state": jax.device_get(state)})
+                    ad.save_checkpoint(checkpoint, self.epoch, self.history, raw, state)
                 if val <= tol:
                     break
         finally:
             bar.close()
-        self.final_loss = float(loss(raw)[0])
+        self.final_loss = ad.value(loss, raw)
         return raw
 
-    def _locate_jax(self, raw):
-        """Turn a non-finite JAX gradient into a GradientError naming step and particle."""
-        import jax
-
-        from ..backends.jax import differentiable as JD
-
-        c = self.controls_of(raw)
-        pred = self.stepper.observe(c, self.observation, self.steps, self.segment)
-        ct = jax.grad(self.data_loss())(pred)
-        JD.locate_nan_gradient(self.stepper, c, self.observation, self.steps, ct, self.segment)
+    def _locate(self, raw):
+        """Turn a non-finite gradient into a GradientError naming step and particle."""
+        self.adapter.locate_nan_gradient(self.stepper, self.controls_of(raw), self.observation, self.steps,
+                                         self.data_loss(), self.segment)
 
     # ---- Levenberg-Marquardt (mpmlab.inverse.lm): a few scalar / array parameters ----------------------------
     def _flat_layout(self, lm) -> list[tuple[str, tuple[int, ...], slice]]:
@@ -281,54 +263,20 @@ class Fit:
         return layout
 
     def _residual_functions(self, lm, unflatten):
-        """(residual(x) -> r or None when the rollout diverged, jacobian(x) -> (r, J)) on NumPy float64 vectors,
-        scaled so that r.r is the data loss."""
+        """(residual(x) -> r or None when the rollout diverged, jacobian(x) -> (r, J, diverged)) on NumPy float64
+        vectors, scaled so that r.r is the data loss. ``unflatten`` maps the parameter vector (a backend
+        array) to the raw values by name. The Jacobian is the adapter's AD mode, or central differences."""
         mask = self._mask()
         scale = 1.0 / np.sqrt(float(mask.sum() * np.shape(self.reference)[2]))
         obs, steps, seg = self.observation, self.steps, self.segment
-        kind = lm.jacobian_kind(self.backend)
-        if self.backend == "jax":
-            import jax
+        kind = lm.jacobian_kind(self.adapter)
 
-            from ..backends.jax import differentiable as JD
+        def observe(x):
+            return self.adapter.observe(self.stepper, self.controls_of(unflatten(x)), obs, steps, seg)
 
-            ref, m = self.ops.asarray(self.reference), self.ops.asarray(mask)[..., None]
-
-            def resid(x):
-                pred, bad = JD.observe(self.stepper, self.controls_of(unflatten(x)), obs, steps, seg, health=True)
-                return ((pred - ref) * m).ravel() * scale, bad
-
-            f = jax.jit(resid)
-
-            def residual(x):
-                r, bad = f(self.ops.asarray(x))
-                r = np.asarray(r, np.float64)
-                return None if bool(bad) or not np.all(np.isfinite(r)) else r
-
-            if kind == "forward":
-                def with_aux(x):
-                    r, bad = resid(x)
-                    return r, (r, bad)
-                jf = jax.jit(jax.jacfwd(with_aux, has_aux=True))
-
-                def jacobian(x, r_known=None):      # the primal comes with the tangents
-                    J, (r, bad) = jf(self.ops.asarray(x))
-                    return np.asarray(r, np.float64), np.asarray(J, np.float64), bool(bad)
-                return residual, jacobian
-        else:
-            import torch
-
-            ref = np.asarray(self.reference, np.float64)
-
-            def residual(x):
-                try:
-                    with torch.no_grad():
-                        raw = {k: self.ops.asarray(a) for k, a in unflatten(x).items()}
-                        pred = self.stepper.observe(self.controls_of(raw), obs, steps, seg)
-                except SimulationDiverged:
-                    return None
-                r = ((self.ops.numpy(pred).astype(np.float64) - ref) * mask[..., None]).ravel() * scale
-                return r if np.all(np.isfinite(r)) else None
+        residual, jacobian = self.adapter.residual_functions(observe, self.reference, mask, scale, kind)
+        if jacobian is not None:
+            return residual, jacobian
 
         def jacobian(x, r_known=None):
             r = residual(x) if r_known is None else r_known
@@ -391,65 +339,3 @@ class Fit:
         r = r_known if r_known is not None else residual(x)
         self.final_loss = float(r @ r) if r is not None else float("nan")
         return to_raw(x)
-
-    def _run_torch(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol):
-        import torch
-
-        loss = self.loss_function()
-        raw = self.init_raw()
-        params = []
-        for p in self.parameters:
-            r = raw[p.name]
-            if isinstance(r, list):                 # MLP: a list of nn.Linear
-                raw[p.name] = torch.nn.ModuleList(r)
-                params += list(raw[p.name].parameters())
-            else:
-                raw[p.name] = r.clone().requires_grad_(True)
-                params.append(raw[p.name])
-        opt = opt_cfg(params)
-        sched = sched_cfg(opt) if sched_cfg is not None else None
-        if checkpoint is not None and resume and checkpoint.exists():
-            ck = torch.load(checkpoint, weights_only=False)
-            with torch.no_grad():
-                for p in self.parameters:
-                    if isinstance(raw[p.name], torch.nn.Module):
-                        raw[p.name].load_state_dict(ck["raw"][p.name])
-                    else:
-                        raw[p.name].copy_(ck["raw"][p.name])
-            opt.load_state_dict(ck["opt"])
-            if sched is not None and ck.get("sched") is not None:
-                sched.load_state_dict(ck["sched"])
-            self.epoch, self.history = ck["epoch"], ck["history"]
-        bar = self._bar(epochs, progress)
-        t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)
-        try:
-            while self.epoch < epochs:
-                opt.zero_grad()
-                try:
-                    val = loss(raw)
-                except SimulationDiverged as exc:
-                    raise self._diverged(self.epoch, float("nan"), f"the rollout diverged ({exc})") from None
-                v = float(val.detach())
-                if not np.isfinite(v):
-                    raise self._diverged(self.epoch, v)
-                val.backward()                       # a non-finite adjoint raises GradientError in the bridge
-                gn = float(torch.sqrt(sum((q.grad.detach() ** 2).sum() for q in params if q.grad is not None)))
-                self._record(self.epoch, v, raw, gn, time.perf_counter() - t0)
-                opt.step()
-                if sched is not None:
-                    sched.step()
-                self._epoch_done(bar, v, on_epoch)
-                if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
-                    state = {p.name: (raw[p.name].state_dict() if isinstance(raw[p.name], torch.nn.Module)
-                                      else raw[p.name].detach().clone()) for p in self.parameters}
-                    tmp = checkpoint.with_name(checkpoint.name + ".tmp")
-                    torch.save({"epoch": self.epoch, "history": self.history, "raw": state, "opt": opt.state_dict(),
-                                "sched": sched.state_dict() if sched is not None else None}, tmp)
-                    os.replace(tmp, checkpoint)
-                if v <= tol:
-                    break
-        finally:
-            bar.close()
-        with torch.no_grad():
-            self.final_loss = float(loss(raw))
-        return raw

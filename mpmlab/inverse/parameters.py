@@ -15,9 +15,11 @@ A :class:`FitParameter` names a *target* in the rollout controls (``AbstractStep
 friction), ``exp`` (positive, log-scale steps). ``init`` and ``truth`` are in physical units; a field's
 truth is an expression of x, y, z and the fit's ``constants``.
 
-The same code serves both backends through a small array-ops adapter (:class:`JaxOps`, :class:`TorchOps`):
-the trainable values are a JAX pytree (optax) or torch tensors / a ``torch.nn.Sequential`` (torch.optim).
-MLP weights start from the same NumPy draw (Glorot-uniform, ``seed``) on both backends.
+The same code serves every backend: the array operations (``asarray``, ``transform``, ``mlp``,
+``mlp_apply``, ``set_column``, ``numpy``) are those of the backend's
+:class:`~mpmlab.core.autodiff.AutodiffAdapter`, passed in as ``ops``. The trainable values are then a
+JAX pytree (optax) or torch tensors and ``nn.Linear`` layers (torch.optim). MLP weights start from the
+same NumPy draw (Glorot-uniform, ``seed``) on every backend.
 """
 from __future__ import annotations
 
@@ -79,105 +81,12 @@ def glorot_mlp(sizes: Sequence[int], seed: int) -> list[tuple[np.ndarray, np.nda
     return out
 
 
-# ---- array-ops adapters ------------------------------------------------------------------------------
-class JaxOps:
-    backend = "jax"
-
-    def __init__(self, dtype):
-        import jax
-        import jax.numpy as jnp
-
-        self.jax, self.jnp, self.dtype = jax, jnp, dtype
-
-    def asarray(self, a):
-        return self.jnp.asarray(a, self.dtype)
-
-    def transform(self, kind, raw):
-        if kind == "softplus":
-            return self.jax.nn.softplus(raw)
-        if kind == "exp":
-            return self.jnp.exp(raw)
-        return raw
-
-    def mlp_init(self, sizes, seed):
-        return [(self.asarray(W), self.asarray(b)) for W, b in glorot_mlp(sizes, seed)]
-
-    def mlp_apply(self, net, X, act):
-        f = {"relu": self.jax.nn.relu, "tanh": self.jnp.tanh, "softplus": self.jax.nn.softplus}[act]
-        h = X
-        for k, (W, b) in enumerate(net):
-            h = h @ W + b
-            if k < len(net) - 1:
-                h = f(h)
-        return h[:, 0]
-
-    def set_column(self, a, rows: slice, col: int, values):
-        return a.at[rows, col].set(values)
-
-    def trainable(self, raw):
-        return raw
-
-    def numpy(self, a):
-        return np.asarray(a, dtype=float)
-
-
-class TorchOps:
-    backend = "warp"
-
-    def __init__(self, dtype):
-        import torch
-
-        self.torch, self.dtype = torch, dtype
-
-    def asarray(self, a):
-        return self.torch.as_tensor(np.asarray(a), dtype=self.dtype)
-
-    def transform(self, kind, raw):
-        if kind == "softplus":
-            return self.torch.nn.functional.softplus(raw)
-        if kind == "exp":
-            return self.torch.exp(raw)
-        return raw
-
-    def mlp_init(self, sizes, seed):
-        torch = self.torch
-        acts = []
-        for W, b in glorot_mlp(sizes, seed):
-            lin = torch.nn.Linear(W.shape[0], W.shape[1]).to(self.dtype)
-            with torch.no_grad():
-                lin.weight.copy_(torch.as_tensor(W.T))
-                lin.bias.copy_(torch.as_tensor(b))
-            acts.append(lin)
-        return acts
-
-    def mlp_apply(self, net, X, act):
-        f = {"relu": self.torch.relu, "tanh": self.torch.tanh, "softplus": self.torch.nn.functional.softplus}[act]
-        h = X
-        for k, lin in enumerate(net):
-            h = lin(h)
-            if k < len(net) - 1:
-                h = f(h)
-        return h[:, 0]
-
-    def set_column(self, a, rows: slice, col: int, values):
-        out = a.clone()
-        out[rows, col] = values
-        return out
-
-    def numpy(self, a):
-        return a.detach().cpu().numpy().astype(float)
-
-
 def ops_for(backend: str, precision: str):
-    if backend == "jax":
-        import jax.numpy as jnp
+    """The autodiff adapter (:mod:`mpmlab.core.autodiff`) of the registered ``backend``; ``Fit`` takes
+    its stepper's adapter itself."""
+    from ..core.autodiff import adapter_for_backend
 
-        return JaxOps(jnp.float32 if precision == "fp32" else jnp.float64)
-    if backend == "warp":
-        import torch
-
-        return TorchOps(torch.float32 if precision == "fp32" else torch.float64)
-    raise ConfigError(f"task=inverse has no optimiser bridge for backend '{backend}'; use backend=jax or backend=warp.")
+    return adapter_for_backend(backend, precision)
 
 
 # ---- one fitted quantity ---------------------------------------------------------------------------------
@@ -292,7 +201,7 @@ class FitParameter:
 
     def init_raw(self, ops):
         if self.form == "mlp":
-            return ops.mlp_init([len(self.inputs), *self.hidden, 1], self.seed)
+            return ops.mlp(glorot_mlp([len(self.inputs), *self.hidden, 1], self.seed))
         if self.init is None:
             raise ConfigError(f"{self.where()}.init is missing: give the starting value in physical units.")
         v = np.broadcast_to(np.asarray(self.init, float), self._shape()) if self._shape() else np.asarray(float(self.init))

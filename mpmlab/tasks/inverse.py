@@ -4,7 +4,8 @@ Reads ``task.parameters`` (what to fit, see :mod:`mpmlab.inverse.parameters`), `
 (an observation operator: ``{kind: lagrangian|eulerian, ...}``), the observation schedule, and either
 generates reference observations from the parameters' ``truth`` or reads them from an HDF5 trajectory
 (top-level ``input``). Optimiser and learning-rate schedule come from ``task.optimizer.<backend>`` /
-``task.lr_schedule.<backend>`` (``_target_``: optax on JAX, torch.optim on Warp).
+``task.lr_schedule.<backend>`` (``_target_``: optax on JAX, torch.optim on Warp); the backend's autodiff
+adapter (:mod:`mpmlab.core.autodiff`) instantiates them, so this task names no backend.
 
 Outputs in the run directory: ``summary.json`` (truth, recovered, relative_error per parameter, epochs,
 wall_time_s, loss history), ``fit.png`` (loss and parameter convergence), ``recording.rrd`` (loss and
@@ -164,9 +165,8 @@ def reference_from_h5(path: str, observation, schedule, steps_total: int):
 
 
 def run(cfg, ctx) -> dict:
-    from hydra.utils import instantiate
-
     from .. import __version__
+    from ..core.autodiff import adapter_for_backend
     from ..inverse.fit import Fit
     from ..observations import make_observation
     from ..simulator import build_stepper
@@ -178,10 +178,8 @@ def run(cfg, ctx) -> dict:
     scene = build_scene(cfg)
     transfer = make_transfer_from_config(cfg)
     backend, precision = cfg.backend.name, cfg.precision.name
-    if backend == "jax" and not tc.jax_ynn_fusions:
-        from ..backends.jax.xla_options import disable_ynn_fusions
-
-        disable_ynn_fusions()
+    ad = adapter_for_backend(backend, precision)
+    ad.before_build(tc)                     # JAX: XLA options that must precede the first computation
     steps = int(cfg.steps)
     observation = make_observation(_plain(tc.observation))
     schedule = schedule_from_config(tc, steps)
@@ -199,16 +197,9 @@ def run(cfg, ctx) -> dict:
         except TypeError as exc:
             raise ConfigError(f"task.optimizer.{backend}: {exc}; the options are those of "
                               f"mpmlab.inverse.lm.LevenbergMarquardt.") from None
-    elif backend == "jax":   # optax: the schedule is the optimiser's learning rate
-        kw = {"learning_rate": instantiate(sched_node)} if sched_node is not None else \
-            ({} if "learning_rate" in opt_node else {"learning_rate": float(tc.learning_rate)})
-        optimizer = instantiate(opt_node, **kw)
-        sched = None
-    else:                  # torch.optim: the scheduler wraps the optimiser
-        kw = {} if "lr" in opt_node else {"lr": float(tc.learning_rate)}
-        optimizer = (lambda prm: instantiate(opt_node, prm, **kw))
-        sched = (lambda opt: instantiate(sched_node, opt)) if sched_node is not None else None
-    ckpt = out / ("fit_checkpoint.pkl" if backend == "jax" else "fit_checkpoint.pt")
+    else:                   # optax (the schedule is the learning rate) or torch.optim (a scheduler wraps it)
+        optimizer, sched = ad.optimizer_from_config(opt_node, sched_node, tc.learning_rate)
+    ckpt = out / f"fit_checkpoint.{ad.checkpoint_suffix}"
     if (out / SUMMARY).exists() and not ctx.overwrite and not (tc.resume and ckpt.exists()):
         raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
     write_config(out, cfg, True)

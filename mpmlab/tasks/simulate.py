@@ -109,15 +109,18 @@ def run(cfg, ctx) -> dict:
     options = {}
     if cfg.backend.check_every is not None:
         options["check_every"] = int(cfg.backend.check_every)
-    if cfg.backend.device is not None:
-        if backend != "warp":
-            raise ConfigError(f"backend.device = '{cfg.backend.device}' applies to backend=warp only; "
-                              f"JAX picks its device itself (JAX_PLATFORMS=cpu|cuda).")
-        options["device"] = cfg.backend.device
-    if backend == "warp" and cfg.debug:
-        import warp
+    if cfg.backend.device is not None or cfg.debug:
+        from ..core.registry import backends
 
-        warp.config.log_level = warp.LOG_INFO  # show Warp's module compile/load lines (quiet by default)
+        backend_cls = backends.get(backend)
+    if cfg.backend.device is not None:
+        if "device" not in getattr(backend_cls, "build_options", ()):
+            takes = [n for n in backends.names() if "device" in getattr(backends.get(n), "build_options", ())]
+            raise ConfigError(f"backend.device = '{cfg.backend.device}' applies to backend={'|'.join(takes) or 'none'} "
+                              f"only; {getattr(backend_cls, 'device_note', 'this backend picks its device itself.')}")
+        options["device"] = cfg.backend.device
+    if cfg.debug and hasattr(backend_cls, "debug_output"):
+        backend_cls.debug_output()      # e.g. Warp's module compile/load lines (quiet by default)
 
     write_config(out, cfg, ctx.overwrite)
     P = scene.particles()

@@ -92,6 +92,17 @@ def check_device(device: str, key: str = "backend.device") -> str:
 
 class WarpBackend(AbstractBackend):
     name = "warp"
+    #: the differentiable workflows' seam to this backend's arrays (mpmlab.core.autodiff)
+    autodiff_adapter = "mpmlab.backends.warp.adapter:WarpAdapter"
+    #: the options ``build`` takes beyond the precision
+    build_options = ("check_every", "device")
+
+    @staticmethod
+    def debug_output():
+        """``debug=true``: show Warp's module compile/load lines (quiet by default, ``types.py``)."""
+        import warp
+
+        warp.config.log_level = warp.LOG_INFO
 
     def build(self, scene, transfer, precision="fp32", **options):
         from .stepper import WarpStepper

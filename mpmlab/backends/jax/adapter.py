@@ -1,0 +1,171 @@
+"""The JAX backend's :class:`~mpmlab.core.autodiff.AutodiffAdapter`: jax arrays, ``jax.value_and_grad``,
+optax optimisers, pickled checkpoints, ``jax.jacfwd`` / ``jax.jacrev`` Jacobians, and NaN gradients
+located by replaying the backward pass step by step (``differentiable.locate_nan_gradient``)."""
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import differentiable as JD
+
+DTYPES = {"fp32": jnp.float32, "fp64": jnp.float64}
+#: what a fit reports when the rollout's health flag fires
+DIVERGED = "the rollout left the domain or became non-finite"
+
+
+class JaxAdapter:
+    name = "jax"
+    checkpoint_suffix = "pkl"
+    default_jacobian = "forward"            # one batched rollout carrying P tangents
+    jacobian_modes = ("forward", "reverse")
+
+    def __init__(self, precision: str = "fp32"):
+        self.precision = precision
+        self.dtype = DTYPES[precision]
+
+    # ---- arrays ---------------------------------------------------------------------------------
+    def asarray(self, a):
+        return jnp.asarray(a, self.dtype)
+
+    def numpy(self, a):
+        return np.asarray(a, dtype=float)
+
+    def tree_map(self, f, tree, *rest):
+        return jax.tree.map(f, tree, *rest)
+
+    # ---- parametrisations -----------------------------------------------------------------------
+    def transform(self, kind, raw):
+        if kind == "softplus":
+            return jax.nn.softplus(raw)
+        if kind == "exp":
+            return jnp.exp(raw)
+        return raw
+
+    def mlp(self, weights):
+        return [(self.asarray(W), self.asarray(b)) for W, b in weights]
+
+    def mlp_apply(self, net, X, act):
+        f = {"relu": jax.nn.relu, "tanh": jnp.tanh, "softplus": jax.nn.softplus}[act]
+        h = X
+        for k, (W, b) in enumerate(net):
+            h = h @ W + b
+            if k < len(net) - 1:
+                h = f(h)
+        return h[:, 0]
+
+    def set_column(self, a, rows: slice, col: int, values):
+        return a.at[rows, col].set(values)
+
+    # ---- the differentiable rollout ---------------------------------------------------------------
+    def observe(self, stepper, controls, observation, steps, segment=None):
+        return JD.observe(stepper, controls, observation, steps, segment, health=True)
+
+    # ---- gradients -------------------------------------------------------------------------------
+    def value_and_grad(self, loss):
+        vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
+
+        def value_and_grad(raw):
+            (val, bad), g = vg(raw)
+            val = float(val)
+            if bool(bad):
+                return val, DIVERGED, None
+            return val, None, (g if np.isfinite(val) else None)
+        return value_and_grad
+
+    def value(self, loss, raw):
+        return float(loss(raw)[0])
+
+    def check_gradient(self, grad):
+        return JD.check_gradient(grad)
+
+    def grad_norm(self, grad):
+        import optax
+
+        return float(optax.global_norm(grad))
+
+    def locate_nan_gradient(self, stepper, controls, observation, steps, data_loss, segment=None):
+        pred = stepper.observe(controls, observation, steps, segment)
+        ct = jax.grad(data_loss)(pred)
+        JD.locate_nan_gradient(stepper, controls, observation, steps, ct, segment)
+
+    # ---- optax --------------------------------------------------------------------------------------
+    def optimizer_from_config(self, optimizer_node, schedule_node, learning_rate):
+        """An optax GradientTransformation; the schedule (optax, e.g. ``exponential_decay``) is its learning
+        rate, so the returned schedule is None."""
+        from hydra.utils import instantiate
+
+        if schedule_node is not None:
+            kw = {"learning_rate": instantiate(schedule_node)}
+        else:
+            kw = {} if "learning_rate" in optimizer_node else {"learning_rate": float(learning_rate)}
+        return instantiate(optimizer_node, **kw), None
+
+    def optimizer_init(self, optimizer, schedule, raw):
+        """``optimizer``: an optax GradientTransformation, or a callable ``schedule -> transformation``."""
+        opt = optimizer(schedule) if callable(optimizer) else optimizer
+        return raw, (opt, opt.init(raw))
+
+    def optimizer_step(self, state, raw, grad):
+        import optax
+
+        opt, opt_state = state
+        updates, opt_state = opt.update(grad, opt_state, raw)
+        return optax.apply_updates(raw, updates), (opt, opt_state)
+
+    def save_checkpoint(self, path, epoch, history, raw, state):
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as f:
+            pickle.dump({"epoch": epoch, "history": history, "raw": jax.device_get(raw),
+                         "opt_state": jax.device_get(state[1])}, f)
+        os.replace(tmp, path)
+
+    def load_checkpoint(self, path, raw, state):
+        with open(path, "rb") as f:
+            ck = pickle.load(f)
+        raw = jax.tree.map(lambda a: self.asarray(a), ck["raw"])
+        opt_state = jax.tree.map(lambda ref, a: jnp.asarray(a, ref.dtype) if hasattr(ref, "dtype") else a,
+                                 state[1], ck["opt_state"])
+        return ck["epoch"], ck["history"], raw, (state[0], opt_state)
+
+    # ---- least squares ---------------------------------------------------------------------------------
+    def residual_functions(self, observe, reference, mask, scale, mode):
+        """The residuals in the stepper's precision inside one jitted function; Jacobians by
+        ``jax.jacfwd`` (one rollout carrying P tangents) or ``jax.jacrev`` (N cotangents)."""
+        ref, m = self.asarray(reference), self.asarray(mask)[..., None]
+
+        def resid(x):
+            pred, bad = observe(x)
+            return ((pred - ref) * m).ravel() * scale, bad
+
+        f = jax.jit(resid)
+
+        def residual(x):
+            r, bad = f(self.asarray(x))
+            r = np.asarray(r, np.float64)
+            return None if bool(bad) or not np.all(np.isfinite(r)) else r
+
+        if mode not in self.jacobian_modes:
+            return residual, None
+
+        def with_aux(x):
+            r, bad = resid(x)
+            return r, (r, bad)
+        jf = jax.jit((jax.jacfwd if mode == "forward" else jax.jacrev)(with_aux, has_aux=True))
+
+        def jacobian(x, r_known=None):      # the primal comes with the derivatives
+            J, (r, bad) = jf(self.asarray(x))
+            return np.asarray(r, np.float64), np.asarray(J, np.float64), bool(bad)
+        return residual, jacobian
+
+    # ---- the task ------------------------------------------------------------------------------------
+    def before_build(self, task_config):
+        if not task_config.get("jax_ynn_fusions", False):
+            from .xla_options import disable_ynn_fusions
+
+            disable_ynn_fusions()
