@@ -39,7 +39,8 @@ def scene(material="mlp_elastic", options=None, params=None, second=None):
     mlp_law()
     bodies = [mpmlab.Body(shape={"kind": "box", "lo": [0.3, 0.3], "hi": [0.45, 0.42]}, material=material,
                           params=params or {"stress_scale": 1e4}, density=1000.0, velocity=[0.5, -0.3],
-                          angular_velocity=3.0, particles_per_cell=4, options=options or {"width": 4})]
+                          angular_velocity=3.0, particles_per_cell=4,
+                          options={"width": 4} if options is None else options)]
     if second is not None:
         bodies.append(mpmlab.Body(shape={"kind": "box", "lo": [0.55, 0.3], "hi": [0.7, 0.42]}, material=material,
                                   params=params or {"stress_scale": 1e4}, density=1000.0, velocity=[-0.5, -0.3],
@@ -232,3 +233,49 @@ def test_hardening_parameter_gradients_jax_vs_warp_vs_central_differences():
         errs.append(abs((float(loss(jnp.asarray(base + h * d))) - float(loss(jnp.asarray(base - h * d)))) / (2 * h) - ad)
                     / abs(ad))
     assert min(errs) <= 1e-6, errs
+
+
+# ---- fitting shared weights with the inverse workflow (Fit = task=inverse's engine) ------------------
+def _weights_fit(backend, epochs):
+    from mpmlab.inverse.fit import Fit
+    from mpmlab.inverse.parameters import FitParameter
+    from mpmlab.observations import ObservationSchedule, apply_numpy
+
+    # data: a trajectory of the built-in fixed corotated law (mu = 7692 Pa, lambda = 11538 Pa)
+    ref_scene = scene(material="fixed_corotated", params={"E": 2e4, "nu": 0.3}, options={})
+    obs = Lagrangian(quantity="x", particles=24)
+    sched = ObservationSchedule(steps=(10, 20, 30))
+    traj = mpmlab.build_stepper(ref_scene, "jax", "apic", "fp64").rollout(steps=30, every=10)
+    reference = np.stack([apply_numpy(obs, {"x": traj.x[k], "v": traj.v[k]}) for k in (1, 2, 3)])
+    # model: the MLP law, starting at mu = lambda = 5000 Pa (c = 0.5, s = 1e4)
+    sc = scene(options={"width": 4})
+    st = mpmlab.build_stepper(sc, backend, "apic", "fp64")
+    prms = [FitParameter(name=k, target="law_weights", field=k, form="array").bind(sc, st, []) for k in ("W1", "W2", "c")]
+    fit = Fit(st, sc, prms, obs, sched, segment=10, reference=reference)
+    if backend == "jax":
+        import optax
+        opt, sched_ = optax.adam(0.1), None
+    else:
+        opt, sched_ = (lambda p: torch.optim.Adam(p, lr=0.1)), None
+    raw = fit.run(epochs, opt, sched_)
+    return fit, raw
+
+
+def test_shared_weights_are_fitted_to_a_builtin_law_trajectory():
+    """The MLP law's weights, fitted by the inverse workflow to a fixed corotated trajectory: on JAX (20
+    Adam epochs) the loss falls more than 7x and the small-strain shear coefficient c_0 = mu / s goes from
+    0.5 to within 5 % of the built-in's 7692 / 1e4 (measured: 0.785, loss 3.7e-10 -> 3.2e-11; the bulk
+    coefficient is barely seen in 30 steps). Warp takes the same first step (loss and gradient) and its
+    loss falls too (5 epochs)."""
+    fit, raw = _weights_fit("jax", 20)
+    h = fit.history
+    assert h[-1]["loss"] < h[0]["loss"] / 7.0, (h[0]["loss"], h[-1]["loss"])
+    c0 = float(np.asarray(raw["c"])[0])
+    mu_over_s = 2e4 / (2 * 1.3) / 1e4
+    assert abs(c0 - mu_over_s) <= 0.05 * mu_over_s, c0
+    fw, _ = _weights_fit("warp", 5)
+    assert [e["loss"] for e in fw.history] == sorted((e["loss"] for e in fw.history), reverse=True)
+    assert fw.history[0]["loss"] == pytest.approx(h[0]["loss"], rel=1e-9)
+    assert fw.history[0]["grad_norm"] == pytest.approx(h[0]["grad_norm"], rel=1e-7)
+    for k in range(5):
+        assert fw.history[k]["loss"] == pytest.approx(h[k]["loss"], rel=1e-6), k

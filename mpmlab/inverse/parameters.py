@@ -9,7 +9,9 @@ A :class:`FitParameter` names a *target* in the rollout controls (``AbstractStep
 * ``law`` parameter of a body: ``scalar`` (one value for the body);
 * ``boundary`` data (``friction_walls`` ``mu`` per segment or per node, ``plane`` ``friction``):
   ``array`` (Sec. 5.3) or ``scalar``;
-* ``gravity``: ``array``.
+* ``gravity``: ``array``;
+* ``law_weights`` of a body's law (its shared arrays, e.g. a neural law's matrices; ``field`` names
+  the array): ``array`` (every entry; ``init`` omitted: the law's own initial weights).
 
 ``transform`` reparameterises the trainable value: ``identity``, ``softplus`` (positive; JAX-MPM's
 friction), ``exp`` (positive, log-scale steps). ``init`` and ``truth`` are in physical units; a field's
@@ -32,7 +34,7 @@ import numpy as np
 
 from ..core.errors import ConfigError
 
-TARGETS = ("initial_velocity", "law", "boundary", "gravity")
+TARGETS = ("initial_velocity", "law", "boundary", "gravity", "law_weights")
 FORMS = ("scalar", "array", "mlp")
 TRANSFORMS = ("identity", "softplus", "exp")
 ACTIVATIONS = ("relu", "tanh", "softplus")
@@ -117,6 +119,8 @@ class FitParameter:
     _basis: np.ndarray | None = None
     _X: np.ndarray | None = None
     _size: int = 1
+    _wshape: tuple = ()
+    _winit: np.ndarray | None = None
 
     def where(self) -> str:
         return f"task.parameters.{self.name}"
@@ -134,7 +138,7 @@ class FitParameter:
             raise ConfigError(f"{w}.activation = '{self.activation}' unknown; use one of {ACTIVATIONS}.")
         P = stepper.particles
         bodies = [b.name for b in scene.bodies]
-        if self.target in ("initial_velocity", "law"):
+        if self.target in ("initial_velocity", "law", "law_weights"):
             if self.body is None and len(bodies) == 1:
                 self.body = bodies[0]
             if self.body not in bodies:
@@ -173,6 +177,16 @@ class FitParameter:
             self._index = stepper.groups.index(g)
             self._col = names.index(self.param)
             self._rows = slice(self._rows.start - g.start, self._rows.stop - g.start)
+        elif self.target == "law_weights":
+            g = next(g for g in stepper.groups if g.start <= self._rows.start < g.stop)
+            self._index = stepper.groups.index(g)
+            if self.field not in g.weights:
+                raise ConfigError(f"{w}.field = '{self.field}': law '{g.law.name}' of body '{self.body}' has shared "
+                                  f"weights {sorted(g.weights) or 'none'}.")
+            if self.form != "array":
+                raise ConfigError(f"{w}: law weights take form array.")
+            self._wshape = tuple(np.shape(g.weights[self.field]))
+            self._winit = np.asarray(g.weights[self.field], float)
         elif self.target == "boundary":
             if self.boundary not in boundary_names:
                 raise ConfigError(f"{w}.boundary = '{self.boundary}' is not a boundary of scene '{scene.name}' "
@@ -185,8 +199,8 @@ class FitParameter:
             self._size = int(np.prod(np.shape(data[self.field]))) if np.ndim(data[self.field]) else 1
         elif self.target == "gravity":
             self._size = scene.dim
-        if self.form == "array" and self.target not in ("boundary", "gravity"):
-            raise ConfigError(f"{w}: form array applies to boundary data and gravity.")
+        if self.form == "array" and self.target not in ("boundary", "gravity", "law_weights"):
+            raise ConfigError(f"{w}: form array applies to boundary data, gravity and law weights.")
         return self
 
     @staticmethod
@@ -195,6 +209,8 @@ class FitParameter:
 
     # ---- values ------------------------------------------------------------------------------------
     def _shape(self) -> tuple[int, ...]:
+        if self.target == "law_weights":
+            return self._wshape
         if self.form == "array" or (self.target == "gravity"):
             return (self._size,)
         return ()
@@ -202,6 +218,8 @@ class FitParameter:
     def init_raw(self, ops):
         if self.form == "mlp":
             return ops.mlp(glorot_mlp([len(self.inputs), *self.hidden, 1], self.seed))
+        if self.init is None and self.target == "law_weights":
+            return ops.asarray(_inv_transform(self.transform, self._winit))
         if self.init is None:
             raise ConfigError(f"{self.where()}.init is missing: give the starting value in physical units.")
         v = np.broadcast_to(np.asarray(self.init, float), self._shape()) if self._shape() else np.asarray(float(self.init))
@@ -229,6 +247,10 @@ class FitParameter:
             d[self.field] = value if self.form == "array" else value + 0 * d[self.field]
             b[self._index] = d
             c["boundary"] = tuple(b)
+        elif self.target == "law_weights":
+            lw = list(c["law_weights"])
+            lw[self._index] = {**lw[self._index], self.field: value}
+            c["law_weights"] = tuple(lw)
         else:
             c["gravity"] = value
         return c

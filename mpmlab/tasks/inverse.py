@@ -38,7 +38,7 @@ FIT_PLOT = "fit.png"
 class FitParameterConfig:
     """One fitted quantity of ``task=inverse`` (see ``mpmlab.inverse.parameters``)."""
 
-    #: initial_velocity | law | boundary | gravity
+    #: initial_velocity | law | boundary | gravity | law_weights
     target: str = MISSING
     #: scalar | array | mlp
     form: str = "scalar"
@@ -47,7 +47,7 @@ class FitParameterConfig:
     component: Optional[str] = None
     #: law: the parameter name
     param: Optional[str] = None
-    #: boundary: its name under scene.boundaries, and its data (mu, friction)
+    #: boundary: its name under scene.boundaries, and its data (mu, friction); law_weights: the array name
     boundary: Optional[str] = None
     field: Optional[str] = None
     #: initial_velocity, form scalar: v = value * basis(x, y, z)
