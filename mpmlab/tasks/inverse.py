@@ -248,6 +248,7 @@ def run(cfg, ctx) -> dict:
         "mpmlab_version": __version__,
         "overrides": list(ctx.job.get("overrides", [])),
     }
+    summary["weight_files"] = _write_law_weights(out, fit, raw)
     if cfg.output.plots:
         plot_fit(out / FIT_PLOT, fit.history, report, summary["profiles"], f"{scene.name}: {backend}/{transfer.name}")
     summary["wall_time_s"] = float(time.perf_counter() - t_task)
@@ -256,6 +257,30 @@ def run(cfg, ctx) -> dict:
     print(f"mpmlab: inverse {scene.name} {backend}: {fit.epoch} epochs in {summary['wall_time_s']:.1f} s, "
           f"loss {summary['initial_loss']:.3e} -> {summary['final_loss']:.3e}; relative error: {errs} -> {out}", flush=True)
     return summary
+
+
+def _write_law_weights(out: Path, fit, raw) -> dict[str, str]:
+    """Fitted shared law weights, one safetensors file per material group whose weights were fitted
+    (``law_weights_<law>.safetensors``, all of the group's arrays): the file both backends read, e.g.
+    through the law's ``weights_file`` option. Returns ``{law: file name}``."""
+    groups = sorted({p._index for p in fit.parameters if p.target == "law_weights"})
+    if not groups:
+        return {}
+    from safetensors.numpy import save_file
+
+    from ..io.files import write_atomically
+
+    controls = fit.controls_of(raw)
+    files = {}
+    for g in groups:
+        law = fit.stepper.groups[g].law
+        arrays = {k: np.ascontiguousarray(fit.adapter.numpy(a), dtype=np.float64)
+                  for k, a in controls["law_weights"][g].items()}
+        name = f"law_weights_{law.name}.safetensors"
+        # the run directory was checked before the fit (summary.json guard), so a resumed run replaces it
+        write_atomically(out / name, lambda tmp, arrays=arrays: save_file(arrays, str(tmp)), overwrite=True)
+        files[law.name] = name
+    return files
 
 
 def _levenberg_marquardt_class(opt_node):
