@@ -25,6 +25,24 @@ The checks, each usable alone:
   w.r.t. x, v, the law parameters and the shared weights, fp64, <= 1e-6 relative;
 * ``law_scene(laws, dim)``: the small spinning, falling bodies the trajectory checks run.
 
+In a plugin's own test suite (pytest shows each failure's one-line message)::
+
+    import pytest
+    from mpmlab import testing
+
+    @pytest.mark.parametrize("backend", ("jax", "warp"))
+    @pytest.mark.parametrize("dim", (2, 3))
+    def test_my_law_matches_its_reference(dim, backend):
+        testing.check_reference("my_law", dim, backend)
+
+    def test_my_law():
+        testing.check_law("my_law")
+
+Test parameters: ``Law.test_params`` (filled with the declared defaults), ``Law.test_options``
+(``material.options`` of the test instance); an optional ``Law.test_rotation`` says how state fields
+rotate where the default rules (``mpmlab.testing.states``) do not fit. A law class that is not
+registered is registered under its ``name`` when a scene needs it.
+
 Importing ``mpmlab.testing`` imports neither JAX nor Warp; each check imports the backend it runs.
 """
 from __future__ import annotations
