@@ -21,8 +21,7 @@ from mpmlab.boundaries import FrictionWalls, Plane, Walls
 from mpmlab.core import registry
 from mpmlab.core.errors import GradientError, SimulationDiverged
 from mpmlab.observations import Eulerian, Lagrangian, apply_numpy
-
-from .scenes import LAW_PARAMS
+from mpmlab.testing import options_of, params_of
 
 LAWS = registry.laws.names()
 TRANSFERS = registry.transfers.names()
@@ -35,9 +34,10 @@ SHEAR = {2: np.array([[0.5, 1.0], [0.3, -1.5]]),
 
 
 def body(dim, lo, hi, law, velocity=None, ppc=None, params=None):
+    """A box of ``law``; parameters: the law's own ``test_params`` unless given, options its ``test_options``."""
     return mpmlab.Body(shape={"kind": "box", "lo": lo, "hi": hi}, material=law,
-                       params=LAW_PARAMS[law] if params is None else params, density=1000.0,
-                       particles_per_cell=ppc or 2**dim, velocity=velocity)
+                       params=params_of(law) if params is None else params, density=1000.0,
+                       particles_per_cell=ppc or 2**dim, velocity=velocity, options=options_of(law))
 
 
 def law_scene(law, dim=2):
@@ -116,8 +116,6 @@ def fd_errors(st, c, obs, steps, keys, seed=0, scale=None):
 @pytest.mark.parametrize("transfer", TRANSFERS)
 @pytest.mark.parametrize("law", LAWS)
 def test_fd_matches_autograd(law, transfer):
-    if law not in LAW_PARAMS:
-        pytest.fail(f"law '{law}' has no test parameters in tests/scenes.py LAW_PARAMS; add them")
     st = stepper(("law_scene", law), transfer)
     c = sheared_controls(st)
     obs = Lagrangian(quantity="v")

@@ -92,6 +92,30 @@ def test_plugin_law_runs_from_the_cli(plugin_path, tmp_path):
     assert (run_dir / "recording.rrd").is_file()
 
 
+def test_conformance_kit_passes_on_the_plugin_laws(plugin_path, tmp_path):
+    """``mpmlab.testing.check_law`` on the installed plugin's two laws, with their own test_params: the
+    reference, rest state, equivariance, JAX = Warp trajectories and gradients, 2D, APIC, both backends.
+    JAX gradients on ``mlp_elastic`` (its shared weights are the new path), Warp gradients on both:
+    neo_hookean's JAX gradient would add one more 10-15 s JAX compile."""
+    code = (
+        "import json\n"
+        "from mpmlab.testing import check_law\n"
+        "r = [check_law('neo_hookean', gradients=('warp',)), check_law('mlp_elastic')]\n"
+        "print(json.dumps(r))\n"
+    )
+    proc = python(code, with_plugin(plugin_path), tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    neo, mlp = json.loads(proc.stdout.strip().splitlines()[-1])
+    for r in (neo, mlp):
+        assert r["failures"] == []
+        assert {"reference[jax,2d]", "reference[warp,2d]", "rest_state[2d]", "equivariance[2d]",
+                "backends_agree[apic,2d]", "gradients[warp,apic,2d]"} <= set(r["checks"]), r["checks"].keys()
+        assert r["checks"]["backends_agree[apic,2d]"]["moved"] > 1e-3
+    assert "gradients[jax,apic,2d]" in mlp["checks"]
+    for b in ("jax", "warp"):
+        assert set(mlp["checks"][f"gradients[{b},apic,2d]"]) == {"x", "v", "law", "law_weights"}
+
+
 def test_without_the_plugin_its_names_are_unknown(tmp_path):
     """Control: the same names fail cleanly where the plugin is not installed."""
     from mpmlab.cli import EXIT_CONFIG, main

@@ -1,0 +1,113 @@
+"""``mpmlab.testing``: the conformance kit a law author runs on a law (a plugin's or a built-in).
+
+Every check takes a law by registered name, class or instance (a name or class is built from its
+``Law.test_options``), uses the law's own ``Law.test_params`` (parameters that make it deform, and
+yield if plastic, within 50 steps of the kit's scenes), returns the errors it measured, and raises
+``AssertionError`` with one line naming the law, the backend, the quantity, the error and the
+tolerance when a check fails::
+
+    from mpmlab.testing import check_law
+    report = check_law("neo_hookean")               # everything cheap, 2D, APIC, JAX and Warp
+
+The checks, each usable alone:
+
+* ``check_reference(law, dim, backend)``: kirchhoff and update on ``backend`` ("jax", "warp") vs the
+  NumPy reference (``Law.reference``) on 16 hard states generated from the ``StateField``
+  declarations (``mpmlab.testing.states``), fp64, 1e-10 relative;
+* ``check_rest_state(law, dim, backends)``: the declared initial state has tau = 0 and stays at rest
+  under grad_v = 0;
+* ``check_equivariance(law, dim)``: on the reference, tau(Q.s) = Q tau Q^T, the update commutes with
+  rotations, tau is symmetric (rotation rules: ``mpmlab.testing.states``; ``Law.test_rotation``
+  overrides them per field);
+* ``check_backends_agree(law, transfer, dim)``: JAX vs Warp fp64 trajectories of ``law_scene`` after
+  50 steps (positions, velocities, C, every declared field) within 1e-9, the body having moved;
+* ``check_gradients(law, backend, transfer)``: central differences vs AD of a fixed observation loss
+  w.r.t. x, v, the law parameters and the shared weights, fp64, <= 1e-6 relative;
+* ``law_scene(laws, dim)``: the small spinning, falling bodies the trajectory checks run.
+
+In a plugin's own test suite (pytest shows each failure's one-line message)::
+
+    import pytest
+    from mpmlab import testing
+
+    @pytest.mark.parametrize("backend", ("jax", "warp"))
+    @pytest.mark.parametrize("dim", (2, 3))
+    def test_my_law_matches_its_reference(dim, backend):
+        testing.check_reference("my_law", dim, backend)
+
+    def test_my_law():
+        testing.check_law("my_law")
+
+Test parameters: ``Law.test_params`` (filled with the declared defaults), ``Law.test_options``
+(``material.options`` of the test instance); an optional ``Law.test_rotation`` says how state fields
+rotate where the default rules (``mpmlab.testing.states``) do not fit. A law class that is not
+registered is registered under its ``name`` when a scene needs it.
+
+Importing ``mpmlab.testing`` imports neither JAX nor Warp; each check imports the backend it runs.
+"""
+from __future__ import annotations
+
+import time
+
+from ._common import ConformanceError, options_of, params_of, rel_err, resolve_params
+from .evaluate import evaluate, jax_law, ref_kirchhoff, ref_update
+from .gradients import check_gradients
+from .laws import check_equivariance, check_reference, check_rest_state
+from .scenes import gradient_scene, law_scene
+from .states import deformation_gradients, hard_states, rotate_state, rotation, rotation_rules, velocity_gradients
+from .trajectories import check_backends_agree, compare_trajectories, rollout
+
+__all__ = [
+    "ConformanceError", "check_backends_agree", "check_equivariance", "check_gradients", "check_law",
+    "check_reference", "check_rest_state", "compare_trajectories", "deformation_gradients", "evaluate",
+    "gradient_scene", "hard_states", "jax_law", "law_scene", "options_of", "params_of", "ref_kirchhoff",
+    "ref_update", "rel_err", "resolve_params", "rollout", "rotate_state", "rotation", "rotation_rules",
+    "velocity_gradients",
+]
+
+
+def check_law(law, *, dims=(2,), backends=("jax", "warp"), transfers=("apic",), gradients=True,
+              raise_on_failure: bool = True) -> dict:
+    """Every check of the kit on ``law`` for the cheap cases: reference (each backend x dim), rest state
+    (reference and each backend), equivariance (each dim), JAX vs Warp trajectories (each transfer x
+    dim, when both backends are asked for) and gradients (each backend x transfer, 2D when 2 is in
+    ``dims``, else the first dim; ``gradients``: True, False or the backends to run them on).
+
+    Returns a JSON-ready report ``{"law", "checks": {check: measured errors}, "failures": [messages],
+    "seconds": {check: s}}``. A failed check does not stop the others; with ``raise_on_failure`` the
+    failures are then raised as one ``AssertionError`` (one line: how many failed, each message)."""
+    from ._common import law_name
+
+    name = law_name(law)
+    report = {"law": name, "checks": {}, "failures": [], "seconds": {}}
+
+    def run(label, fn, *a, **kw):
+        t0 = time.perf_counter()
+        try:
+            report["checks"][label] = fn(*a, **kw)
+        except AssertionError as e:
+            report["checks"][label] = None
+            report["failures"].append(str(e))
+        except Exception as e:  # noqa: BLE001 -- a law that cannot even run a check fails it, and says why
+            report["checks"][label] = None
+            report["failures"].append(f"law '{name}' {label}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+        report["seconds"][label] = round(time.perf_counter() - t0, 3)
+
+    for dim in dims:
+        for b in backends:
+            run(f"reference[{b},{dim}d]", check_reference, law, dim, b)
+        run(f"rest_state[{dim}d]", check_rest_state, law, dim, ("reference",) + tuple(backends))
+        run(f"equivariance[{dim}d]", check_equivariance, law, dim)
+        if {"jax", "warp"} <= set(backends):
+            for t in transfers:
+                run(f"backends_agree[{t},{dim}d]", check_backends_agree, law, t, dim)
+    grad_backends = tuple(backends) if gradients is True else tuple(gradients or ())
+    if grad_backends:
+        gdim = 2 if 2 in dims else dims[0]
+        for b in grad_backends:
+            for t in transfers:
+                run(f"gradients[{b},{t},{gdim}d]", check_gradients, law, b, t, gdim)
+    if report["failures"] and raise_on_failure:
+        n, m = len(report["failures"]), len(report["checks"])
+        raise ConformanceError(f"law '{name}': {n} of {m} checks failed: " + " | ".join(report["failures"]))
+    return report
