@@ -1,0 +1,74 @@
+"""Throughput of two trees measured side by side in one run (issue #13's "within 5 % of the parent").
+
+Each measurement runs in a fresh subprocess with ``PYTHONPATH`` set to one tree, A and B interleaved
+for ``--rounds`` rounds; the best round of each is kept (on a shared machine the least disturbed one).
+Cases: Taichi mpm3d's scene (J-fluid, MLS) and the fixed-corotated cube (MLS), 3D fp32, at 8k and 65k
+particles, on JAX and Warp::
+
+    git worktree add /tmp/parent <parent commit>
+    python benchmarks/ab_throughput.py /tmp/parent . --rounds 3
+
+Prints particle-steps/s per case and tree, and B / A.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+CASE = r'''
+import json, sys, time
+import numpy as np
+from mpmlab.scenes.mpm3d import mpm3d_fluid, elastic_cube
+import mpmlab
+scene_name, n_grid, backend, steps = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
+scene = (mpm3d_fluid if scene_name == "mpm3d" else elastic_cube)(n_grid=n_grid, dim=3)
+st = mpmlab.build_stepper(scene, backend, "mls", "fp32")
+s = st.init()
+s = st._advance(s, steps); st._block(s)                # compile + warm-up
+best = float("inf")
+for _ in range(3):
+    t = time.perf_counter(); s2 = st._advance(s, steps); st._block(s2); best = min(best, time.perf_counter() - t)
+print(json.dumps({"particles": st.particles.count, "pps": st.particles.count * steps / best}))
+'''
+
+
+def measure(tree, case):
+    env = dict(os.environ, PYTHONPATH=os.path.abspath(tree))
+    out = subprocess.run([sys.executable, "-c", CASE, *map(str, case)], env=env, capture_output=True, text=True,
+                         timeout=1800, cwd=os.path.abspath(tree))
+    if out.returncode:
+        raise SystemExit(f"{tree} {case}: {out.stderr[-1500:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("a"); ap.add_argument("b")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--grids", default="32,64", help="n_grid values (32: 8k particles, 64: 65k)")
+    ap.add_argument("--backends", default="jax,warp")
+    ap.add_argument("--scenes", default="mpm3d,cube")
+    ap.add_argument("--steps", type=int, default=20)
+    args = ap.parse_args(argv)
+    cases = [(sc, int(g), be, args.steps) for sc in args.scenes.split(",") for g in args.grids.split(",")
+             for be in args.backends.split(",")]
+    best = {}
+    for r in range(args.rounds):
+        for case in cases:
+            for tree in (args.a, args.b):
+                m = measure(tree, case)
+                key = (case, tree)
+                best[key] = max(best.get(key, (0, 0)), (m["pps"], m["particles"]))
+                print(f"round {r + 1}: {case[0]} {case[1]}^3 {case[2]} {tree}: {m['pps']:.3e} particle-steps/s",
+                      flush=True)
+    print("\n| scene | particles | backend | A [particle-steps/s] | B | B / A |\n|---|---|---|---|---|---|")
+    for case in cases:
+        (pa, n), (pb, _) = best[(case, args.a)], best[(case, args.b)]
+        print(f"| {case[0]} | {n} | {case[2]} | {pa:.3e} | {pb:.3e} | {pb / pa:.3f} |")
+
+
+if __name__ == "__main__":
+    main()
