@@ -8,7 +8,12 @@ particles, on JAX and Warp::
     git worktree add /tmp/parent <parent commit>
     python benchmarks/ab_throughput.py /tmp/parent . --rounds 3
 
-Prints particle-steps/s per case and tree, and B / A.
+Prints particle-steps/s per case and tree, and B / A. ``--gradients``: the time of one gradient of a
+loss of the positions after N steps with respect to v and the law parameters (the setup of
+``benchmarks/gradients.py``: the 2D Ritter dam break, 2560 particles, APIC, fp32, segment n), per
+backend, best of 3 after a warm-up::
+
+    python benchmarks/ab_throughput.py /tmp/parent . --gradients --rounds 2
 """
 from __future__ import annotations
 
@@ -35,9 +40,38 @@ print(json.dumps({"particles": st.particles.count, "pps": st.particles.count * s
 '''
 
 
-def measure(tree, case):
+GRAD_CASE = r'''
+import json, sys, time
+import numpy as np
+import mpmlab
+from mpmlab.observations import Lagrangian
+from mpmlab.scenes.validation import ritter_dam_break
+backend, N, n = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+scene = ritter_dam_break(dx=0.0125)
+st = mpmlab.build_stepper(scene, backend, "apic", "fp32")
+obs = Lagrangian(quantity="x")
+c = st.controls()
+if backend == "jax":
+    import jax, jax.numpy as jnp
+    f = jax.jit(jax.value_and_grad(lambda v, law: jnp.sum(st.observe({**c, "v": v, "law": law}, obs, [N], segment=n) ** 2),
+                                   argnums=(0, 1)))
+    run = lambda: jax.block_until_ready(f(c["v"], c["law"]))
+else:
+    import torch
+    def run():
+        v = c["v"].clone().requires_grad_(True); law = tuple(a.clone().requires_grad_(True) for a in c["law"])
+        (st.observe({**c, "v": v, "law": law}, obs, [N], segment=n) ** 2).sum().backward()
+run()
+best = float("inf")
+for _ in range(3):
+    t = time.perf_counter(); run(); best = min(best, time.perf_counter() - t)
+print(json.dumps({"particles": st.particles.count, "seconds": best}))
+'''
+
+
+def measure(tree, case, code=None):
     env = dict(os.environ, PYTHONPATH=os.path.abspath(tree))
-    out = subprocess.run([sys.executable, "-c", CASE, *map(str, case)], env=env, capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-c", code or CASE, *map(str, case)], env=env, capture_output=True, text=True,
                          timeout=1800, cwd=os.path.abspath(tree))
     if out.returncode:
         raise SystemExit(f"{tree} {case}: {out.stderr[-1500:]}")
@@ -52,7 +86,10 @@ def main(argv=None):
     ap.add_argument("--backends", default="jax,warp")
     ap.add_argument("--scenes", default="mpm3d,cube")
     ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--gradients", action="store_true", help="time gradients (N=200, n=50) instead")
     args = ap.parse_args(argv)
+    if args.gradients:
+        return gradients(args)
     cases = [(sc, int(g), be, args.steps) for sc in args.scenes.split(",") for g in args.grids.split(",")
              for be in args.backends.split(",")]
     best = {}
@@ -68,6 +105,21 @@ def main(argv=None):
     for case in cases:
         (pa, n), (pb, _) = best[(case, args.a)], best[(case, args.b)]
         print(f"| {case[0]} | {n} | {case[2]} | {pa:.3e} | {pb:.3e} | {pb / pa:.3f} |")
+
+
+def gradients(args):
+    cases = [(be, 200, 50) for be in args.backends.split(",")]
+    best = {}
+    for r in range(args.rounds):
+        for case in cases:
+            for tree in (args.a, args.b):
+                m = measure(tree, case, GRAD_CASE)
+                best[(case, tree)] = min(best.get((case, tree), float("inf")), m["seconds"])
+                print(f"round {r + 1}: gradient {case[0]} N={case[1]} n={case[2]} {tree}: {m['seconds']:.3f} s", flush=True)
+    print("\n| backend | N | n | A [s] | B [s] | B / A |\n|---|---|---|---|---|---|")
+    for case in cases:
+        a, b = best[(case, args.a)], best[(case, args.b)]
+        print(f"| {case[0]} | {case[1]} | {case[2]} | {a:.3f} | {b:.3f} | {b / a:.3f} |")
 
 
 if __name__ == "__main__":

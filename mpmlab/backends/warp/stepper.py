@@ -133,8 +133,6 @@ class WarpStepper(BaseStepper):
         # the atomic P2G keeps no bounding box: the grid update then visits the whole grid
         self._bbox_np = self.bbox.numpy() if (dev == "cpu" and not self.p2g_atomic) else None
         self.ext = wp.zeros(N if self.force_bcs else 1, dtype=T.vec, device=dev)
-        self._empty_mat = wp.zeros(1, dtype=T.mat, device=dev)
-        self._empty_scalar = wp.zeros(1, dtype=T.scalar, device=dev)
         self.flag = wp.zeros(1, dtype=int, device=dev)
         lo, hi = scene.inner_bounds
         self.lo, self.hi = T.vec(*lo), T.vec(*hi)
