@@ -279,3 +279,27 @@ def test_shared_weights_are_fitted_to_a_builtin_law_trajectory():
     assert fw.history[0]["grad_norm"] == pytest.approx(h[0]["grad_norm"], rel=1e-7)
     for k in range(5):
         assert fw.history[k]["loss"] == pytest.approx(h[k]["loss"], rel=1e-6), k
+
+
+@dataclass(frozen=True)
+class _WarpWrongState(AbstractConstitutiveLaw):
+    """Declares F only, but its Warp update writes a field q."""
+
+    name: ClassVar[str] = "warp_wrong_state_test_law"
+    state = (StateField("F", ("D", "D"), "identity"),)
+    # (a module of its own: Warp reads the @wp.func annotations, which `from __future__ import annotations`
+    # would turn into strings)
+    implementations: ClassVar[dict] = {"warp": "tests._warp_wrong_law:make"}
+
+    @classmethod
+    def wave_speed(cls, params, density):
+        return 10.0
+
+
+def test_warp_law_writing_an_undeclared_field_is_refused_at_build():
+    registry.laws.register("warp_wrong_state_test_law", _WarpWrongState, provenance="tests")
+    sc = mpmlab.Scene(dim=2, dx=0.1, domain=([0, 0], [1, 1]), dt=1e-3, bodies=[
+        mpmlab.Body(shape={"kind": "box", "lo": [0.3, 0.3], "hi": [0.5, 0.5]}, material="warp_wrong_state_test_law")])
+    with pytest.raises(ConfigError, match=r"law 'warp_wrong_state_test_law'.*Warp functions do not build against "
+                                          r"its declared state \['F'\]"):
+        mpmlab.build_stepper(sc, "warp", "pic")

@@ -38,6 +38,22 @@ class WarpState(SimpleNamespace):
     """
 
 
+def _compile_law_kernels(law, kernels, device) -> None:
+    """Build the kernels a law enters now (they are built at the first launch anyway), so that a law
+    whose Warp functions do not fit its declarations (a state field it does not declare, a parameter
+    it does not have) is refused when the stepper is built, in one line naming it."""
+    try:
+        for k in kernels:
+            wp.load_module(k.module, device=device)
+    except Exception as e:  # noqa: BLE001 -- Warp's codegen/compile error, reported against the plugin
+        from ...core.errors import ConfigError
+
+        first = next((ln for ln in str(e).splitlines() if ln.strip()), type(e).__name__)
+        raise ConfigError(
+            f"law '{law.name}' ({type(law).__module__}): its Warp functions do not build against its declared "
+            f"state {list(law.state_fields)} and parameters {list(law.param_names())}: {first}") from None
+
+
 class WarpStepper(BaseStepper):
     backend_name = "warp"
 
@@ -112,6 +128,8 @@ class WarpStepper(BaseStepper):
         self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, tr.affine, tr.grad_v == "affine", self.split_force)
                       for g in self.groups]
         self.k_laws = [K.law_kernels(g.law, D, precision) for g in self.groups]
+        for g, kg, kl in zip(self.groups, self.k_g2p, self.k_laws):
+            _compile_law_kernels(g.law, (kg, kl.stress), self.device)
         self.k_guard = K.guard_kernel(D, precision)
         # static per-particle data and scratch
         self.mass = wp.array(P.mass, dtype=T.scalar, device=dev)
