@@ -29,7 +29,7 @@ TRANSFERS = ("pic", "flip", "apic", "mls", "tpic")
 FIELDS = ("F", "J", "sigma", "eps_p", "C")
 
 
-def dump(path: str, quick: bool = False) -> None:
+def dump(path: str, quick: bool = False, grads_only: bool = False) -> None:
     import mpmlab
     from mpmlab.observations import Lagrangian
     from tests.scenes import all_laws_scene
@@ -39,7 +39,7 @@ def dump(path: str, quick: bool = False) -> None:
     for dim in dims:
         scene = all_laws_scene(dim, list(LAWS))
         for tr in TRANSFERS:
-            for prec in ("fp64", "fp32"):
+            for prec in () if grads_only else ("fp64", "fp32"):
                 for be in ("jax", "warp"):
                     st = mpmlab.build_stepper(scene, be, tr, prec)
                     traj = st.rollout(steps=50, every=50, fields=FIELDS)
@@ -89,10 +89,10 @@ def dump(path: str, quick: bool = False) -> None:
     print(f"wrote {len(out)} arrays to {path}")
 
 
-def compare(a_path: str, b_path: str) -> int:
+def compare(a_path: str, b_path: str, common: bool = False) -> int:
     a, b = np.load(a_path), np.load(b_path)
     bad = 0
-    missing = sorted(set(a.files) ^ set(b.files))
+    missing = [] if common else sorted(set(a.files) ^ set(b.files))
     for k in missing:
         print(f"MISSING {k} (in {'first' if k in a.files else 'second'} only)")
         bad += 1
@@ -121,12 +121,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("dump"); d.add_argument("path"); d.add_argument("--quick", action="store_true")
+    d.add_argument("--grads-only", action="store_true", help="only the gradients (a change to the gradient path)")
     c = sub.add_parser("compare"); c.add_argument("a"); c.add_argument("b")
+    c.add_argument("--common", action="store_true", help="compare only the arrays both files hold")
     args = ap.parse_args(argv)
     if args.cmd == "dump":
-        dump(args.path, args.quick)
+        dump(args.path, args.quick, args.grads_only)
         return 0
-    return compare(args.a, args.b)
+    return compare(args.a, args.b, args.common)
 
 
 if __name__ == "__main__":

@@ -42,166 +42,6 @@ DEFAULT_SEGMENT = 100
 
 # ---- kernels ----------------------------------------------------------------------------------------
 @lru_cache(maxsize=None)
-def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_force: bool, has_ext: bool):
-    """P2G into one fresh grid with atomic adds (differentiable), the same math as ``kernels.p2g_kernel``:
-    node o gets mass w m and momentum w (m v + A (o - fx) dx) with A = m C (affine transfers), the
-    force either -V tau grad w (JAX-MPM Eq. 12) or the MLS form -4 V / dx^2 tau (o - fx) dx w (Hu et
-    al. 2018), folded into the momentum as dt f unless ``split_force`` (FLIP keeps it apart)."""
-    T = warp_types(dim, precision)
-    S = K.stencil_funcs(dim, precision)
-    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
-    gvec = K.grid_vec_type(dim, precision)
-    fold_force = (not split_force) and mls_force
-    grad_force = not mls_force
-
-    @wp.func
-    def ext4(a: vec, last: scalar):
-        if wp.static(dim == 3):
-            return gvec(a[0], a[1], a[2], last)
-        else:
-            return gvec(a[0], a[1], last)
-
-    @wp.func
-    def node(base: ivec, strides: ivec, o: ivec):
-        n = int(0)
-        for d in range(dim):
-            n = n + (base[d] + o[d]) * strides[d]
-        return n
-
-    @wp.func
-    def scatter(o: ivec, W: S.wmat, DW: S.wmat, fx: vec, dx: scalar, m: scalar, q: vec, A: mat, Tg: mat, Fm: mat,
-                fext: vec, n: int, grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec)):
-        w = scalar(1.0)
-        gw = vec()                         # grad w in cell units
-        dpos = vec()
-        for d in range(dim):
-            w = w * W[o[d], d]
-            dpos[d] = (scalar(o[d]) - fx[d]) * dx
-        for e in range(dim):
-            ge = scalar(1.0)
-            for d in range(dim):
-                if d == e:
-                    ge = ge * DW[o[d], d]
-                else:
-                    ge = ge * W[o[d], d]
-            gw[e] = ge
-        mom = w * (q + A @ dpos)
-        if wp.static(grad_force):
-            fo = Tg @ gw
-            if wp.static(split_force):
-                if wp.static(has_ext):
-                    fo = fo + w * fext
-                wp.atomic_add(grid_f, n, fo)
-            else:
-                mom = mom + fo
-        if wp.static(split_force and mls_force):
-            fo = w * (Fm @ dpos)
-            if wp.static(has_ext):
-                fo = fo + w * fext
-            wp.atomic_add(grid_f, n, fo)
-        wp.atomic_add(grid_mm, n, ext4(mom, w * m))
-
-    @wp.kernel(module="unique")
-    def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
-            mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
-            origin: vec, dx: scalar, dt: scalar, strides: ivec,
-            grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec)):
-        p = wp.tid()
-        inv_dx = scalar(1.0) / dx
-        if S.in_grid(x[p], origin, inv_dx, strides, grid_mm.shape[0]) == 0:
-            return                  # off the grid (a diverged rollout): no out-of-bounds writes; the check names it
-        base, fx = S.locate(x[p], origin, inv_dx)
-        W, DW = S.bspline(fx)
-        m = mass[p]
-        V = vol[p]
-        q = m * v[p]
-        A = mat()
-        if wp.static(affine):
-            A = m * C[p]
-        if wp.static(fold_force):
-            A = A - (scalar(4.0) * inv_dx * inv_dx * V * dt) * tau[p]       # Hu et al. 2018
-        Fm = mat()
-        if wp.static(split_force and mls_force):
-            Fm = -(scalar(4.0) * inv_dx * inv_dx * V) * tau[p]
-        Tg = mat()
-        if wp.static(grad_force):
-            Tg = -(V * inv_dx) * tau[p]                                    # JAX-MPM Eq. 12
-            if wp.static(not split_force):
-                Tg = dt * Tg
-        fext = vec()
-        if wp.static(has_ext):
-            fext = ext[p]
-            if wp.static(not split_force):
-                q = q + dt * fext
-        if wp.static(dim == 3):
-            for i in range(3):
-                for j in range(3):
-                    for k in range(3):
-                        o = ivec(i, j, k)
-                        scatter(o, W, DW, fx, dx, m, q, A, Tg, Fm, fext, node(base, strides, o), grid_mm, grid_f)
-        else:
-            for i in range(3):
-                for j in range(3):
-                    o = ivec(i, j)
-                    scatter(o, W, DW, fx, dx, m, q, A, Tg, Fm, fext, node(base, strides, o), grid_mm, grid_f)
-
-    return p2g
-
-
-@lru_cache(maxsize=None)
-def grid_kernel(dim: int, precision: str, split_force: bool):
-    """Grid velocity update (JAX-MPM Eqs. 13-14) and domain walls over every node, into fresh arrays
-    (the fast path's ``grid_update_kernel`` clears what it reads, which a tape cannot replay).
-
-    Warp pitfall: in a differentiated kernel never overwrite a vector component that depends on the
-    inputs (``v[d] = 0``): Warp 1.19 still routes the old value's adjoint through. Build new vectors."""
-    T = warp_types(dim, precision)
-    scalar, vec, ivec = T.scalar, T.vec, T.ivec
-    gvec = K.grid_vec_type(dim, precision)
-
-    walls = K.wall_func(dim, precision)
-
-    @wp.func
-    def per_mass(q: vec, m: scalar):
-        return q / m
-
-    @wp.func_grad(per_mass)
-    def adj_per_mass(q: vec, m: scalar, adj_ret: vec):
-        # d(q/m) = (dq - (q/m) dm) / m, not Warp's -q dm / m^2: m^2 underflows at free-surface nodes
-        # reached only by a stencil's far tail (m ~ 1e-20 in fp32) and would give inf/NaN (same as JAX's
-        # ``per_mass`` in backends/jax/stepper.py)
-        v = q / m
-        wp.adjoint[q] += adj_ret / m
-        wp.adjoint[m] -= wp.dot(v, adj_ret) / m
-
-    @wp.kernel(module="unique")
-    def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), gravity: wp.array(dtype=vec),
-                    dt: scalar, shape: ivec, strides: ivec, wall_kind: wp.array(dtype=int), thickness: int,
-                    grid_v: wp.array(dtype=vec), grid_v_old: wp.array(dtype=vec)):
-        i = wp.tid()
-        acc = grid_mm[i]
-        m = acc[dim]
-        vn = vec()
-        if m > scalar(0.0):
-            mv = vec()
-            for d in range(dim):
-                mv[d] = acc[d]
-            vo = per_mass(mv, m)
-            if wp.static(split_force):
-                grid_v_old[i] = vo
-                vn = vo + dt * (per_mass(grid_f[i], m) + gravity[0])
-            else:
-                vn = vo + dt * gravity[0]
-            I = ivec()
-            for d in range(dim):
-                I[d] = (i // strides[d]) % shape[d]
-            vn = walls(vn, I, shape, wall_kind, thickness)
-        grid_v[i] = vn
-
-    return grid_update
-
-
-@lru_cache(maxsize=None)
 def finite_kernels(dim: int, precision: str):
     """flags[slot] = 1 where an array holds a non-finite entry (one kernel per element type)."""
     T = warp_types(dim, precision)
@@ -267,8 +107,11 @@ class GradPath:
                 self.thickness = int(bc.thickness)
             self.bcs.append(bc)
         self.has_ext = any(bc.stage == "particle_force" for bc in self.bcs)
-        self.k_p2g = p2g_kernel(D, prec, self.affine, tr.force == "mls", self.split, self.has_ext)
-        self.k_grid = grid_kernel(D, prec, self.split)
+        # P2G: the fast path's kernel in its atomic form (one grid, atomic adds: what CUDA runs), which is
+        # tape-safe; the bounding box it skips is a dummy here
+        self.k_p2g = K.p2g_kernel(D, prec, self.affine, tr.force == "mls", self.split, self.has_ext, atomic=True)
+        self.bbox = wp.zeros(2, dtype=T.ivec, device=dev)
+        self.k_grid = K.grid_update_kernel(D, prec, self.split, tape=True)   # the fast path's, tape-safe form
         self.k_g2p = st.k_g2p
         self.k_laws = st.k_laws
         self.k_finite = finite_kernels(D, prec)
@@ -472,10 +315,12 @@ class GradPath:
                     bc.force(ext, c, t, ctl)
         grid_mm, grid_f = buf.grid_mm, buf.grid_f
         wp.launch(self.k_p2g, dim=N, inputs=[s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.origin, st.dx_s,
-                                             st.dt_s, st.strides, grid_mm, grid_f], device=dev)
+                                             st.dt_s, st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0], device=dev)
         grid_v, grid_v_old = buf.grid_v, buf.grid_v_old
-        wp.launch(self.k_grid, dim=G, inputs=[grid_mm, grid_f, ctl.gravity, st.dt_s, st.shape_iv, st.strides,
-                                              self.wall_kind, self.thickness, grid_v, grid_v_old], device=dev)
+        zero = self.T.ivec()
+        wp.launch(self.k_grid, dim=G, inputs=[grid_mm, grid_f, 1, G, 0, zero, zero, st.dt_s, self.T.vec(), ctl.gravity,
+                                              st.shape_iv, st.strides, self.wall_kind, self.thickness, grid_v, grid_v_old],
+                  device=dev)
         outs = iter(buf.bc_out)
         for bc, c in zip(self.bcs, ctl.bc):
             if bc.stage != "grid":

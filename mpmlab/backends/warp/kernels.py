@@ -271,59 +271,111 @@ def wall_func(dim: int, precision: str):
 
 
 @lru_cache(maxsize=None)
-def grid_update_kernel(dim: int, precision: str, split_force: bool):
-    """Grid velocity update (JAX-MPM Eqs. 13-14) fused with the domain walls (kinds are arguments).
-
-    Runs over the box ``lo + [0, ext)`` of nodes (the nodes particles reached this step), sums the
-    ``copies`` private P2G grids and clears them for the next step (so no separate zeroing pass).
-    """
+def grid_node_func(dim: int, precision: str, split_force: bool):
+    """One node's velocity update (JAX-MPM Eqs. 13-14) and domain walls, shared by the fast grid update
+    and the tape-safe one: ``(acc = (momentum, mass), force, dt, gravity, node index I, ...) -> (v_new,
+    v_old)``. ``per_mass`` is q / m with the adjoint written with the quotient itself,
+    d(q/m) = (dq - (q/m) dm) / m: Warp's -q dm / m^2 underflows at free-surface nodes reached only by a
+    stencil's far tail (m ~ 1e-20 in fp32) and gives inf/NaN (as JAX's ``per_mass``)."""
     T = warp_types(dim, precision)
     scalar, vec, ivec = T.scalar, T.vec, T.ivec
     gvec = grid_vec_type(dim, precision)
     walls = wall_func(dim, precision)
 
-    @wp.kernel(module="unique")
-    def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), copies: int, G: int, start: int,
-                    lo: ivec, ext: ivec, dt: scalar, gravity: vec, shape: ivec, strides: ivec,
-                    wall_kind: wp.array(dtype=int), thickness: int,
-                    grid_v: wp.array(dtype=vec), grid_v_old: wp.array(dtype=vec)):
-        t = wp.tid() + start
-        I = ivec()
-        i = int(0)
-        rem = t
-        for e in range(dim):
-            d = dim - 1 - e
-            c = rem % ext[d]
-            rem = rem // ext[d]
-            I[d] = lo[d] + c
-            i = i + I[d] * strides[d]
-        acc = grid_mm[i]
-        grid_mm[i] = gvec()
-        fs = vec()
-        if wp.static(split_force):
-            fs = grid_f[i]
-            grid_f[i] = vec()
-        for c in range(1, copies):
-            acc = acc + grid_mm[c * G + i]
-            grid_mm[c * G + i] = gvec()
-            if wp.static(split_force):
-                fs = fs + grid_f[c * G + i]
-                grid_f[c * G + i] = vec()
+    @wp.func
+    def per_mass(q: vec, m: scalar):
+        return q / m
+
+    @wp.func_grad(per_mass)
+    def adj_per_mass(q: vec, m: scalar, adj_ret: vec):
+        v = q / m
+        wp.adjoint[q] += adj_ret / m
+        wp.adjoint[m] -= wp.dot(v, adj_ret) / m
+
+    @wp.func
+    def node(acc: gvec, fs: vec, dt: scalar, gravity: vec, I: ivec, shape: ivec, wall_kind: wp.array(dtype=int),
+             thickness: int):
         m = acc[dim]
         vn = vec()
+        vo = vec()
         if m > scalar(0.0):
             mv = vec()
             for d in range(dim):
                 mv[d] = acc[d]
-            vo = mv / m
+            vo = per_mass(mv, m)
             if wp.static(split_force):
-                grid_v_old[i] = vo
-                vn = vo + dt * (fs / m + gravity)
+                vn = vo + dt * (per_mass(fs, m) + gravity)
             else:
                 vn = vo + dt * gravity
             vn = walls(vn, I, shape, wall_kind, thickness)
-        elif wp.static(split_force):
-            grid_v_old[i] = vec()
+        return vn, vo
+
+    return node
+
+
+@lru_cache(maxsize=None)
+def grid_update_kernel(dim: int, precision: str, split_force: bool, tape: bool = False):
+    """Grid velocity update (JAX-MPM Eqs. 13-14) fused with the domain walls (kinds are arguments), from
+    one node function (``grid_node_func``) in two forms:
+
+    * fast (``tape=False``): over the box ``lo + [0, ext)`` of nodes (the nodes particles reached this
+      step), sums the ``copies`` private P2G grids and clears them for the next step (so no separate
+      zeroing pass); gravity is ``gravity_v``;
+    * tape-safe (``tape=True``): over every node, reads one grid and writes fresh outputs (clearing
+      what it reads is what a tape cannot replay); gravity is the differentiable ``gravity[0]``.
+
+    Warp pitfall: in a differentiated kernel never overwrite a vector component that depends on the
+    inputs (``v[d] = 0``): Warp 1.19 still routes the old value's adjoint through. Build new vectors.
+    """
+    T = warp_types(dim, precision)
+    scalar, vec, ivec = T.scalar, T.vec, T.ivec
+    gvec = grid_vec_type(dim, precision)
+    node = grid_node_func(dim, precision, split_force)
+
+    @wp.kernel(module="unique")
+    def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), copies: int, G: int, start: int,
+                    lo: ivec, ext: ivec, dt: scalar, gravity_v: vec, gravity: wp.array(dtype=vec), shape: ivec,
+                    strides: ivec, wall_kind: wp.array(dtype=int), thickness: int,
+                    grid_v: wp.array(dtype=vec), grid_v_old: wp.array(dtype=vec)):
+        t = wp.tid() + start
+        I = ivec()
+        i = int(0)
+        if wp.static(tape):
+            i = t
+            for d in range(dim):
+                I[d] = (i // strides[d]) % shape[d]
+        else:
+            rem = t
+            for e in range(dim):
+                d = dim - 1 - e
+                c = rem % ext[d]
+                rem = rem // ext[d]
+                I[d] = lo[d] + c
+                i = i + I[d] * strides[d]
+        acc = grid_mm[i]
+        fs = vec()
+        if wp.static(split_force):
+            fs = grid_f[i]
+        if wp.static(not tape):
+            grid_mm[i] = gvec()
+            if wp.static(split_force):
+                grid_f[i] = vec()
+            for c in range(1, copies):
+                acc = acc + grid_mm[c * G + i]
+                grid_mm[c * G + i] = gvec()
+                if wp.static(split_force):
+                    fs = fs + grid_f[c * G + i]
+                    grid_f[c * G + i] = vec()
+        g = gravity_v
+        if wp.static(tape):
+            g = gravity[0]
+        vn, vo = node(acc, fs, dt, g, I, shape, wall_kind, thickness)
+        if wp.static(split_force):
+            if wp.static(tape):
+                if acc[dim] > scalar(0.0):
+                    grid_v_old[i] = vo
+            else:
+                grid_v_old[i] = vo
         grid_v[i] = vn
 
     return grid_update

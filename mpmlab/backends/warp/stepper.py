@@ -152,6 +152,7 @@ class WarpStepper(BaseStepper):
         self._bbox_np = self.bbox.numpy() if (dev == "cpu" and not self.p2g_atomic) else None
         self.ext = wp.zeros(N if self.force_bcs else 1, dtype=T.vec, device=dev)
         self.flag = wp.zeros(1, dtype=int, device=dev)
+        self._gravity_unused = wp.zeros(1, dtype=T.vec, device=dev)   # the tape form's gravity argument
         lo, hi = scene.inner_bounds
         self.lo, self.hi = T.vec(*lo), T.vec(*hi)
         self._ratio = T.scalar(self.transfer.flip_ratio if self.split_force else 0.0)
@@ -272,8 +273,8 @@ class WarpStepper(BaseStepper):
                for c, (start, cnt) in enumerate(self._chunks(N, self.threads))]
         zero = self.T.ivec()
         grid = [rec(self.k_grid, 1, [self.grid_mm, self.grid_f, len(p2g), G, 0, zero, zero, self.dt_s, self.gravity,
-                                     self.shape_iv, self.strides, self.wall_kind, self.thickness, self.grid_v,
-                                     self.grid_v_old])
+                                     self._gravity_unused, self.shape_iv, self.strides, self.wall_kind, self.thickness,
+                                     self.grid_v, self.grid_v_old])
                 for _ in range(self._grid_chunks)]
         g2p = []
         for i, (g, k, st, ot, prm) in enumerate(zip(self.groups, self.k_g2p, s.law, o.law, s.order.params)):
