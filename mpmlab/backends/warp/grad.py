@@ -4,9 +4,11 @@ The fast stepper (``stepper.py``) sorts particles, splits P2G over private grid 
 grid it reads, all in place; a ``wp.Tape`` cannot replay that. This module is the separate
 gradient-correct path (Genesis-style forward-fast / gradient-correct split): particles in scene order,
 a separate grid and particle state per step of a segment (buffers allocated once and reused, never
-overwritten while a tape still needs them), boundaries writing separate output arrays, atomic P2G.
-G2P (fused with each law's update) and the initial stress reuse the fast path's kernels, which
-already write only fresh outputs; the laws' spectral maps carry hand-written adjoints
+overwritten while a tape still needs them). Every kernel comes from the fast path's factories (one
+source): P2G in its atomic (CUDA) form, the grid update's tape-safe form (``kernels.grid_update_kernel
+(tape=True)``: every node, fresh outputs), G2P fused with each law's update and the initial stress as
+they are, and each boundary's own ``tape()`` implementation (``boundaries.py``; a boundary without
+one has no Warp gradient). The laws' spectral maps carry hand-written adjoints
 (``linalg.spectral_func``) so the derivative is finite at repeated singular values.
 
 Memory (JAX-MPM Sec. 3.3.2, Remarks 4-5): the forward pass keeps only the states at segment starts

@@ -386,8 +386,8 @@ class WarpStepper(BaseStepper):
         return bool(self.flag.numpy()[0])
 
     # ---- differentiable entry points (issue #4) -----------------------------------------------------
-    # A separate tape-friendly path (``grad.py``), built on first use: forward-only runs compile nothing
-    # for it. Controls are torch tensors; ``observe`` is a torch.autograd.Function.
+    # The tape-safe path (``grad.py``: scene order, fresh buffers, the same kernel factories), built on
+    # first use: forward-only runs compile nothing for it. Controls are torch tensors; ``observe`` is a torch.autograd.Function.
     def controls(self) -> dict:
         from . import grad
 
