@@ -27,7 +27,6 @@ def test_jax_per_mass_adjoint_is_finite_and_exact():
 def test_warp_grid_update_adjoint_is_finite_and_exact():
     import warp as wp
 
-    from mpmlab.backends.warp import grad as G
     from mpmlab.backends.warp import kernels as K
     from mpmlab.backends.warp.types import warp_types
 
@@ -39,8 +38,10 @@ def test_warp_grid_update_adjoint_is_finite_and_exact():
     none = np.full(4, K.WALL_CODES["none"], np.int32)
     tape = wp.Tape()
     with tape:
-        wp.launch(G.grid_kernel(2, "fp32", False), dim=2,
-                  inputs=[mm, f, g, T.scalar(1e-3), T.ivec(2, 1), T.ivec(1, 2), wp.array(none, dtype=int), 0, gv, gvo])
+        # the tape-safe form of the grid update (the differentiable path's)
+        wp.launch(K.grid_update_kernel(2, "fp32", False, tape=True), dim=2,
+                  inputs=[mm, f, 1, 2, 0, T.ivec(), T.ivec(), T.scalar(1e-3), T.vec(), g, T.ivec(2, 1), T.ivec(1, 2),
+                          wp.array(none, dtype=int), 0, gv, gvo])
     gv.grad.assign(CT)
     tape.backward()
     adj = mm.grad.numpy()

@@ -230,7 +230,7 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
 def wall_func(dim: int, precision: str):
     """Domain walls on one node's velocity: nodes within ``thickness`` of a face get that face's kind
     (``WALL_CODES``: 1 sticky, 2 slip, 3 separate = only into the wall). Shared by the fast grid update and
-    the differentiable one (``grad.grid_kernel``); the normal component is removed by subtracting it
+    its tape-safe form (``grid_node_func``); the normal component is removed by subtracting it
     (``vn - vn[d] e_d``), not by overwriting it, because Warp 1.19's adjoint of a vector-component
     overwrite still passes the old value's gradient through."""
     T = warp_types(dim, precision)
