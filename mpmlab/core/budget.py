@@ -343,18 +343,10 @@ def _laws(scene) -> list[tuple[Any, int]]:
 def _field_size(name: str, dim: int) -> int:
     """Scalars per particle of a stored field: C is D x D; a law state field as its law declares it
     (an undeclared name counts as D x D, the largest built-in)."""
-    if name == "C":
-        return dim * dim
-    from . import registry
+    from .interfaces import registered_state_fields
 
-    for law_name in registry.laws.names():
-        try:
-            law = registry.laws.get(law_name)
-            if name in law.state_fields:
-                return law.state_spec(name).size(dim)
-        except Exception:  # noqa: BLE001 -- a broken plugin law: fall through to the default
-            continue
-    return dim * dim
+    f = registered_state_fields().get(name) if name != "C" else None
+    return f.size(dim) if f is not None else dim * dim
 
 
 def _scene_particle_bytes(scene, n: int) -> int:

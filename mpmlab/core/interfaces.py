@@ -290,6 +290,21 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
                 raise ConfigError(f"{where}: law '{self.name}' weight '{k}' has shape {got}; it declares {tuple(shape)}.")
 
 
+def registered_state_fields() -> dict[str, StateField]:
+    """Every state field the registered laws declare, by name (the first declaration of a name wins),
+    in registry order. A plugin law that fails to load is left out: it must not hide the others."""
+    from . import registry
+
+    out: dict[str, StateField] = {}
+    for name in registry.laws.names():
+        try:
+            for f in registry.laws.get(name).state:
+                out.setdefault(f.name, f)
+        except Exception:  # noqa: BLE001 -- a broken plugin law
+            continue
+    return out
+
+
 def named_params(prm, names) -> Mapping[str, Any]:
     """Law parameters by name: a mapping is returned as is; an array ``[..., P]`` in the declared
     order (the layout of a stepper's per-particle parameters) becomes ``{name: prm[..., i]}``. NumPy

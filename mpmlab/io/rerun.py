@@ -88,17 +88,10 @@ def color_choices(fields: Sequence[str]) -> list[str]:
 
 def _declared_label(name: str) -> tuple[str, str]:
     """(label, unit) of a law state field from its declaration (``StateField.doc``/``unit``)."""
-    from ..core import registry
+    from ..core.interfaces import registered_state_fields
 
-    for law_name in registry.laws.names():
-        try:
-            law = registry.laws.get(law_name)
-            if name in law.state_fields:
-                f = law.state_spec(name)
-                return (f.doc or name), ("" if f.unit == "-" else f.unit)
-        except Exception:  # noqa: BLE001 -- a broken plugin law: plain name
-            continue
-    return name, ""
+    f = registered_state_fields().get(name)
+    return (name, "") if f is None else ((f.doc or name), ("" if f.unit == "-" else f.unit))
 
 
 #: stored fields with a colouring of their own above (J from F, |sigma| as stress) or none (F, C)

@@ -42,15 +42,9 @@ register_task_schema("simulate", SimulateTaskConfig)
 
 def known_fields() -> list[str]:
     """Every per-particle field a run can store: ``C`` and the state fields the registered laws declare."""
-    from ..core import registry
+    from ..core.interfaces import registered_state_fields
 
-    names = {"C": None}
-    for name in registry.laws.names():
-        try:
-            names.update(dict.fromkeys(registry.laws.get(name).state_fields))
-        except Exception:  # noqa: BLE001 -- a broken plugin law must not hide the built-in fields
-            continue
-    return list(names)
+    return ["C", *(f for f in registered_state_fields() if f != "C")]
 
 
 def stored_fields(requested, scene, transfer) -> tuple[str, ...]:

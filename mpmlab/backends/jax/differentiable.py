@@ -31,8 +31,7 @@ def controls(stepper) -> dict[str, Any]:
     scene_order = [None] * len(stepper._bc_order)
     for k, i in enumerate(stepper._bc_order):
         scene_order[i] = prm["boundary"][k]
-    law_state = tuple({k: jnp.asarray(v, dt) for k, v in g.law.initial_state(g.count, stepper.dim).items()}
-                      for g in stepper.groups)
+    law_state = stepper.init()["law"]        # the rest state (F = I, J = 1, ...), as a rollout starts
     out = {"x": jnp.asarray(P.x, dt), "v": jnp.asarray(P.v, dt), "law": prm["law"], "law_weights": prm["law_weights"],
            "law_state": law_state, "boundary": tuple(scene_order),
            "gravity": prm["gravity"], "mass": prm["mass"], "volume": prm["volume"]}
@@ -62,8 +61,7 @@ def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
                 raise ConfigError(f"controls['law_state'] for law '{g.law.name}' has fields {sorted(st)}; the law "
                                   f"declares {sorted(g.law.state_fields)}.")
     else:
-        law_states = tuple({k: jnp.asarray(v, dt) for k, v in g.law.initial_state(g.count, stepper.dim).items()}
-                           for g in stepper.groups)
+        law_states = stepper.init()["law"]
     state = {"x": jnp.asarray(c["x"], dt), "v": jnp.asarray(c["v"], dt), "law": law_states, "t": jnp.asarray(0.0, dt)}
     if stepper.transfer.needs_affine:
         state["C"] = (jnp.asarray(c["C"], dt) if "C" in c
