@@ -22,11 +22,11 @@ from mpmlab.core import registry
 from mpmlab.core.errors import GradientError, SimulationDiverged
 from mpmlab.observations import Eulerian, Lagrangian, apply_numpy
 from mpmlab.testing import options_of, params_of
+from mpmlab.testing.gradients import HS, leaf, warp_fd_errors, with_leaf
 
 LAWS = registry.laws.names()
 TRANSFERS = registry.transfers.names()
 STEPS = (7, 15)
-HS = (1e-4, 3e-5, 1e-5, 3e-6, 1e-6)
 #: initial velocity gradient added to the bodies' rigid motion: shear + compression, so the Hencky
 #: and Drucker-Prager laws leave their elastic range within a few steps
 SHEAR = {2: np.array([[0.5, 1.0], [0.3, -1.5]]),
@@ -61,55 +61,10 @@ def sheared_controls(st):
     return c
 
 
-def with_leaf(c, key, value):
-    """A copy of controls c with one entry replaced; key 'law' / ('boundary', i, name) / a top-level name."""
-    c = dict(c)
-    if key == "law":
-        c["law"] = (value,) + tuple(c["law"][1:])
-    elif isinstance(key, tuple):
-        _, i, name = key
-        b = [dict(d) for d in c["boundary"]]
-        b[i][name] = value
-        c["boundary"] = tuple(b)
-    else:
-        c[key] = value
-    return c
-
-
-def leaf(c, key):
-    if key == "law":
-        return c["law"][0]
-    if isinstance(key, tuple):
-        return c["boundary"][key[1]][key[2]]
-    return c[key]
-
-
 def fd_errors(st, c, obs, steps, keys, seed=0, scale=None):
-    """{key: (min relative error over HS, autograd directional derivative)}, one random direction each."""
-    c = dict(c)
-    leaves = {}
-    for k in keys:
-        leaves[k] = leaf(c, k).detach().clone().requires_grad_(True)
-        c = with_leaf(c, k, leaves[k])
-    y = st.observe(c, obs, steps, segment=4)
-    w = torch.tensor(np.random.default_rng(seed).standard_normal(tuple(y.shape)))
-    (y * w).sum().backward()
-    rng = np.random.default_rng(seed + 1)
-    out = {}
-    for k in keys:
-        base = leaves[k].detach()
-        d = torch.tensor(rng.standard_normal(tuple(base.shape)))
-        d = d * (scale[k] if scale and k in scale else 1.0) * (base.abs() if k == "law" else 1.0)
-        ad = float((leaves[k].grad * d).sum())
-        errs = []
-        for h in HS:
-            with torch.no_grad():
-                fp = float((st.observe(with_leaf(c, k, base + h * d), obs, steps) * w).sum())
-                fm = float((st.observe(with_leaf(c, k, base - h * d), obs, steps) * w).sum())
-            fd = (fp - fm) / (2 * h)
-            errs.append(abs(fd - ad) / max(abs(fd), 1e-300))
-        out[k] = (min(errs), ad)
-    return out
+    """{key: (min relative error over HS, autograd directional derivative)}, one random direction each
+    (the conformance kit's finite-difference check, ``mpmlab.testing.gradients.warp_fd_errors``)."""
+    return warp_fd_errors(st, c, obs, steps, keys, seed, scale or {})
 
 
 # ---- every law x transfer ----------------------------------------------------------------------------

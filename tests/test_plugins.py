@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import mpmlab
@@ -90,6 +91,23 @@ def test_plugin_law_runs_from_the_cli(plugin_path, tmp_path):
     assert traj.materials[0]["law"] == "neo_hookean"
     assert traj.materials[0]["provenance"] == "mpmlab-example-plugin 0.1.0"
     assert (run_dir / "recording.rrd").is_file()
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_plugin_transfer_runs_from_the_cli(plugin_path, tmp_path, backend):
+    """The plugin's RPIC through its entry point and its conf/transfer/rpic.yaml, on each backend."""
+    from mpmlab.io.h5 import read_trajectory
+
+    run_dir = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "mpmlab", "transfer=rpic", f"backend={backend}", "steps=20",
+                           "frame_every=10", "output.recording=false", f"hydra.run.dir={run_dir}"],
+                          env=with_plugin(plugin_path), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run_dir / "summary.json").read_text())["status"] == "ok"
+    traj = read_trajectory(run_dir / "trajectory.h5")
+    assert traj.meta["transfer"] == "rpic" and "C" in traj.fields
+    C = traj.fields["C"][-1]
+    assert np.abs(C + np.swapaxes(C, 1, 2)).max() < 1e-5 * max(np.abs(C).max(), 1.0)   # RPIC's C is skew
 
 
 def test_conformance_kit_passes_on_the_plugin_laws(plugin_path, tmp_path):

@@ -433,7 +433,7 @@ def estimate_memory(scene, backend: str = "jax", precision: str = "fp32", transf
     groups = _laws(scene)
     N = sum(n for _, n in groups)
     G = math.prod(int(g) for g in scene.grid_shape)
-    split = tr.flip_ratio is not None
+    split = bool(tr.split_force)
     affine = tr.needs_affine
     law_state = sum(n * sum(_field_size(f, D) for f in law.state_fields) for law, n in groups)
     law_params = sum(n * len(law.param_names()) for law, n in groups)

@@ -11,7 +11,7 @@ import math
 from abc import ABC, abstractmethod
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping, Protocol, runtime_checkable
+from typing import Any, ClassVar, Mapping, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -323,55 +323,114 @@ def _frozen(v):
     return v
 
 
+class P2GTerms(NamedTuple):
+    """What one transfer scheme scatters from each particle p to each node i of its 3^D stencil
+    (JAX: arrays with a leading particle axis; ``None`` = the term is absent and never computed).
+
+    With w = w_ip and x_i - x_p = (o - fx) dx, node i receives
+      mass      m_p w                                   (always; the kernels add it)
+      momentum  w (q_p + A_p (x_i - x_p)) + G_p grad w   (q [D], A [D, D], G [D, D]: impulses, times dt)
+      force     w F_p (x_i - x_p) + H_p grad w           (``split_force`` schemes only: kept apart from the
+                                                          momentum so that G2P sees the old grid velocity)
+    External particle forces (boundaries) are added by the kernels: dt f to q, or f to the force lane.
+    """
+
+    q: Any
+    A: Any = None
+    G: Any = None
+    force_A: Any = None
+    force_G: Any = None
+
+
+class G2PResult(NamedTuple):
+    """What a transfer scheme makes of the gathered grid velocities, per particle: the new velocity
+    ``v``, the new affine field ``C`` (``carries_C`` schemes, else None) and the velocity gradient
+    ``grad_v`` the law is updated with. The particle moves with the PIC velocity sum w v_i (JAX-MPM
+    Eq. 17) whatever the scheme."""
+
+    v: Any
+    C: Any
+    grad_v: Any
+
+
 class AbstractTransfer(_Pluggable, ABC):
     """How velocity (and affine / gradient data) goes particle -> grid -> particle.
 
-    A transfer is described by four choices that the backend kernels specialise on at build time:
+    A scheme carries its own math, one folder per scheme (``mpmlab/transfers/<name>/``: ``jax.py``,
+    ``warp.py``), while the kernels keep one generic stencil decomposition and compile only the terms
+    the scheme declares (so PIC pays for no affine term, MLS for no weight gradient):
 
-    * ``affine``: what the particle carries besides v: ``None`` (PIC/FLIP, no ``C`` stored),
-      ``"apic"`` (B D^-1, Jiang et al. 2015; JAX-MPM Eq. B.1), or ``"velocity_gradient"``
-      (TPIC, JAX-MPM Eq. B.2).
-    * ``force``: ``"gradient"`` (f_i = -sum V tau grad w, JAX-MPM Eq. 12) or ``"mls"`` (Hu et al. 2018,
-      f_i = -sum V M^-1 tau (x_i - x_p) w with M^-1 = 4/dx^2 for quadratic B-splines).
-    * ``grad_v``: the particle velocity gradient fed to the law: ``"gradient"`` (sum v_i (x) grad w,
-      JAX-MPM Eq. 18) or ``"affine"`` (the MLS C).
-    * ``flip_ratio``: None for PIC-style G2P, else the FLIP blend (1 = pure FLIP, JAX-MPM Eq. 15).
+    * ``carries_C``: the particle stores a D x D affine field ``C`` (state "C", a differentiable control).
+    * ``momentum_terms`` / ``force_terms``: which of ``"affine"`` (the A / F term) and ``"gradient"``
+      (the G / H term) of :class:`P2GTerms` the scheme's P2G returns; ``force_terms`` only with
+      ``split_force`` (the grid keeps the force apart, FLIP).
+    * ``moments``: the G2P sums beyond ``v_pic = sum w v_i`` the scheme reads: ``"first"``
+      (``B = sum w v_i o^T``, o the node offset in cells: APIC's B, Jiang et al. 2015) and
+      ``"gradient"`` (``sum v_i (grad w)^T``, JAX-MPM Eq. 18); with ``split_force`` also
+      ``v_old = sum w v_i^old``.
+    * ``scalars()``: runtime numbers of the math (the FLIP ratio): kernel arguments on Warp, so
+      changing them does not recompile.
+    * ``conserves``: what the scheme conserves over a step without external forces
+      (``"linear_momentum"``, ``"angular_momentum"`` counting the particles' affine spin, Jiang et al.
+      2015 Sec. 5.3); ``mpmlab.testing.check_transfer`` measures each one it declares.
+
+    Backend functions (``implementations[backend]`` is a factory ``make(transfer, dim)`` on JAX,
+    ``make(transfer, dim, precision)`` on Warp, returning a namespace; cache it, kernels are keyed
+    by it):
+
+    * JAX: ``p2g(p) -> P2GTerms`` and ``g2p(g) -> G2PResult`` on particle-batched arrays; ``p`` has
+      ``m, V, v, C, tau, dt, inv_dx, dx``; ``g`` has ``v, v_pic, v_old, first, grad, fx, inv_dx``
+      (``None`` for what is not declared). ``grad`` and ``G`` are in physical units (1/length).
+    * Warp (``@wp.func``s the kernel factories close over): ``p2g_momentum(m, V, v, C, tau, dt,
+      inv_dx, tp) -> (q, A, G)``, ``p2g_force(same) -> (F, H)`` (``split_force`` only) and
+      ``g2p(v, vp, vo, B, Gv, fx, inv_dx, tp) -> (v, C, grad_v)``; ``tp`` is the array of
+      ``scalars()``; G and H multiply the weight gradient in cell units (dx grad w, the kernels' own),
+      ``Gv`` is in physical units. Undeclared outputs are ignored (return zeros).
     """
 
-    affine: ClassVar[str | None] = None
-    force: ClassVar[str] = "gradient"
-    grad_v: ClassVar[str] = "gradient"
-    flip_ratio: float | None = None
+    carries_C: ClassVar[bool] = False
+    split_force: ClassVar[bool] = False
+    momentum_terms: ClassVar[frozenset] = frozenset()
+    force_terms: ClassVar[frozenset] = frozenset()
+    moments: ClassVar[frozenset] = frozenset()
+    conserves: ClassVar[frozenset] = frozenset({"linear_momentum"})
+
+    TERMS: ClassVar[frozenset] = frozenset({"affine", "gradient"})
+    MOMENTS: ClassVar[frozenset] = frozenset({"first", "gradient"})
 
     @property
     def needs_affine(self) -> bool:
-        return self.affine is not None
+        return bool(self.carries_C)
 
-    #: the values each choice may take (what the backends implement)
-    CHOICES: ClassVar[dict] = {"affine": (None, "apic", "velocity_gradient"), "force": ("gradient", "mls"),
-                               "grad_v": ("gradient", "affine")}
+    def scalars(self) -> tuple:
+        """Runtime numbers of this scheme's math, in the order its Warp functions read ``tp``."""
+        return ()
+
+    def describe(self) -> str:
+        return f"transfer '{getattr(self, 'name', type(self).__name__)}' ({type(self).__module__})"
 
     def check(self) -> None:
-        """Refuse a combination the kernels cannot carry out, in one line naming the scheme (called when
-        a stepper is built): an unknown value, ``grad_v="affine"`` without an affine field, ``force="mls"``
-        without APIC's C (the MLS force is the APIC moment form), a FLIP ratio outside [0, 1]."""
-        where = f"transfer '{getattr(self, 'name', type(self).__name__)}' ({type(self).__module__})"
-        for k, allowed in self.CHOICES.items():
-            v = getattr(self, k)
-            if v not in allowed:
-                raise ConfigError(f"{where}: {k} = {v!r} is not one of {list(allowed)}.")
-        if self.grad_v == "affine" and self.affine is None:
-            raise ConfigError(f"{where}: grad_v = 'affine' feeds the affine field C to the law, but affine = None "
-                              f"carries none; set affine = 'apic' or grad_v = 'gradient'.")
-        if self.force == "mls" and self.affine != "apic":
-            raise ConfigError(f"{where}: force = 'mls' is the MLS-MPM force of an APIC transfer (Hu et al. 2018); "
-                              f"it needs affine = 'apic' (got {self.affine!r}).")
-        r = self.flip_ratio
-        if r is not None and not (isinstance(r, (int, float)) and 0.0 <= float(r) <= 1.0):
-            raise ConfigError(f"{where}: flip_ratio = {r!r} must be None (PIC-style G2P) or in [0, 1].")
+        """Refuse declarations the kernels cannot carry out, in one line naming the scheme (called when a
+        stepper is built; each backend then checks the scheme's functions against them)."""
+        where = self.describe()
+        for attr, allowed in (("momentum_terms", self.TERMS), ("force_terms", self.TERMS),
+                              ("moments", self.MOMENTS)):
+            bad = set(getattr(self, attr)) - allowed
+            if bad:
+                raise ConfigError(f"{where}: {attr} has {sorted(bad)}, not among {sorted(allowed)}.")
+        if self.force_terms and not self.split_force:
+            raise ConfigError(f"{where}: force_terms = {sorted(self.force_terms)} needs split_force = True "
+                              f"(without it the force is part of the momentum: declare it in momentum_terms).")
+        if not (self.momentum_terms or self.force_terms):
+            raise ConfigError(f"{where}: declares no force term (momentum_terms and force_terms are empty): "
+                              f"the material's stress would never reach the grid.")
+        for k, value in enumerate(self.scalars()):
+            if not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+                raise ConfigError(f"{where}: scalars()[{k}] = {value!r} is not a finite number.")
 
     def options(self) -> dict[str, Any]:
-        return {"flip_ratio": self.flip_ratio} if self.flip_ratio is not None else {}
+        """The scheme's configured options (its dataclass fields), as recorded in run metadata."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)} if dataclasses.is_dataclass(self) else {}
 
 
 class AbstractBoundary(_Pluggable, ABC):

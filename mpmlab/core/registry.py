@@ -118,9 +118,8 @@ def _register_builtins() -> None:
     for name in ("fixed_corotated", "hencky_drucker_prager", "hencky_von_mises", "weakly_compressible",
                  "newtonian_fluid", "drucker_prager_jaumann"):
         laws.register(name, f"mpmlab.laws.{name}:Law")
-    for name, cls in (("pic", "TransferPIC"), ("flip", "TransferFLIP"), ("apic", "TransferAPIC"),
-                      ("mls", "TransferMLS"), ("tpic", "TransferTPIC")):
-        transfers.register(name, f"mpmlab.transfers:{cls}")
+    for name in ("pic", "flip", "apic", "mls", "tpic"):
+        transfers.register(name, f"mpmlab.transfers.{name}:Transfer")
     backends.register("jax", "mpmlab.backends.jax:JaxBackend")
     backends.register("warp", "mpmlab.backends.warp:WarpBackend")
     for name, cls in (("walls", "Walls"), ("friction_walls", "FrictionWalls"), ("plane", "Plane"),

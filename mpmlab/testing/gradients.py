@@ -31,14 +31,25 @@ def _stepper(law, backend, transfer, dim):
     return mpmlab.build_stepper(gradient_scene(law, dim), backend, transfer, "fp64")
 
 
-def _leaf(c, key):
-    return c["law"][0] if key == "law" else c["law_weights"][0] if key == "law_weights" else c[key]
+def leaf(c, key):
+    """One control: 'law' / 'law_weights' (of the first group), ('boundary', i, name), or a top-level name."""
+    if key in ("law", "law_weights"):
+        return c[key][0]
+    if isinstance(key, tuple):
+        return c["boundary"][key[1]][key[2]]
+    return c[key]
 
 
-def _with(c, key, value):
+def with_leaf(c, key, value):
+    """A copy of controls ``c`` with one control (a key as in ``leaf``) replaced."""
     c = dict(c)
     if key in ("law", "law_weights"):
         c[key] = (value,) + tuple(c[key][1:])
+    elif isinstance(key, tuple):
+        _, i, name = key
+        b = [dict(d) for d in c["boundary"]]
+        b[i][name] = value
+        c["boundary"] = tuple(b)
     else:
         c[key] = value
     return c
@@ -55,10 +66,12 @@ def _dot(a, b) -> float:
     return float((a * b).sum())
 
 
-def _direction(key, base, rng, to):
+def _direction(key, base, rng, to, scale=None):
+    scale = _SCALE if scale is None else scale
+
     def one(b):
         d = rng.standard_normal(tuple(np.shape(b)))
-        d = d * _SCALE.get(key, 1.0)
+        d = d * scale.get(key, 1.0)
         if key == "law":
             d = d * np.abs(np.asarray(b))
         return to(d)
@@ -118,12 +131,12 @@ def _jax(st, c, keys, steps, seed):
     rng = np.random.default_rng(seed + 1)
     out = {}
     for k in keys:
-        base = _tree(_leaf(c, k), np.asarray)
+        base = _tree(leaf(c, k), np.asarray)
         d = _direction(k, base, rng, lambda a: a)
-        ad = _dot(_tree(_leaf(g, k), np.asarray), d)
+        ad = _dot(_tree(leaf(g, k), np.asarray), d)
         errs = []
         for h in HS:
-            shift = lambda s: _with(c, k, _tree(_tree_add(base, d, s), jnp.asarray))
+            shift = lambda s: with_leaf(c, k, _tree(_tree_add(base, d, s), jnp.asarray))
             fd = (float(loss(shift(h))) - float(loss(shift(-h)))) / (2 * h)
             errs.append(abs(fd - ad) / max(abs(fd), 1e-300))
         out[k] = (min(errs), ad)
@@ -137,11 +150,21 @@ def _warp(st, c, keys, steps, seed):
 
     c = dict(c)
     c["v"] = c["v"] + (c["x"] - c["x"].mean(0)) @ torch.tensor(SHEAR[st.dim]).T
-    obs = Lagrangian(quantity="v")
+    return warp_fd_errors(st, c, Lagrangian(quantity="v"), steps, keys, seed)
+
+
+def warp_fd_errors(st, c, obs, steps, keys, seed: int = 0, scale=None) -> dict:
+    """Central differences vs torch autograd through a Warp stepper's ``observe``: for each control key
+    (as in ``leaf``), ``(min relative error over HS, <grad, d>)`` along one random direction d
+    (standard normal x ``scale[key]`` (default: x 0.01), x |value| for 'law'), of the loss
+    sum(observe(c) * w) with fixed random weights w."""
+    import torch
+
+    c = dict(c)
     leaves = {}
     for k in keys:
-        leaves[k] = _tree(_leaf(c, k), lambda a: a.detach().clone().requires_grad_(True))
-        c = _with(c, k, leaves[k])
+        leaves[k] = _tree(leaf(c, k), lambda a: a.detach().clone().requires_grad_(True))
+        c = with_leaf(c, k, leaves[k])
     y = st.observe(c, obs, steps, segment=4)
     w = torch.tensor(np.random.default_rng(seed).standard_normal(tuple(y.shape)))
     (y * w).sum().backward()
@@ -149,12 +172,12 @@ def _warp(st, c, keys, steps, seed):
     out = {}
     for k in keys:
         base = _tree(leaves[k], lambda a: a.detach())
-        d = _direction(k, _tree(base, lambda a: a.numpy()), rng, torch.tensor)
+        d = _direction(k, _tree(base, lambda a: a.numpy()), rng, torch.tensor, scale)
         ad = _dot(_tree(leaves[k], lambda a: a.grad), d)
         errs = []
         for h in HS:
             with torch.no_grad():
-                at = lambda s: float((st.observe(_with(c, k, _tree_add(base, d, s)), obs, steps) * w).sum())
+                at = lambda s: float((st.observe(with_leaf(c, k, _tree_add(base, d, s)), obs, steps) * w).sum())  # noqa: E731
                 fd = (at(h) - at(-h)) / (2 * h)
             errs.append(abs(fd - ad) / max(abs(fd), 1e-300))
         out[k] = (min(errs), ad)

@@ -9,6 +9,7 @@ parameters and boundary coefficients alike (issue #4 builds on this).
 from __future__ import annotations
 
 import itertools
+from types import SimpleNamespace
 
 import jax
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from ...core.stepper import BaseStepper
 from .laws import law_functions, weights_of
+from .transfers import transfer_functions
 
 DTYPES = {"fp32": jnp.float32, "fp64": jnp.float64}
 
@@ -75,6 +77,7 @@ class JaxStepper(BaseStepper):
         strides = np.cumprod((1,) + self.grid_shape[::-1][:-1])[::-1]
         self._strides = jnp.asarray(strides.copy(), dtype=jnp.int32)
         self._offsets = np.array(list(itertools.product(range(3), repeat=D)), dtype=np.int32)  # [S, D]
+        self._tf = transfer_functions(transfer, D, dtype)   # the scheme's p2g / g2p (mpmlab/transfers/<name>/jax.py)
         self._laws = []
         for g in self.groups:
             self._laws.append(law_functions(g.law, D, dtype))
@@ -139,7 +142,7 @@ class JaxStepper(BaseStepper):
 
     # ---- the step ------------------------------------------------------------------------------
     def step_fn(self, state, params, dt=None):
-        """One explicit MLS/APIC/PIC/FLIP/TPIC step (JAX-MPM Sec. 2.2; NCLaw Alg. 3), pure.
+        """One explicit MPM step (JAX-MPM Sec. 2.2; NCLaw Alg. 3) with the scheme's transfer math, pure.
 
         Layout for speed on CPU (the math is the textbook one): each particle's 3^D stencil is one
         *window* of the grid, so P2G is a single windowed ``lax.scatter_add`` of a ``[N, 3, .., 3, K]``
@@ -147,13 +150,15 @@ class JaxStepper(BaseStepper):
         ``lax.gather`` -- one index per particle instead of 3^D, and no [N*3^D] index arrays. Weights
         are separable products; the affine terms are folded into one per-particle matrix
         (``A = m C - 4 dt V / dx^2 tau`` for MLS). Both primitives are differentiable (their transposes
-        are each other), so ``jax.grad`` runs through the step unchanged.
+        are each other), so ``jax.grad`` runs through the step unchanged. The transfer scheme supplies
+        the per-particle terms (``p2g``) and what becomes of the gathered sums (``g2p``); this function
+        contracts only the terms it declares (``AbstractTransfer``), it never branches on a scheme.
 
         ``dt``: None bakes the build-time ``self.dt`` into the program as a constant (fixed-dt runs,
         gradient rollouts); a traced scalar is the adaptive ``dt: auto`` step (one compiled program
         for every dt value).
         """
-        T = self.transfer
+        T, tf = self.transfer, self._tf
         D, dx = self.dim, self.scene.dx
         dt = self.dt if dt is None else dt
         inv_dx = 1.0 / dx
@@ -163,7 +168,7 @@ class JaxStepper(BaseStepper):
         N = x.shape[0]
         bc_params = params["boundary"]
         nb = len(self._grid_bcs)
-        split = T.flip_ratio is not None
+        split = bool(T.split_force)
         gshape = tuple(self.grid_shape)
         O = [jnp.asarray(o, dtype) for o in np.indices((3,) * D)]    # node offset along each axis, [3]*D
 
@@ -189,21 +194,13 @@ class JaxStepper(BaseStepper):
         # P2G ---------------------------------------------------------------------------------------------
         # Node o of a particle gets, per lane (momentum D, mass 1 [, force D when split]):
         #   w_o (lin + sum_d o_d Acol_d) + sum_e (grad w_o)_e Gcol_e
-        # with per-particle columns: momentum lin = q - A fx dx, Acol_d = A[:, d] dx where
-        # A = m C [- 4 dt V / dx^2 tau] (APIC / MLS, Hu et al. 2018), Gcol_e = -dt V tau[:, e] (JAX-MPM
-        # Eq. 12, gradient force); mass lin = m. They are computed once per particle and materialised
-        # (optimization_barrier) so the [N, 3^D, K] block is a cheap elementwise expression of them.
+        # with per-particle columns from the scheme's terms (P2GTerms: w (q + A (x_i - x_p)) + G grad w):
+        # lin = q - A fx dx, Acol_d = A[:, d] dx, Gcol_e = G[:, e]; mass lin = m. They are computed once
+        # per particle and materialised so the [N, 3^D, K] block is a cheap elementwise expression of them.
         zero = jnp.zeros((N, D), dtype)
         mv = lambda M, c: jnp.stack([sum(M[:, a, j] * c[:, j] for j in range(D)) for a in range(D)], -1)  # M c
-        q = mass[:, None] * v
-        A = None
-        if T.affine is not None:
-            A = mass[:, None, None] * state["C"]
-        if T.force == "mls" and not split:
-            S = -(4.0 * inv_dx * inv_dx * dt) * vol[:, None, None] * tau      # Hu et al. 2018
-            A = S if A is None else A + S
-        Fm = -(4.0 * inv_dx * inv_dx) * vol[:, None, None] * tau if (split and T.force == "mls") else None
-        Tg = -vol[:, None, None] * tau if T.force != "mls" else None            # JAX-MPM Eq. 12
+        pt = tf.p2g(SimpleNamespace(m=mass, V=vol, v=v, C=state.get("C"), tau=tau, dt=dt, inv_dx=inv_dx, dx=dx))
+        q, A, G, Fm, Fg = pt.q, pt.A, pt.G, pt.force_A, pt.force_G
         ext = None
         for bc, bp in zip(self._force_bcs, bc_params[nb + len(self._particle_bcs):]):
             f = bc.particle_force(x, mass, state["t"], bp)
@@ -213,17 +210,17 @@ class JaxStepper(BaseStepper):
         m1 = mass[:, None]
         lin = [q - mv(A, fx) * dx if A is not None else q, m1]
         acol = [[A[:, :, d] * dx if A is not None else zero, jnp.zeros_like(m1)] for d in range(D)]
-        gcol = [[dt * Tg[:, :, e] if (Tg is not None and not split) else zero, jnp.zeros_like(m1)] for e in range(D)]
+        gcol = [[G[:, :, e] if G is not None else zero, jnp.zeros_like(m1)] for e in range(D)]
         if split:
             f0 = zero if Fm is None else -mv(Fm, fx) * dx
             lin.append(f0 if ext is None else f0 + ext)
             for d in range(D):
                 acol[d].append(Fm[:, :, d] * dx if Fm is not None else zero)
-                gcol[d].append(Tg[:, :, d] if Tg is not None else zero)
+                gcol[d].append(Fg[:, :, d] if Fg is not None else zero)
         cat = lambda parts: jnp.concatenate(parts, axis=-1)                      # [N, K]
         lin = cat(lin)
         acol = [cat(c) for c in acol] if (A is not None or Fm is not None) else None
-        gcol = [cat(c) for c in gcol] if Tg is not None else None
+        gcol = [cat(c) for c in gcol] if (G is not None or Fg is not None) else None
         w1, dw1, lin, acol, gcol = _materialize((w1, dw1, lin, acol, gcol), state["t"] >= 0)
         W = outer([w1[:, :, d] for d in range(D)])                           # [N, 3^D]
         lanes = (slice(None),) + (None,) * D + (slice(None),)                # [N, K] -> [N, 1.., K]
@@ -270,9 +267,9 @@ class JaxStepper(BaseStepper):
                  "o": [[None, w1[:, 1, d], 2.0 * w1[:, 2, d]] for d in range(D)],
                  "d": [[dw1[:, k, d] for k in range(3)] for d in range(D)]}
         specs = {"v": ("w",) * D}
-        if T.affine == "apic":
+        if "first" in T.moments:
             specs.update({f"o{d}": tuple("o" if e == d else "w" for e in range(D)) for d in range(D)})
-        if T.grad_v == "gradient" or T.affine == "velocity_gradient":
+        if "gradient" in T.moments:
             specs.update({f"d{d}": tuple("d" if e == d else "w" for e in range(D)) for d in range(D)})
         pred = state["t"] >= 0
         cur = {(): vi_all}                                                      # key: kinds of the contracted axes
@@ -292,22 +289,13 @@ class JaxStepper(BaseStepper):
 
         v_pic = out["v"][:, :D]
         new = {"t": state["t"] + dt}
-        if split:
-            dv = v_pic - out["v"][:, D:]
-            r = T.flip_ratio
-            v_p = r * (v + dv) + (1.0 - r) * v_pic                             # JAX-MPM Eq. 15
-        else:
-            v_p = v_pic
-        grad_from_w = None
-        if T.grad_v == "gradient" or T.affine == "velocity_gradient":
-            grad_from_w = jnp.stack([out[f"d{e}"][:, :D] for e in range(D)], axis=-1)   # JAX-MPM Eq. 18
-        if T.affine == "apic":
-            # B D^-1 with D = dx^2/4 I: C = 4/dx (sum_o w_o v_o o^T - v_pic fx^T)
-            Bo = jnp.stack([out[f"o{d}"][:, :D] for d in range(D)], axis=-1)
-            new["C"] = (4.0 * inv_dx) * (Bo - v_pic[:, :, None] * fx[:, None, :])
-        elif T.affine == "velocity_gradient":
-            new["C"] = grad_from_w
-        grad_v = new["C"] if T.grad_v == "affine" else grad_from_w
+        first = jnp.stack([out[f"o{d}"][:, :D] for d in range(D)], axis=-1) if "first" in T.moments else None
+        grad = jnp.stack([out[f"d{e}"][:, :D] for e in range(D)], axis=-1) if "gradient" in T.moments else None  # Eq. 18
+        res = tf.g2p(SimpleNamespace(v=v, v_pic=v_pic, v_old=out["v"][:, D:] if split else None, first=first,
+                                     grad=grad, fx=fx, inv_dx=inv_dx))
+        v_p, grad_v = res.v, res.grad_v
+        if T.carries_C:
+            new["C"] = res.C
         for bc, bp in zip(self._particle_bcs, bc_params[nb:nb + len(self._particle_bcs)]):
             v_p = bc.apply_particles(v_p, state["t"] + dt, bp)
             # a prescribed particle velocity also moves the particle with it

@@ -111,7 +111,7 @@ class GradPath:
         self.has_ext = any(bc.stage == "particle_force" for bc in self.bcs)
         # P2G: the fast path's kernel in its atomic form (one grid, atomic adds: what CUDA runs), which is
         # tape-safe; the bounding box it skips is a dummy here
-        self.k_p2g = K.p2g_kernel(D, prec, self.affine, tr.force == "mls", self.split, self.has_ext, atomic=True)
+        self.k_p2g = K.p2g_kernel(D, prec, st.warp_transfer, self.has_ext, atomic=True)
         self.bbox = wp.zeros(2, dtype=T.ivec, device=dev)
         self.k_grid = K.grid_update_kernel(D, prec, self.split, tape=True)   # the fast path's, tape-safe form
         self.k_g2p = st.k_g2p
@@ -317,7 +317,7 @@ class GradPath:
                     bc.force(ext, c, t, ctl)
         grid_mm, grid_f = buf.grid_mm, buf.grid_f
         wp.launch(self.k_p2g, dim=N, inputs=[s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.origin, st.dx_s,
-                                             st.dt_s, st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0], device=dev)
+                                             st.dt_s, st.transfer_scalars, st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0], device=dev)
         grid_v, grid_v_old = buf.grid_v, buf.grid_v_old
         zero = self.T.ivec()
         wp.launch(self.k_grid, dim=G, inputs=[grid_mm, grid_f, 1, G, 0, zero, zero, st.dt_s, self.T.vec(), ctl.gravity,
@@ -333,7 +333,7 @@ class GradPath:
         o = SimpleNamespace(**vars(buf.state))
         for i, (g, k, ls, lo) in enumerate(zip(st.groups, self.k_g2p, s.law, o.law)):
             wp.launch(k, dim=g.count, inputs=[s.x, s.v, grid_v, grid_v_old, st.origin, st.dx_s, st.dt_s, st.strides,
-                                              st._ratio, g.start, 0, *st._law_args(i, ls, ctl.law[i], ctl.weights_struct[i]),
+                                              st.transfer_scalars, g.start, 0, *st._law_args(i, ls, ctl.law[i], ctl.weights_struct[i]),
                                               o.x, o.v, o.C, self.law_types[i].state_arrays(lo), o.tau], device=dev)
         t_end = t + st.dt
         pv = iter(buf.pv)

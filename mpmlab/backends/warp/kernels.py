@@ -1,11 +1,13 @@
 """Warp kernel factories. Each factory is keyed by what changes the generated code -- dimension,
-precision, the transfer's four choices, the law -- and cached, so a kernel compiles once per process
-(and Warp's disk cache keeps it across processes). Scene numbers (dx, dt, gravity, wall kinds) are
-kernel arguments, so scenes that differ only in numbers share compiled kernels.
+precision, the transfer scheme (its ``@wp.func``s and declarations, ``transfers.py``), the law --
+and cached, so a kernel compiles once per process (and Warp's disk cache keeps it across processes).
+Scene numbers (dx, dt, gravity, wall kinds, the FLIP ratio) are kernel arguments, so scenes that
+differ only in numbers share compiled kernels.
 
-Laws enter only through kernels built from a closure over the law's ``@wp.func``s (Warp's
-kernel-factory pattern): the stepper's G2P kernel is specialised per law and runs the law update in
-the same pass (``g2p_law_kernel``), so P2G/G2P never branch on a law id. ``law_kernels`` keeps the
+Laws and transfer schemes enter only through kernels built from a closure over their ``@wp.func``s
+(Warp's kernel-factory pattern; the kernels compile only the terms a scheme declares): the stepper's
+G2P kernel is specialised per law and scheme and runs the law update in the same pass
+(``g2p_law_kernel``), so P2G/G2P never branch on a law or a scheme. ``law_kernels`` keeps the
 stand-alone update/stress kernels (initial stress, law conformance tests).
 """
 
@@ -82,29 +84,36 @@ def grid_vec_type(dim: int, precision: str):
 
 
 @lru_cache(maxsize=None)
-def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_force: bool, has_ext: bool,
-               atomic: bool = False):
-    """P2G: mass, momentum (+ affine), force (gradient or MLS form). ``split_force``: keep momentum and
-    force apart (FLIP needs the old grid velocity); otherwise momentum += dt f as in MLS-MPM.
+def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False):
+    """P2G of transfer scheme ``tr`` (a ``WarpTransfer``): mass, and per node o with weight w_o the
+    scheme's momentum terms w_o (q + A (o - fx) dx) + G (dx grad w_o) and, for ``split_force`` schemes
+    (FLIP needs the old grid velocity), its force terms w_o F (o - fx) dx + H (dx grad w_o) on a grid of
+    their own. Only the terms the scheme declares are compiled; the per-particle terms come from the
+    scheme's ``p2g_momentum`` / ``p2g_force`` before the stencil loop (MLS: ``A = m C - 4 dt V / dx^2
+    tau``, the mpm3d form). External particle forces add dt f to q, or f to the force grid.
 
     Launched on a chunk of particles (``start``) into one private grid copy (``goff``), so chunks can run
     on different CPU threads (Warp's CPU atomics are plain adds); the copies are summed by the grid
-    update. The per-particle affine terms are folded into one matrix before the stencil loop (MLS:
-    ``A = m C - 4 dt V / dx^2 tau``, the mpm3d form), and the loops over the 3^D nodes are unrolled.
-    Also records the chunk's bounding box of base nodes (``bbox[2 slot]``, ``bbox[2 slot + 1]``), so
-    the grid update visits only nodes particles can reach.
+    update. The loops over the 3^D nodes are unrolled. Also records the chunk's bounding box of base
+    nodes (``bbox[2 slot]``, ``bbox[2 slot + 1]``), so the grid update visits only nodes particles reach.
 
-    ``atomic`` (CUDA): all particles run concurrently into one grid, so the node sums are atomic adds
-    and no bounding box is kept (the grid update visits the whole grid). The plain read-add-write of
-    the CPU form would be a data race there.
+    ``atomic`` (CUDA, and the tape path): all particles run concurrently into one grid, so the node sums
+    are atomic adds and no bounding box is kept (the grid update visits the whole grid). The plain
+    read-add-write of the CPU form would be a data race there.
     """
     T = warp_types(dim, precision)
     S = stencil_funcs(dim, precision)
     scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
     gvec = grid_vec_type(dim, precision)
     vec3s = wp.types.vector(3, scalar)
-    fold_force = (not split_force) and mls_force       # MLS force folds into the affine matrix
-    grad_force = not mls_force                          # f = -V tau grad w, needs weight gradients
+    F = tr.funcs
+    split = tr.split_force
+    m_affine = "affine" in tr.momentum_terms
+    m_grad = "gradient" in tr.momentum_terms
+    f_affine = split and "affine" in tr.force_terms
+    f_grad = split and "gradient" in tr.force_terms
+    any_grad = m_grad or f_grad                         # weight gradients needed at all
+    ext_alone = has_ext and split and not (f_affine or f_grad)
 
     @wp.func
     def ext4(a: vec, last: scalar):
@@ -125,7 +134,7 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
     @wp.kernel(module="unique")
     def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
             mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
-            origin: vec, dx: scalar, dt: scalar, strides: ivec, start: int, goff: int,
+            origin: vec, dx: scalar, dt: scalar, tp: wp.array(dtype=scalar), strides: ivec, start: int, goff: int,
             grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), bbox: wp.array(dtype=ivec), slot: int):
         p = wp.tid() + start
         inv_dx = scalar(1.0) / dx
@@ -139,30 +148,26 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
             bbox[2 * slot + 1] = wp.max(bbox[2 * slot + 1], base)
         m = mass[p]
         V = vol[p]
-        q = m * v[p]
-        A = mat()                      # momentum of node o: w_o (q + A (o - fx) dx)
-        if wp.static(affine):
-            A = m * C[p]
-        if wp.static(fold_force):
-            A = A - (scalar(4.0) * inv_dx * inv_dx * V * dt) * tau[p]       # Hu et al. 2018
-        Fm = mat()                     # split MLS force of node o: w_o Fm (o - fx) dx
-        if wp.static(split_force and mls_force):
-            Fm = -(scalar(4.0) * inv_dx * inv_dx * V) * tau[p]
-        Tg = mat()                     # gradient force of node o: Tg grad w_o (JAX-MPM Eq. 12)
-        if wp.static(grad_force):
-            Tg = -(V * inv_dx) * tau[p]
-            if wp.static(not split_force):
-                Tg = dt * Tg
+        Cp = mat()
+        if wp.static(tr.carries_C):
+            Cp = C[p]
+        q, A, Tg = F.p2g_momentum(m, V, v[p], Cp, tau[p], dt, inv_dx, tp)
+        Fm = mat()
+        Fg = mat()
+        if wp.static(split):
+            Fm, Fg = F.p2g_force(m, V, v[p], Cp, tau[p], dt, inv_dx, tp)
         fext = vec()
         if wp.static(has_ext):
             fext = ext[p]
-            if wp.static(not split_force):
+            if wp.static(not split):
                 q = q + dt * fext
-        # per node o, as (dim+1)-vectors: w_o (q4 + sum_d o_d a4[d]) [+ sum_e (grad w_o)_e t4[e]], where
-        # q4 = (q - A fx dx, m), a4[d] = (A[:, d] dx, 0), t4[e] = (Tg[:, e], 0)
+        # per node o, as (dim+1)-vectors: w_o (q4 + sum_d o_d a4[d]) [+ sum_e (dx grad w_o)_e t4[e]], where
+        # q4 = (q - A fx dx, m), a4[d] = (A[:, d] dx, 0), t4[e] = (G[:, e], 0)
+        q4 = ext4(q, m)
+        if wp.static(m_affine):
+            q4 = ext4(q - A @ (fx * dx), m)
         Ad = wp.transpose(A * dx)      # rows = columns of A dx
         Tt = wp.transpose(Tg)
-        q4 = ext4(q - A @ (fx * dx), m)
         a40 = ext4(Ad[0], scalar(0.0))
         a41 = ext4(Ad[1], scalar(0.0))
         a42 = ext4(Ad[dim - 1], scalar(0.0))
@@ -171,56 +176,70 @@ def p2g_kernel(dim: int, precision: str, affine: bool, mls_force: bool, split_fo
         t42 = ext4(Tt[dim - 1], scalar(0.0))
         Fd = wp.transpose(Fm * dx)
         f0 = -(Fm @ (fx * dx))
-        if wp.static(split_force and has_ext):
+        if wp.static(f_affine and has_ext):
             f0 = f0 + fext
         nb = goff
         for d in range(dim):
             nb = nb + base[d] * strides[d]
         if wp.static(dim == 3):
             for i in range(3):
-                qi = q4 + OFF[i] * a40
+                qi = q4
+                if wp.static(m_affine):
+                    qi = q4 + OFF[i] * a40
                 for j in range(3):
                     wxy = W[i, 0] * W[j, 1]
-                    qij = qi + OFF[j] * a41
+                    qij = qi
+                    if wp.static(m_affine):
+                        qij = qi + OFF[j] * a41
                     fij = f0 + OFF[i] * Fd[0] + OFF[j] * Fd[1]
                     nij = nb + i * strides[0] + j * strides[1]
                     for k in range(3):
                         wgt = wxy * W[k, 2]
-                        val = wgt * (qij + OFF[k] * a42)
-                        if wp.static(grad_force):
+                        val = wgt * qij
+                        if wp.static(m_affine):
+                            val = wgt * (qij + OFF[k] * a42)
+                        if wp.static(any_grad):
                             g0 = DW[i, 0] * W[j, 1] * W[k, 2]
                             g1 = W[i, 0] * DW[j, 1] * W[k, 2]
                             g2 = wxy * DW[k, 2]
-                            if wp.static(split_force):
-                                f = Tg @ vec(g0, g1, g2)
-                                if wp.static(has_ext):
+                            if wp.static(f_grad):
+                                f = Fg @ vec(g0, g1, g2)
+                                if wp.static(has_ext and not f_affine):
                                     f = f + wgt * fext
                                 add(grid_f, nij + k, f)
-                            else:
+                            if wp.static(m_grad):
                                 val = val + g0 * t40 + g1 * t41 + g2 * t42
-                        if wp.static(split_force and mls_force):
+                        if wp.static(f_affine):
                             add(grid_f, nij + k, wgt * (fij + OFF[k] * Fd[2]))
+                        if wp.static(ext_alone):
+                            add(grid_f, nij + k, wgt * fext)
                         add(grid_mm, nij + k, val)
         else:
             for i in range(3):
-                qi = q4 + OFF[i] * a40
+                qi = q4
+                if wp.static(m_affine):
+                    qi = q4 + OFF[i] * a40
                 fi = f0 + OFF[i] * Fd[0]
                 ni = nb + i * strides[0]
                 for j in range(3):
                     wgt = W[i, 0] * W[j, 1]
-                    val = wgt * (qi + OFF[j] * a41)
-                    if wp.static(grad_force):
+                    val = wgt * qi
+                    if wp.static(m_affine):
+                        val = wgt * (qi + OFF[j] * a41)
+                    if wp.static(any_grad):
                         g0 = DW[i, 0] * W[j, 1]
                         g1 = W[i, 0] * DW[j, 1]
-                        if wp.static(split_force):
-                            f = Tg @ vec(g0, g1)
-                            if wp.static(has_ext):
+                        if wp.static(f_grad):
+                            f = Fg @ vec(g0, g1)
+                            if wp.static(has_ext and not f_affine):
                                 f = f + wgt * fext
                             add(grid_f, ni + j, f)
-                        else:
+                        if wp.static(m_grad):
                             val = val + g0 * t40 + g1 * t41
-                    if wp.static(split_force and mls_force):
+                    if wp.static(f_affine):
                         add(grid_f, ni + j, wgt * (fi + OFF[j] * Fd[1]))
+                    if wp.static(ext_alone):
+                        add(grid_f, ni + j, wgt * fext)
                     add(grid_mm, ni + j, val)
 
     return p2g
@@ -382,21 +401,25 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool, tape: bool =
 
 
 @lru_cache(maxsize=None)
-def g2p_law_kernel(law, dim: int, precision: str, affine: str | None, grad_v_from_affine: bool, flip: bool):
-    """G2P fused with the law update of one material group (a closure over the law's ``@wp.func``s).
+def g2p_law_kernel(law, dim: int, precision: str, tr):
+    """G2P of transfer scheme ``tr`` (a ``WarpTransfer``) fused with the law update of one material
+    group (a closure over the scheme's and the law's ``@wp.func``s).
 
-    Gathers the 3^D stencil with separable partial sums (z lines first), writes x, v, C, then feeds the
-    velocity gradient straight into the law's ``update`` and stores the new law state and its Kirchhoff
-    stress, so the velocity gradient never goes through memory. Launched on a chunk ``start`` of the
-    group that begins at particle ``goff``.
+    Gathers the 3^D stencil with separable partial sums (z lines first) -- v_pic = sum w v_i and the
+    moments the scheme declares (``first``: B = sum w v_i o^T; ``gradient``: sum v_i (grad w)^T; the
+    old grid velocity for ``split_force``) -- lets the scheme's ``g2p`` turn them into (v, C, grad_v),
+    writes x (moved with v_pic, JAX-MPM Eq. 17), v, C, then feeds the velocity gradient straight into
+    the law's ``update`` and stores the new law state and its Kirchhoff stress, so the velocity gradient
+    never goes through memory. Launched on a chunk ``start`` of the group that begins at particle ``goff``.
     """
     T = warp_types(dim, precision)
     S = stencil_funcs(dim, precision)
     L = law_types(law, dim, precision)
     scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
-    need_grad = (not grad_v_from_affine) or affine == "velocity_gradient"
-    apic = affine == "apic"
-    tpic = affine == "velocity_gradient"
+    need_grad = "gradient" in tr.moments
+    apic = "first" in tr.moments          # the first moment (APIC's B)
+    flip = tr.split_force
+    F = tr.funcs
     vec3s = wp.types.vector(3, scalar)
     impl = law.implementation("warp", "law")(law, dim, precision)
 
@@ -410,7 +433,7 @@ def g2p_law_kernel(law, dim: int, precision: str, affine: str | None, grad_v_fro
     @wp.kernel(module="unique")
     def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
             grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
-            flip_ratio: scalar, goff: int, start: int,
+            tp: wp.array(dtype=scalar), goff: int, start: int,
             state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights,
             x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
             state_out: L.StateArrays, tau: wp.array(dtype=mat)):
@@ -492,23 +515,17 @@ def g2p_law_kernel(law, dim: int, precision: str, affine: str | None, grad_v_fro
                     B1 = B1 + wx * st
                 if wp.static(flip):
                     vo = vo + wx * so
-        vnew = vp
-        if wp.static(flip):
-            vnew = flip_ratio * (v[p] + vp - vo) + (scalar(1.0) - flip_ratio) * vp   # JAX-MPM Eq. 15
+        Gv = mat()
+        if wp.static(need_grad):
+            Gv = inv_dx * cols(G0, G1, G2)                                          # JAX-MPM Eq. 18
+        B = mat()
+        if wp.static(apic):
+            B = cols(B0, B1, B2)
+        vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, tp)
         v_out[p] = vnew
         x_out[p] = xp + dt * vp                                                      # JAX-MPM Eq. 17
-        Gm = mat()
-        if wp.static(need_grad):
-            Gm = inv_dx * cols(G0, G1, G2)                                          # JAX-MPM Eq. 18
-        grad_v = Gm
-        if wp.static(apic):
-            c4 = scalar(4.0) * inv_dx                                               # B D^-1, D = dx^2/4 I
-            Cn = c4 * cols(B0 - fx[0] * vp, B1 - fx[1] * vp, B2 - fx[dim - 1] * vp)
+        if wp.static(tr.carries_C):
             C_out[p] = Cn
-            if wp.static(grad_v_from_affine):
-                grad_v = Cn
-        if wp.static(tpic):
-            C_out[p] = Gm
         # law update of this particle's material (state and parameters by name: law_types.py)
         P = L.load_params(prm, q)
         n = impl.update(L.load_state(state, q), grad_v, dt, P, w)

@@ -24,6 +24,7 @@ from ...core.stepper import BaseStepper
 from . import check_device, init_warp
 from . import kernels as K
 from .kernels import WALL_CODES
+from .transfers import warp_transfer
 from .types import warp_types
 
 
@@ -38,20 +39,49 @@ class WarpState(SimpleNamespace):
     """
 
 
-def _compile_law_kernels(law, kernels, device) -> None:
-    """Build the kernels a law enters now (they are built at the first launch anyway), so that a law
-    whose Warp functions do not fit its declarations (a state field it does not declare, a parameter
-    it does not have) is refused when the stepper is built, in one line naming it."""
+def _build_kernels(kernels, device, blame) -> None:
+    """Build kernels now (they are built at the first launch anyway), so that a plugin whose Warp
+    functions do not fit its declarations (a law writing a state field it does not declare, a transfer
+    returning the wrong type) is refused when the stepper is built, in one line naming it:
+    ``blame(first line of Warp's error) -> message``."""
     try:
         for k in kernels:
             wp.load_module(k.module, device=device)
     except Exception as e:  # noqa: BLE001 -- Warp's codegen/compile error, reported against the plugin
         from ...core.errors import ConfigError
 
-        first = next((ln for ln in str(e).splitlines() if ln.strip()), type(e).__name__)
-        raise ConfigError(
-            f"law '{law.name}' ({type(law).__module__}): its Warp functions do not build against its declared "
-            f"state {list(law.state_fields)} and parameters {list(law.param_names())}: {first}") from None
+        lines = [ln.strip().lstrip(";").strip() for ln in str(e).splitlines() if ln.strip()]
+        # Warp says where (first line), what code (middle) and why (last): why first, then the code
+        why = (f"{lines[-1]} (at `{lines[1]}`)" if len(lines) == 3 else lines[-1]) if lines else type(e).__name__
+        raise ConfigError(blame(why)) from None
+
+
+def _law_blame(law):
+    return lambda first: (f"law '{law.name}' ({type(law).__module__}): its Warp functions do not build against its "
+                          f"declared state {list(law.state_fields)} and parameters {list(law.param_names())}: {first}")
+
+
+def _transfer_blame(transfer):
+    return lambda first: (f"{transfer.describe()}: its Warp functions do not build against its declarations "
+                          f"(momentum_terms {sorted(transfer.momentum_terms)}, force_terms "
+                          f"{sorted(transfer.force_terms)}, moments {sorted(transfer.moments)}; AbstractTransfer "
+                          f"documents the signatures): {first}")
+
+
+def _compile_step_kernels(st) -> None:
+    """The law's own kernels, the transfer's P2G, then each fused G2P + law kernel; a fused kernel that
+    fails although both parts built alone is the law's if its stand-alone update fails, else the
+    transfer's ``g2p``."""
+    dev = st.device
+    for g, kl in zip(st.groups, st.k_laws):
+        _build_kernels((kl.stress,), dev, _law_blame(g.law))
+    _build_kernels((st.k_p2g,), dev, _transfer_blame(st.transfer))
+    for g, kg, kl in zip(st.groups, st.k_g2p, st.k_laws):
+        try:
+            _build_kernels((kg,), dev, _transfer_blame(st.transfer))
+        except Exception:
+            _build_kernels((kl.update,), dev, _law_blame(g.law))
+            raise
 
 
 class WarpStepper(BaseStepper):
@@ -70,7 +100,9 @@ class WarpStepper(BaseStepper):
         T = self.T = warp_types(self.dim, precision)
         D = self.dim
         tr = transfer
-        self.split_force = tr.flip_ratio is not None
+        #: the scheme's @wp.funcs and declarations (mpmlab/transfers/<name>/warp.py), the kernels' key
+        self.warp_transfer = warp_transfer(tr, D, precision)
+        self.split_force = self.warp_transfer.split_force
         self.grid_shape = scene.grid_shape
         self.node_count = int(np.prod(self.grid_shape))
         strides = np.cumprod((1,) + self.grid_shape[::-1][:-1])[::-1]
@@ -122,14 +154,11 @@ class WarpStepper(BaseStepper):
         #: P2G sums with atomic adds into one grid (CUDA: required, every particle runs at once; None =
         #: by device) instead of plain adds into per-thread copies (CPU)
         self.p2g_atomic = not self.device.startswith("cpu") if p2g_atomic is None else bool(p2g_atomic)
-        self.k_p2g = K.p2g_kernel(D, precision, tr.needs_affine, tr.force == "mls", self.split_force, bool(self.force_bcs),
-                                  atomic=self.p2g_atomic)
+        self.k_p2g = K.p2g_kernel(D, precision, self.warp_transfer, bool(self.force_bcs), atomic=self.p2g_atomic)
         self.k_grid = K.grid_update_kernel(D, precision, self.split_force)
-        self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, tr.affine, tr.grad_v == "affine", self.split_force)
-                      for g in self.groups]
+        self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, self.warp_transfer) for g in self.groups]
         self.k_laws = [K.law_kernels(g.law, D, precision) for g in self.groups]
-        for g, kg, kl in zip(self.groups, self.k_g2p, self.k_laws):
-            _compile_law_kernels(g.law, (kg, kl.stress), self.device)
+        _compile_step_kernels(self)
         self.k_guard = K.guard_kernel(D, precision)
         # static per-particle data and scratch
         self.mass = wp.array(P.mass, dtype=T.scalar, device=dev)
@@ -155,7 +184,9 @@ class WarpStepper(BaseStepper):
         self._gravity_unused = wp.zeros(1, dtype=T.vec, device=dev)   # the tape form's gravity argument
         lo, hi = scene.inner_bounds
         self.lo, self.hi = T.vec(*lo), T.vec(*hi)
-        self._ratio = T.scalar(self.transfer.flip_ratio if self.split_force else 0.0)
+        #: the scheme's runtime numbers (``scalars()``, e.g. the FLIP ratio), read by its Warp functions
+        self.transfer_scalars = wp.array(np.asarray(tuple(tr.scalars()) or (0.0,), dtype=self.np_dtype),
+                                         dtype=T.scalar, device=dev)
         #: re-sort particles by cell every this many steps (CPU only; None: never). Particle boundaries
         #: and loads address particles by scene index, so scenes with them are not sorted.
         self.sort_every = 100 if (self.device == "cpu" and not self.particle_bcs and not self.force_bcs) else None
@@ -269,7 +300,7 @@ class WarpStepper(BaseStepper):
         dev, N, G = self.device, self.particles.count, self.node_count
         rec = lambda kernel, n, inputs: wp.launch(kernel, dim=n, inputs=inputs, device=dev, record_cmd=True)
         p2g = [rec(self.k_p2g, cnt, [s.x, s.v, s.C, s.tau, s.order.mass, s.order.vol, self.ext, self.origin, self.dx_s,
-                                     self.dt_s, self.strides, start, c * G, self.grid_mm, self.grid_f, self.bbox, c])
+                                     self.dt_s, self.transfer_scalars, self.strides, start, c * G, self.grid_mm, self.grid_f, self.bbox, c])
                for c, (start, cnt) in enumerate(self._chunks(N, self.threads))]
         zero = self.T.ivec()
         grid = [rec(self.k_grid, 1, [self.grid_mm, self.grid_f, len(p2g), G, 0, zero, zero, self.dt_s, self.gravity,
@@ -282,7 +313,7 @@ class WarpStepper(BaseStepper):
             law_out = self.k_laws[i].types.state_arrays(ot)
             for start, cnt in self._chunks(g.count, self._dyn_chunks):
                 g2p.append(rec(k, cnt, [s.x, s.v, self.grid_v, self.grid_v_old, self.origin, self.dx_s, self.dt_s,
-                                        self.strides, self._ratio, g.start, start, *law_in, o.x, o.v,
+                                        self.strides, self.transfer_scalars, g.start, start, *law_in, o.x, o.v,
                                         o.C, law_out, o.tau]))
         return SimpleNamespace(p2g=p2g, grid=grid, g2p=g2p)
 

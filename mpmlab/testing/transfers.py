@@ -1,0 +1,138 @@
+"""The kit's checks of a transfer scheme (a plugin's or a built-in): conservation it declares, JAX vs
+Warp trajectories and gradients against finite differences with it."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ._common import ConformanceError, fail
+
+#: the law the transfer checks run with (a built-in; its Law.test_params)
+LAW = "fixed_corotated"
+
+
+def _transfer(transfer):
+    """(instance, registered name) of a transfer given by name, class or instance."""
+    from ..core import registry
+    from ..transfers import make_transfer
+
+    if isinstance(transfer, str):
+        return make_transfer(transfer), transfer
+    inst = transfer() if isinstance(transfer, type) else transfer
+    name = type(inst).name
+    if name not in registry.transfers.names():
+        registry.transfers.register(name, type(inst), provenance="mpmlab.testing")
+    return inst, name
+
+
+def conservation_scene(dim: int, *, law: str = LAW):
+    """A spinning (4 rad/s; 3D (1, 2, 3)), drifting elastic block (0.2 wide, 2^D particles per cell) in
+    the middle of a unit box, no gravity and no walls it can reach in the kit's steps: nothing but the
+    scheme's transfers and internal forces acts."""
+    import mpmlab
+    from ._common import params_of
+
+    lo, hi = np.full(dim, 0.4), np.full(dim, 0.6)
+    v = np.zeros(dim); v[0], v[1] = 0.3, -0.2
+    w = 4.0 if dim == 2 else [1.0, 2.0, 3.0]
+    body = mpmlab.Body(shape={"kind": "box", "lo": lo.tolist(), "hi": hi.tolist()}, material=law,
+                       params=params_of(law), density=1000.0, velocity=v.tolist(), angular_velocity=w,
+                       particles_per_cell=2**dim)
+    return mpmlab.Scene(dim=dim, dx=0.05, domain=([0.0] * dim, [1.0] * dim), bodies=[body],
+                        gravity=[0.0] * dim, dt=1e-3, name=f"conservation_{dim}d")
+
+
+def momenta(x, v, C, mass: np.ndarray, dx: float, dim: int):
+    """Total linear momentum sum m v and angular momentum about the origin sum m (x x v) plus each
+    particle's affine spin m (dx^2/4) eps : C^T (the angular momentum its C puts on the grid for
+    quadratic B-splines, D = dx^2/4 I; Jiang et al. 2015 Sec. 5.3)."""
+    x, v = np.asarray(x, float), np.asarray(v, float)
+    m = np.asarray(mass, float)
+    P = (m[:, None] * v).sum(0)
+    C = np.zeros((len(m), dim, dim)) if C is None else np.asarray(C, float)
+    s = dx * dx / 4.0
+    if dim == 2:
+        L = np.array([(m * (x[:, 0] * v[:, 1] - x[:, 1] * v[:, 0] + s * (C[:, 1, 0] - C[:, 0, 1]))).sum()])
+    else:
+        spin = np.stack([C[:, 2, 1] - C[:, 1, 2], C[:, 0, 2] - C[:, 2, 0], C[:, 1, 0] - C[:, 0, 1]], -1)
+        L = (m[:, None] * (np.cross(x, v) + s * spin)).sum(0)
+    return P, L
+
+
+def check_conservation(transfer, dim: int, backend: str, *, steps: int = 40, tol: float = 1e-11,
+                       quantities=None) -> dict:
+    """Over ``steps`` fp64 steps of ``conservation_scene``, each quantity the scheme declares in
+    ``conserves`` (or ``quantities``) stays within ``tol`` of its initial value, relative to its
+    magnitude (angular momentum about the block's centroid scale). Returns the drift by quantity and,
+    for information, the drift of the quantities it does not declare."""
+    import mpmlab
+
+    inst, name = _transfer(transfer)
+    declared = set(inst.conserves if quantities is None else quantities)
+    scene = conservation_scene(dim)
+    st = mpmlab.build_stepper(scene, backend, name, "fp64")
+    fields = ("C",) if inst.needs_affine else ()
+    traj = st.rollout(steps=steps, every=1, fields=fields)
+    mass = traj.mass
+    C = traj.fields.get("C")
+    frame = lambda k: (traj.x[k], traj.v[k], None if C is None else C[k])      # noqa: E731
+    P0, L0 = momenta(*frame(0), mass, scene.dx, dim)
+    # scales: total mass x the block's speeds (drift and spin) so a conserved zero component is tested too
+    M = float(np.sum(mass))
+    r = 0.1 * np.sqrt(dim)
+    p_scale = M * 0.5
+    l_scale = float(M * r * r * 4.0 + np.linalg.norm(L0))
+    drift = {"linear_momentum": 0.0, "angular_momentum": 0.0}
+    for k in range(1, traj.frame_count):
+        P, L = momenta(*frame(k), mass, scene.dx, dim)
+        drift["linear_momentum"] = max(drift["linear_momentum"], float(np.abs(P - P0).max()) / p_scale)
+        drift["angular_momentum"] = max(drift["angular_momentum"], float(np.abs(L - L0).max()) / l_scale)
+    where = f"transfer '{name}' {dim}D {backend} fp64, {steps} steps"
+    for q in sorted(declared):
+        if q not in drift:
+            fail(f"{where}: conserves '{q}' is not a quantity the kit measures ({sorted(drift)})")
+        if not drift[q] <= tol:
+            fail(f"{where}: {q.replace('_', ' ')} drifts by {drift[q]:.3e} (relative) > tolerance {tol:.0e}, "
+                 f"although the scheme declares it conserved")
+    return {"declared": sorted(declared), "drift": drift}
+
+
+def check_transfer(transfer, *, dims=(2,), backends=("jax", "warp"), gradients=True, law: str = LAW,
+                   raise_on_failure: bool = True) -> dict:
+    """Every check of the kit on a transfer scheme: the conservation it declares (each backend x dim),
+    JAX vs Warp trajectories of the law scene with ``law`` (each dim) and gradients against central
+    differences (each backend, 2D when 2 is in ``dims``). Same report and failure convention as
+    ``check_law``."""
+    from .gradients import check_gradients
+    from .trajectories import check_backends_agree
+
+    inst, name = _transfer(transfer)
+    report = {"transfer": name, "checks": {}, "failures": [], "seconds": {}}
+
+    def run(label, fn, *a, **kw):
+        t0 = time.perf_counter()
+        try:
+            report["checks"][label] = fn(*a, **kw)
+        except AssertionError as e:
+            report["checks"][label] = None
+            report["failures"].append(str(e))
+        except Exception as e:  # noqa: BLE001 -- a scheme that cannot even run a check fails it, and says why
+            report["checks"][label] = None
+            report["failures"].append(f"transfer '{name}' {label}: {type(e).__name__}: "
+                                      f"{str(e).splitlines()[0] if str(e) else ''}")
+        report["seconds"][label] = round(time.perf_counter() - t0, 3)
+
+    for dim in dims:
+        for b in backends:
+            run(f"conservation[{b},{dim}d]", check_conservation, name, dim, b)
+        if {"jax", "warp"} <= set(backends):
+            run(f"backends_agree[{law},{dim}d]", check_backends_agree, law, name, dim)
+    grad_backends = tuple(backends) if gradients is True else tuple(gradients or ())
+    gdim = 2 if 2 in dims else dims[0]
+    for b in grad_backends:
+        run(f"gradients[{b},{law},{gdim}d]", check_gradients, law, b, name, gdim)
+    if report["failures"] and raise_on_failure:
+        n, m = len(report["failures"]), len(report["checks"])
+        raise ConformanceError(f"transfer '{name}': {n} of {m} checks failed: " + " | ".join(report["failures"]))
+    return report
