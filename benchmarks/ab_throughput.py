@@ -23,14 +23,16 @@ import os
 import subprocess
 import sys
 
+import numpy as np
+
 CASE = r'''
 import json, sys, time
 import numpy as np
 from mpmlab.scenes.mpm3d import mpm3d_fluid, elastic_cube
 import mpmlab
-scene_name, n_grid, backend, steps = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
+scene_name, n_grid, backend, steps, transfer = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), sys.argv[5]
 scene = (mpm3d_fluid if scene_name == "mpm3d" else elastic_cube)(n_grid=n_grid, dim=3)
-st = mpmlab.build_stepper(scene, backend, "mls", "fp32")
+st = mpmlab.build_stepper(scene, backend, transfer, "fp32")
 s = st.init()
 s = st._advance(s, steps); st._block(s)                # compile + warm-up
 best = float("inf")
@@ -86,25 +88,34 @@ def main(argv=None):
     ap.add_argument("--backends", default="jax,warp")
     ap.add_argument("--scenes", default="mpm3d,cube")
     ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--transfers", default="mls", help="transfer schemes (comma-separated)")
     ap.add_argument("--gradients", action="store_true", help="time gradients (N=200, n=50) instead")
     args = ap.parse_args(argv)
     if args.gradients:
         return gradients(args)
-    cases = [(sc, int(g), be, args.steps) for sc in args.scenes.split(",") for g in args.grids.split(",")
-             for be in args.backends.split(",")]
-    best = {}
+    cases = [(sc, int(g), be, args.steps, t) for sc in args.scenes.split(",") for g in args.grids.split(",")
+             for be in args.backends.split(",") for t in args.transfers.split(",")]
+    best, ratios = {}, {}
     for r in range(args.rounds):
         for case in cases:
             for tree in (args.a, args.b):
                 m = measure(tree, case)
                 key = (case, tree)
                 best[key] = max(best.get(key, (0, 0)), (m["pps"], m["particles"]))
-                print(f"round {r + 1}: {case[0]} {case[1]}^3 {case[2]} {tree}: {m['pps']:.3e} particle-steps/s",
+                if tree == args.a:
+                    pps_a = m["pps"]
+                else:
+                    ratios.setdefault(case, []).append(m["pps"] / pps_a)
+                print(f"round {r + 1}: {case[0]} {case[1]}^3 {case[2]} {case[4]} {tree}: {m['pps']:.3e} particle-steps/s",
                       flush=True)
-    print("\n| scene | particles | backend | A [particle-steps/s] | B | B / A |\n|---|---|---|---|---|---|")
+    # B / A of the best rounds, and the median of the paired (same-round, adjacent) ratios: on a noisy
+    # machine the paired median is the steadier of the two
+    print("\n| scene | particles | backend | transfer | A [particle-steps/s] | B | B / A (best) | B / A (median of rounds) |"
+          "\n|---|---|---|---|---|---|---|---|")
     for case in cases:
         (pa, n), (pb, _) = best[(case, args.a)], best[(case, args.b)]
-        print(f"| {case[0]} | {n} | {case[2]} | {pa:.3e} | {pb:.3e} | {pb / pa:.3f} |")
+        med = float(np.median(ratios[case]))
+        print(f"| {case[0]} | {n} | {case[2]} | {case[4]} | {pa:.3e} | {pb:.3e} | {pb / pa:.3f} | {med:.3f} |")
 
 
 def gradients(args):

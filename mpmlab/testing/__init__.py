@@ -52,8 +52,6 @@ Importing ``mpmlab.testing`` imports neither JAX nor Warp; each check imports th
 """
 from __future__ import annotations
 
-import time
-
 from ._common import ConformanceError, options_of, params_of, rel_err, resolve_params
 from .evaluate import evaluate, jax_law, ref_kirchhoff, ref_update
 from .gradients import check_gradients
@@ -83,23 +81,10 @@ def check_law(law, *, dims=(2,), backends=("jax", "warp"), transfers=("apic",), 
     Returns a JSON-ready report ``{"law", "checks": {check: measured errors}, "failures": [messages],
     "seconds": {check: s}}``. A failed check does not stop the others; with ``raise_on_failure`` the
     failures are then raised as one ``AssertionError`` (one line: how many failed, each message)."""
-    from ._common import law_name
+    from ._common import Report, law_name
 
-    name = law_name(law)
-    report = {"law": name, "checks": {}, "failures": [], "seconds": {}}
-
-    def run(label, fn, *a, **kw):
-        t0 = time.perf_counter()
-        try:
-            report["checks"][label] = fn(*a, **kw)
-        except AssertionError as e:
-            report["checks"][label] = None
-            report["failures"].append(str(e))
-        except Exception as e:  # noqa: BLE001 -- a law that cannot even run a check fails it, and says why
-            report["checks"][label] = None
-            report["failures"].append(f"law '{name}' {label}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
-        report["seconds"][label] = round(time.perf_counter() - t0, 3)
-
+    report = Report("law", law_name(law))
+    run = report.run
     for dim in dims:
         for b in backends:
             run(f"reference[{b},{dim}d]", check_reference, law, dim, b)
@@ -114,7 +99,4 @@ def check_law(law, *, dims=(2,), backends=("jax", "warp"), transfers=("apic",), 
         for b in grad_backends:
             for t in transfers:
                 run(f"gradients[{b},{t},{gdim}d]", check_gradients, law, b, t, gdim)
-    if report["failures"] and raise_on_failure:
-        n, m = len(report["failures"]), len(report["checks"])
-        raise ConformanceError(f"law '{name}': {n} of {m} checks failed: " + " | ".join(report["failures"]))
-    return report
+    return report.finish(raise_on_failure)

@@ -20,6 +20,39 @@ def fail(msg: str):
     raise ConformanceError(" ".join(str(msg).split()))
 
 
+class Report:
+    """The report of a group of checks (``check_law``, ``check_transfer``): ``run(label, check, ...)``
+    runs one check and keeps what it measured, or its one-line failure; a plugin that cannot even run a
+    check fails it, saying why. ``finish`` raises the failures as one ``ConformanceError``."""
+
+    def __init__(self, kind: str, name: str):
+        import time
+
+        self._time = time.perf_counter
+        self.kind, self.name = kind, name
+        self.data = {kind: name, "checks": {}, "failures": [], "seconds": {}}
+
+    def run(self, label: str, fn, *a, **kw) -> None:
+        t0 = self._time()
+        try:
+            self.data["checks"][label] = fn(*a, **kw)
+        except AssertionError as e:
+            self.data["checks"][label] = None
+            self.data["failures"].append(str(e))
+        except Exception as e:  # noqa: BLE001 -- the plugin's failure: say which check and why
+            self.data["checks"][label] = None
+            first = str(e).splitlines()[0] if str(e) else ""
+            self.data["failures"].append(f"{self.kind} '{self.name}' {label}: {type(e).__name__}: {first}")
+        self.data["seconds"][label] = round(self._time() - t0, 3)
+
+    def finish(self, raise_on_failure: bool) -> dict:
+        fails = self.data["failures"]
+        if fails and raise_on_failure:
+            raise ConformanceError(f"{self.kind} '{self.name}': {len(fails)} of {len(self.data['checks'])} checks "
+                                   f"failed: " + " | ".join(fails))
+        return self.data
+
+
 def law_class(law) -> type:
     """The law class of a registered name, a class or an instance."""
     if isinstance(law, str):

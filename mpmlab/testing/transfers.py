@@ -2,11 +2,9 @@
 Warp trajectories and gradients against finite differences with it."""
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
-from ._common import ConformanceError, fail
+from ._common import Report, fail
 
 #: the law the transfer checks run with (a built-in; its Law.test_params)
 LAW = "fixed_corotated"
@@ -107,22 +105,9 @@ def check_transfer(transfer, *, dims=(2,), backends=("jax", "warp"), gradients=T
     from .gradients import check_gradients
     from .trajectories import check_backends_agree
 
-    inst, name = _transfer(transfer)
-    report = {"transfer": name, "checks": {}, "failures": [], "seconds": {}}
-
-    def run(label, fn, *a, **kw):
-        t0 = time.perf_counter()
-        try:
-            report["checks"][label] = fn(*a, **kw)
-        except AssertionError as e:
-            report["checks"][label] = None
-            report["failures"].append(str(e))
-        except Exception as e:  # noqa: BLE001 -- a scheme that cannot even run a check fails it, and says why
-            report["checks"][label] = None
-            report["failures"].append(f"transfer '{name}' {label}: {type(e).__name__}: "
-                                      f"{str(e).splitlines()[0] if str(e) else ''}")
-        report["seconds"][label] = round(time.perf_counter() - t0, 3)
-
+    _, name = _transfer(transfer)
+    report = Report("transfer", name)
+    run = report.run
     for dim in dims:
         for b in backends:
             run(f"conservation[{b},{dim}d]", check_conservation, name, dim, b)
@@ -132,7 +117,4 @@ def check_transfer(transfer, *, dims=(2,), backends=("jax", "warp"), gradients=T
     gdim = 2 if 2 in dims else dims[0]
     for b in grad_backends:
         run(f"gradients[{b},{law},{gdim}d]", check_gradients, law, b, name, gdim)
-    if report["failures"] and raise_on_failure:
-        n, m = len(report["failures"]), len(report["checks"])
-        raise ConformanceError(f"transfer '{name}': {n} of {m} checks failed: " + " | ".join(report["failures"]))
-    return report
+    return report.finish(raise_on_failure)
