@@ -89,7 +89,8 @@ def main(argv=None):
     ap.add_argument("--scenes", default="mpm3d,cube")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--transfers", default="mls", help="transfer schemes (comma-separated)")
-    ap.add_argument("--gradients", action="store_true", help="time gradients (N=200, n=50) instead")
+    ap.add_argument("--gradients", action="store_true", help="time gradients (N steps, n = 50) instead")
+    ap.add_argument("--gradient-steps", type=int, default=200, help="N of --gradients (longer: steadier timings)")
     args = ap.parse_args(argv)
     if args.gradients:
         return gradients(args)
@@ -119,7 +120,7 @@ def main(argv=None):
 
 
 def gradients(args):
-    cases = [(be, 200, 50) for be in args.backends.split(",")]
+    cases = [(be, args.gradient_steps, 50) for be in args.backends.split(",")]
     best = {}
     for r in range(args.rounds):
         for case in cases:

@@ -23,8 +23,9 @@ END = "<!-- capability-matrix:end -->"
 _TRANSFER_ORDER = ["pic", "flip", "apic", "mls", "tpic"]
 
 
-def _transfers() -> list[str]:
-    names = registry.transfers.names()
+def _transfers(builtin_only: bool = False) -> list[str]:
+    names = [n for n in registry.transfers.names()
+             if not builtin_only or registry.transfers.provenance(n) == "mpmlab"]
     return [t for t in _TRANSFER_ORDER if t in names] + [t for t in names if t not in _TRANSFER_ORDER]
 
 
@@ -53,7 +54,7 @@ def markdown(builtin_only: bool = False) -> str:
     """The law x transfer x backend matrix and the boundary x backend table, as Markdown
     (``builtin_only``: leave out plugins installed in this environment, as the README does)."""
     backends = registry.backends.names()
-    transfers = _transfers()
+    transfers = _transfers(builtin_only)
     rows = capabilities()
     ok = {(r["law"], r["transfer"], r["backend"]): r["supported"] for r in rows}
     head = ["law", "parameters"] + [f"{b}: {t}" for b in backends for t in transfers] + ["gradients", "from"]
@@ -66,6 +67,17 @@ def markdown(builtin_only: bool = False) -> str:
         grads = ", ".join(b for b in backends if b in getattr(law, "implementations", {})) or "–"
         lines.append("| " + " | ".join([f"`{law_name}`", params] + cells + [grads, registry.laws.provenance(law_name)])
                      + " |")
+    # what each transfer scheme declares (AbstractTransfer): what the kernels compile for it
+    lines += ["", "| transfer | stores C | momentum terms | force terms | G2P moments | conserves | "
+              + " | ".join(backends) + " | from |", "|---|---|---|---|---|---|" + "---|" * len(backends) + "---|"]
+    for name in transfers:
+        tr = registry.transfers.get(name)
+        sets = [", ".join(sorted(getattr(tr, k, ()))) or "–" for k in ("momentum_terms", "force_terms", "moments")]
+        cons = ", ".join(c.replace("_momentum", "") for c in sorted(getattr(tr, "conserves", ()))) or "–"
+        cells = ["✓" if b in getattr(tr, "implementations", {}) else "–" for b in backends]
+        lines.append("| " + " | ".join([f"`{name}`", "yes" if getattr(tr, "carries_C", False) else "no", *sets,
+                                        cons + " momentum" if cons != "–" else cons, *cells,
+                                        registry.transfers.provenance(name)]) + " |")
     grad_head = " | ".join(f"{b} gradient" for b in backends)
     lines += ["", "| boundary | " + " | ".join(backends) + f" | {grad_head} | from |",
               "|---|" + "---|" * (2 * len(backends) + 1)]

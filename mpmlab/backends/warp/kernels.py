@@ -443,8 +443,15 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
         OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))   # node offsets as scalars
         xp = x[p]
         if S.in_grid(xp, origin, inv_dx, strides, grid_v.shape[0]) == 0:
-            x_out[p] = xp + dt * v[p]  # off the grid: moves on ballistically, outside the domain, so the
-            v_out[p] = v[p]            # guard reports it (the other outputs are not used after that)
+            # off the grid: moves on ballistically, outside the domain, so the guard reports it; its law
+            # state is carried over unchanged (the output buffers are uninitialised memory: leaving them
+            # unwritten made the guard report garbage F, or a NaN, instead of the particle leaving)
+            x_out[p] = xp + dt * v[p]
+            v_out[p] = v[p]
+            P0 = L.load_params(prm, q)
+            s0 = L.load_state(state, q)
+            L.store_state(state_out, q, s0)
+            tau[p] = impl.kirchhoff(s0, P0, w)
             return
         base, fx = S.locate(xp, origin, inv_dx)
         W, DW = S.bspline(fx)
