@@ -1,0 +1,241 @@
+"""Warp NCLaw (Ma et al. 2023, App. C Alg. 4), built per (law instance, dim, precision).
+
+The two networks are evaluated inside the kernels (the law update is fused into G2P) as one
+``@wp.func`` each. How (``FORM``; measured in ``benchmarks/nclaw_warp.py``):
+
+* ``"adjoint"`` (the default): loops over the hidden units are dynamic (compact code) and the MLP has
+  a hand-written adjoint (``wp.func_grad``: recompute the activations, back-propagate layer by layer,
+  accumulate the weight gradients with ``wp.atomic_add``). Warp's own adjoint of a dynamic loop that
+  accumulates into a scalar is wrong in Warp 1.19 (0.7 % on mlp_elastic's dtau/dF), so the automatic
+  one is not used for these loops.
+* ``"unrolled"``: every loop ``range(wp.static(n))`` with Warp's automatic adjoint (mlp_elastic's
+  form); about 5,500 multiply-adds per network are unrolled, forward and adjoint.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from types import SimpleNamespace
+
+import warp as wp
+
+from ...backends.warp.law_structs import law_types
+from ...backends.warp.linalg import warp_linalg
+
+#: how the networks are evaluated (module doc); read when a (law, dim, precision) is first built
+FORM = "adjoint"
+FORMS = ("adjoint", "unrolled")
+
+_SQRT1_2 = 1.0 / math.sqrt(2.0)
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+
+
+def make(law, dim: int, precision: str) -> SimpleNamespace:
+    return _make(law, dim, precision, FORM)
+
+
+@lru_cache(maxsize=None)
+def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
+    if form not in FORMS:
+        raise ValueError(f"nclaw warp FORM = {form!r}; use one of {FORMS}.")
+    T = law_types(law, dim, precision)
+    La = warp_linalg(dim, precision)
+    scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
+    width = int(law.width)
+    nin = law.n_inputs(dim)
+    nout = dim * dim
+    biases = bool(law.no_undeformed)
+    no_rot = bool(law.no_rotation)
+    shift = 0.0 if law.no_undeformed else 1.0
+    alpha = float(law.alpha)
+    vin = wp.types.vector(nin, scalar)
+    vh = wp.types.vector(width, scalar)
+    vout = wp.types.vector(nout, scalar)
+    A2 = wp.array2d(dtype=scalar)
+    # bias arguments: 1D arrays with no_undeformed; otherwise the W arrays are passed in their place
+    # and never read (wp.static), so one signature serves both variants
+    BT = wp.array(dtype=scalar) if biases else A2
+
+    @wp.func
+    def gelu(x: scalar):
+        return scalar(0.5) * x * (scalar(1.0) + wp.erf(x * scalar(_SQRT1_2)))
+
+    @wp.func
+    def gelu_prime(x: scalar):
+        return scalar(0.5) * (scalar(1.0) + wp.erf(x * scalar(_SQRT1_2))) + x * scalar(_INV_SQRT_2PI) * wp.exp(
+            scalar(-0.5) * x * x)
+
+    if form == "adjoint":
+        @wp.func
+        def mlp(z: vin, W1: A2, W2: A2, W3: A2, b1: BT, b2: BT, b3: BT):
+            h1 = vh()
+            for i in range(width):
+                a = scalar(0.0)
+                if wp.static(biases):
+                    a = b1[i]
+                for j in range(nin):
+                    a = a + W1[i, j] * z[j]
+                h1[i] = gelu(a)
+            h2 = vh()
+            for i in range(width):
+                a = scalar(0.0)
+                if wp.static(biases):
+                    a = b2[i]
+                for j in range(width):
+                    a = a + W2[i, j] * h1[j]
+                h2[i] = gelu(a)
+            out = vout()
+            for o in range(nout):
+                a = scalar(0.0)
+                if wp.static(biases):
+                    a = b3[o]
+                for j in range(width):
+                    a = a + W3[o, j] * h2[j]
+                out[o] = a
+            return out
+
+        @wp.func_grad(mlp)
+        def adj_mlp(z: vin, W1: A2, W2: A2, W3: A2, b1: BT, b2: BT, b3: BT, adj_ret: vout):
+            a1 = vh()
+            h1 = vh()
+            for i in range(width):
+                a = scalar(0.0)
+                if wp.static(biases):
+                    a = b1[i]
+                for j in range(nin):
+                    a = a + W1[i, j] * z[j]
+                a1[i] = a
+                h1[i] = gelu(a)
+            a2 = vh()
+            h2 = vh()
+            for i in range(width):
+                a = scalar(0.0)
+                if wp.static(biases):
+                    a = b2[i]
+                for j in range(width):
+                    a = a + W2[i, j] * h1[j]
+                a2[i] = a
+                h2[i] = gelu(a)
+            # layer 3: out = W3 h2 + b3
+            g2 = vh()
+            for j in range(width):
+                g = scalar(0.0)
+                for o in range(nout):
+                    g = g + W3[o, j] * adj_ret[o]
+                    wp.atomic_add(wp.adjoint[W3], o, j, adj_ret[o] * h2[j])
+                g2[j] = g * gelu_prime(a2[j])
+            if wp.static(biases):
+                for o in range(nout):
+                    wp.atomic_add(wp.adjoint[b3], o, adj_ret[o])
+            # layer 2: a2 = W2 h1 + b2
+            g1 = vh()
+            for j in range(width):
+                g = scalar(0.0)
+                for i in range(width):
+                    g = g + W2[i, j] * g2[i]
+                g1[j] = g * gelu_prime(a1[j])
+            for i in range(width):
+                gi = g2[i]
+                for j in range(width):
+                    wp.atomic_add(wp.adjoint[W2], i, j, gi * h1[j])
+                if wp.static(biases):
+                    wp.atomic_add(wp.adjoint[b2], i, gi)
+            # layer 1: a1 = W1 z + b1
+            gz = vin()
+            for i in range(width):
+                gi = g1[i]
+                for j in range(nin):
+                    gz[j] = gz[j] + W1[i, j] * gi
+                    wp.atomic_add(wp.adjoint[W1], i, j, gi * z[j])
+                if wp.static(biases):
+                    wp.atomic_add(wp.adjoint[b1], i, gi)
+            wp.adjoint[z] += gz
+    else:
+        @wp.func
+        def mlp(z: vin, W1: A2, W2: A2, W3: A2, b1: BT, b2: BT, b3: BT):
+            h1 = vh()
+            for i in range(wp.static(width)):
+                a = scalar(0.0)
+                if wp.static(biases):
+                    a = b1[i]
+                for j in range(wp.static(nin)):
+                    a = a + W1[i, j] * z[j]
+                h1[i] = gelu(a)
+            h2 = vh()
+            for i in range(wp.static(width)):
+                a = scalar(0.0)
+                if wp.static(biases):
+                    a = b2[i]
+                for j in range(wp.static(width)):
+                    a = a + W2[i, j] * h1[j]
+                h2[i] = gelu(a)
+            out = vout()
+            for o in range(wp.static(nout)):
+                a = scalar(0.0)
+                if wp.static(biases):
+                    a = b3[o]
+                for j in range(wp.static(width)):
+                    a = a + W3[o, j] * h2[j]
+                out[o] = a
+            return out
+
+    @wp.func
+    def response(F: mat, W1: A2, W2: A2, W3: A2, b1: BT, b2: BT, b3: BT):
+        """Y = R T, T = sym(T1), T1 = NN(sigma - 1, vec(F^T F - I), det F - 1) (Alg. 4 lines 1-5);
+        ``no_rotation``: T1 = NN(vec(F - I)) as is."""
+        z = vin()
+        if wp.static(no_rot):
+            for i in range(dim):
+                for j in range(dim):
+                    z[i * dim + j] = F[i, j]
+                z[i * dim + i] = z[i * dim + i] - scalar(shift)
+        else:
+            s = La.singular_values(F)            # d s_i = (U^T dF V)_ii: finite at repeated values
+            Cg = wp.transpose(F) @ F
+            for i in range(dim):
+                z[i] = s[i] - scalar(shift)
+                for j in range(dim):
+                    z[dim + i * dim + j] = Cg[i, j]
+                z[dim + i * dim + i] = z[dim + i * dim + i] - scalar(shift)
+            z[dim + dim * dim] = wp.determinant(F) - scalar(shift)
+        o = mlp(z, W1, W2, W3, b1, b2, b3)
+        T1 = mat()
+        for i in range(dim):
+            for j in range(dim):
+                T1[i, j] = o[i * dim + j]                      # row-major, as torch's view(-1, 3, 3)
+        if wp.static(no_rot):
+            return T1
+        else:
+            U, sc, V = La.svd_const(F)
+            R = La.polar(F, U, sc, V)                          # U V^T with a derivative finite at F = I
+            return R @ (scalar(0.5) * (T1 + wp.transpose(T1)))
+
+    if biases:
+        @wp.func
+        def elastic(F: mat, w: Weights):
+            return response(F, w.e_W1, w.e_W2, w.e_W3, w.e_b1, w.e_b2, w.e_b3)
+
+        @wp.func
+        def plastic(F: mat, w: Weights):
+            return response(F, w.p_W1, w.p_W2, w.p_W3, w.p_b1, w.p_b2, w.p_b3)
+    else:
+        @wp.func
+        def elastic(F: mat, w: Weights):
+            return response(F, w.e_W1, w.e_W2, w.e_W3, w.e_W1, w.e_W2, w.e_W3)
+
+        @wp.func
+        def plastic(F: mat, w: Weights):
+            return response(F, w.p_W1, w.p_W2, w.p_W3, w.p_W1, w.p_W2, w.p_W3)
+
+    @wp.func
+    def kirchhoff(s: LawState, prm: Params, w: Weights):
+        return elastic(s.F, w) @ wp.transpose(s.F)         # tau = P F^T, P = R T (Alg. 4 line 6)
+
+    @wp.func
+    def update(s: LawState, grad_v: mat, dt: scalar, prm: Params, w: Weights):
+        out = s
+        Ft = (wp.identity(dim, scalar) + dt * grad_v) @ s.F
+        out.F = Ft + scalar(alpha) * plastic(Ft, w)        # Alg. 4 line 9; App. C.3 Eq. 34
+        return out
+
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update, mlp=mlp, response=response)
