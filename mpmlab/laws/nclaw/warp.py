@@ -11,7 +11,6 @@ The two networks are evaluated inside the kernels (the law update is fused into 
 * ``"unrolled"``: every loop ``range(wp.static(n))`` with Warp's automatic adjoint (mlp_elastic's
   form); about 5,500 multiply-adds per network are unrolled, forward and adjoint.
 """
-from __future__ import annotations
 
 import math
 from functools import lru_cache
@@ -51,10 +50,6 @@ def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
     vin = wp.types.vector(nin, scalar)
     vh = wp.types.vector(width, scalar)
     vout = wp.types.vector(nout, scalar)
-    A2 = wp.array2d(dtype=scalar)
-    # bias arguments: 1D arrays with no_undeformed; otherwise the W arrays are passed in their place
-    # and never read (wp.static), so one signature serves both variants
-    BT = wp.array(dtype=scalar) if biases else A2
 
     @wp.func
     def gelu(x: scalar):
@@ -65,167 +60,236 @@ def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
         return scalar(0.5) * (scalar(1.0) + wp.erf(x * scalar(_SQRT1_2))) + x * scalar(_INV_SQRT_2PI) * wp.exp(
             scalar(-0.5) * x * x)
 
-    if form == "adjoint":
-        @wp.func
-        def mlp(z: vin, W1: A2, W2: A2, W3: A2, b1: BT, b2: BT, b3: BT):
-            h1 = vh()
-            for i in range(width):
-                a = scalar(0.0)
+    def network(elastic: bool):
+        """The MLP of one network, z -> W3 gelu(W2 gelu(W1 z + b1) + b2) + b3, reading its arrays from the
+        ``Weights`` struct. The struct itself is the argument (not its member arrays): inside a custom
+        adjoint ``wp.adjoint[w].e_W1`` is then the weights' gradient array, while the adjoint of a member
+        array passed on its own is an empty local in Warp 1.19 (measured: gradients silently lost)."""
+        if form == "adjoint":
+            @wp.func
+            def mlp(z: vin, w: Weights):
+                if wp.static(elastic):
+                    W1 = w.e_W1
+                    W2 = w.e_W2
+                    W3 = w.e_W3
+                else:
+                    W1 = w.p_W1
+                    W2 = w.p_W2
+                    W3 = w.p_W3
                 if wp.static(biases):
-                    a = b1[i]
-                for j in range(nin):
-                    a = a + W1[i, j] * z[j]
-                h1[i] = gelu(a)
-            h2 = vh()
-            for i in range(width):
-                a = scalar(0.0)
-                if wp.static(biases):
-                    a = b2[i]
-                for j in range(width):
-                    a = a + W2[i, j] * h1[j]
-                h2[i] = gelu(a)
-            out = vout()
-            for o in range(nout):
-                a = scalar(0.0)
-                if wp.static(biases):
-                    a = b3[o]
-                for j in range(width):
-                    a = a + W3[o, j] * h2[j]
-                out[o] = a
-            return out
-
-        @wp.func_grad(mlp)
-        def adj_mlp(z: vin, W1: A2, W2: A2, W3: A2, b1: BT, b2: BT, b3: BT, adj_ret: vout):
-            a1 = vh()
-            h1 = vh()
-            for i in range(width):
-                a = scalar(0.0)
-                if wp.static(biases):
-                    a = b1[i]
-                for j in range(nin):
-                    a = a + W1[i, j] * z[j]
-                a1[i] = a
-                h1[i] = gelu(a)
-            a2 = vh()
-            h2 = vh()
-            for i in range(width):
-                a = scalar(0.0)
-                if wp.static(biases):
-                    a = b2[i]
-                for j in range(width):
-                    a = a + W2[i, j] * h1[j]
-                a2[i] = a
-                h2[i] = gelu(a)
-            # layer 3: out = W3 h2 + b3
-            g2 = vh()
-            for j in range(width):
-                g = scalar(0.0)
-                for o in range(nout):
-                    g = g + W3[o, j] * adj_ret[o]
-                    wp.atomic_add(wp.adjoint[W3], o, j, adj_ret[o] * h2[j])
-                g2[j] = g * gelu_prime(a2[j])
-            if wp.static(biases):
-                for o in range(nout):
-                    wp.atomic_add(wp.adjoint[b3], o, adj_ret[o])
-            # layer 2: a2 = W2 h1 + b2
-            g1 = vh()
-            for j in range(width):
-                g = scalar(0.0)
+                    if wp.static(elastic):
+                        b1 = w.e_b1
+                        b2 = w.e_b2
+                        b3 = w.e_b3
+                    else:
+                        b1 = w.p_b1
+                        b2 = w.p_b2
+                        b3 = w.p_b3
+                h1 = vh()
                 for i in range(width):
-                    g = g + W2[i, j] * g2[i]
-                g1[j] = g * gelu_prime(a1[j])
-            for i in range(width):
-                gi = g2[i]
+                    a = scalar(0.0)
+                    if wp.static(biases):
+                        a = b1[i]
+                    for j in range(nin):
+                        a = a + W1[i, j] * z[j]
+                    h1[i] = gelu(a)
+                h2 = vh()
+                for i in range(width):
+                    a = scalar(0.0)
+                    if wp.static(biases):
+                        a = b2[i]
+                    for j in range(width):
+                        a = a + W2[i, j] * h1[j]
+                    h2[i] = gelu(a)
+                out = vout()
+                for o in range(nout):
+                    a = scalar(0.0)
+                    if wp.static(biases):
+                        a = b3[o]
+                    for j in range(width):
+                        a = a + W3[o, j] * h2[j]
+                    out[o] = a
+                return out
+
+            @wp.func_grad(mlp)
+            def adj_mlp(z: vin, w: Weights, adj_ret: vout):
+                if wp.static(elastic):
+                    W1 = w.e_W1
+                    W2 = w.e_W2
+                    W3 = w.e_W3
+                    G1 = wp.adjoint[w].e_W1
+                    G2 = wp.adjoint[w].e_W2
+                    G3 = wp.adjoint[w].e_W3
+                else:
+                    W1 = w.p_W1
+                    W2 = w.p_W2
+                    W3 = w.p_W3
+                    G1 = wp.adjoint[w].p_W1
+                    G2 = wp.adjoint[w].p_W2
+                    G3 = wp.adjoint[w].p_W3
+                if wp.static(biases):
+                    if wp.static(elastic):
+                        b1 = w.e_b1
+                        b2 = w.e_b2
+                        b3 = w.e_b3
+                        B1 = wp.adjoint[w].e_b1
+                        B2 = wp.adjoint[w].e_b2
+                        B3 = wp.adjoint[w].e_b3
+                    else:
+                        b1 = w.p_b1
+                        b2 = w.p_b2
+                        b3 = w.p_b3
+                        B1 = wp.adjoint[w].p_b1
+                        B2 = wp.adjoint[w].p_b2
+                        B3 = wp.adjoint[w].p_b3
+                # recompute the activations
+                a1 = vh()
+                h1 = vh()
+                for i in range(width):
+                    a = scalar(0.0)
+                    if wp.static(biases):
+                        a = b1[i]
+                    for j in range(nin):
+                        a = a + W1[i, j] * z[j]
+                    a1[i] = a
+                    h1[i] = gelu(a)
+                a2 = vh()
+                h2 = vh()
+                for i in range(width):
+                    a = scalar(0.0)
+                    if wp.static(biases):
+                        a = b2[i]
+                    for j in range(width):
+                        a = a + W2[i, j] * h1[j]
+                    a2[i] = a
+                    h2[i] = gelu(a)
+                # layer 3: out = W3 h2 + b3
+                g2 = vh()
                 for j in range(width):
-                    wp.atomic_add(wp.adjoint[W2], i, j, gi * h1[j])
+                    g = scalar(0.0)
+                    for o in range(nout):
+                        g = g + W3[o, j] * adj_ret[o]
+                        wp.atomic_add(G3, o, j, adj_ret[o] * h2[j])
+                    g2[j] = g * gelu_prime(a2[j])
                 if wp.static(biases):
-                    wp.atomic_add(wp.adjoint[b2], i, gi)
-            # layer 1: a1 = W1 z + b1
-            gz = vin()
-            for i in range(width):
-                gi = g1[i]
-                for j in range(nin):
-                    gz[j] = gz[j] + W1[i, j] * gi
-                    wp.atomic_add(wp.adjoint[W1], i, j, gi * z[j])
+                    for o in range(nout):
+                        wp.atomic_add(B3, o, adj_ret[o])
+                # layer 2: a2 = W2 h1 + b2
+                g1 = vh()
+                for j in range(width):
+                    g = scalar(0.0)
+                    for i in range(width):
+                        g = g + W2[i, j] * g2[i]
+                    g1[j] = g * gelu_prime(a1[j])
+                for i in range(width):
+                    gi = g2[i]
+                    for j in range(width):
+                        wp.atomic_add(G2, i, j, gi * h1[j])
+                    if wp.static(biases):
+                        wp.atomic_add(B2, i, gi)
+                # layer 1: a1 = W1 z + b1
+                gz = vin()
+                for i in range(width):
+                    gi = g1[i]
+                    for j in range(nin):
+                        gz[j] = gz[j] + W1[i, j] * gi
+                        wp.atomic_add(G1, i, j, gi * z[j])
+                    if wp.static(biases):
+                        wp.atomic_add(B1, i, gi)
+                wp.adjoint[z] += gz
+        else:
+            # every loop unrolled, Warp's automatic adjoint (timing comparison only: the in-place writes
+            # h[i] = ... into local vectors lose their adjoint in Warp 1.19, so its gradients are wrong)
+            @wp.func
+            def mlp(z: vin, w: Weights):
+                if wp.static(elastic):
+                    W1 = w.e_W1
+                    W2 = w.e_W2
+                    W3 = w.e_W3
+                else:
+                    W1 = w.p_W1
+                    W2 = w.p_W2
+                    W3 = w.p_W3
                 if wp.static(biases):
-                    wp.atomic_add(wp.adjoint[b1], i, gi)
-            wp.adjoint[z] += gz
-    else:
+                    if wp.static(elastic):
+                        b1 = w.e_b1
+                        b2 = w.e_b2
+                        b3 = w.e_b3
+                    else:
+                        b1 = w.p_b1
+                        b2 = w.p_b2
+                        b3 = w.p_b3
+                h1 = vh()
+                for i in range(wp.static(width)):
+                    a = scalar(0.0)
+                    if wp.static(biases):
+                        a = b1[i]
+                    for j in range(wp.static(nin)):
+                        a = a + W1[i, j] * z[j]
+                    h1[i] = gelu(a)
+                h2 = vh()
+                for i in range(wp.static(width)):
+                    a = scalar(0.0)
+                    if wp.static(biases):
+                        a = b2[i]
+                    for j in range(wp.static(width)):
+                        a = a + W2[i, j] * h1[j]
+                    h2[i] = gelu(a)
+                out = vout()
+                for o in range(wp.static(nout)):
+                    a = scalar(0.0)
+                    if wp.static(biases):
+                        a = b3[o]
+                    for j in range(wp.static(width)):
+                        a = a + W3[o, j] * h2[j]
+                    out[o] = a
+                return out
+
+        # the network input and T1 are built with constructors, not component assignment: Warp 1.19's
+        # automatic adjoint drops in-place writes into local vectors/matrices (measured: zero gradients)
         @wp.func
-        def mlp(z: vin, W1: A2, W2: A2, W3: A2, b1: BT, b2: BT, b3: BT):
-            h1 = vh()
-            for i in range(wp.static(width)):
-                a = scalar(0.0)
-                if wp.static(biases):
-                    a = b1[i]
-                for j in range(wp.static(nin)):
-                    a = a + W1[i, j] * z[j]
-                h1[i] = gelu(a)
-            h2 = vh()
-            for i in range(wp.static(width)):
-                a = scalar(0.0)
-                if wp.static(biases):
-                    a = b2[i]
-                for j in range(wp.static(width)):
-                    a = a + W2[i, j] * h1[j]
-                h2[i] = gelu(a)
-            out = vout()
-            for o in range(wp.static(nout)):
-                a = scalar(0.0)
-                if wp.static(biases):
-                    a = b3[o]
-                for j in range(wp.static(width)):
-                    a = a + W3[o, j] * h2[j]
-                out[o] = a
-            return out
+        def response(F: mat, w: Weights):
+            """Y = R T, T = sym(T1), T1 = NN(sigma - 1, vec(F^T F - I), det F - 1) (Alg. 4 lines 1-5);
+            ``no_rotation``: T1 = NN(vec(F - I)) as is."""
+            T1 = as_matrix(mlp(features(F), w))
+            if wp.static(no_rot):
+                return T1
+            else:
+                U, sc, V = La.svd_const(F)
+                R = La.polar(F, U, sc, V)                      # U V^T with a derivative finite at F = I
+                return R @ (scalar(0.5) * (T1 + wp.transpose(T1)))
+
+        return response, mlp
 
     @wp.func
-    def response(F: mat, W1: A2, W2: A2, W3: A2, b1: BT, b2: BT, b3: BT):
-        """Y = R T, T = sym(T1), T1 = NN(sigma - 1, vec(F^T F - I), det F - 1) (Alg. 4 lines 1-5);
-        ``no_rotation``: T1 = NN(vec(F - I)) as is."""
-        z = vin()
+    def features(F: mat):
+        """z = [sigma - 1, vec(F^T F - I), det F - 1] (no_undeformed: unshifted); no_rotation: vec(F - I)."""
+        h = scalar(shift)
         if wp.static(no_rot):
-            for i in range(dim):
-                for j in range(dim):
-                    z[i * dim + j] = F[i, j]
-                z[i * dim + i] = z[i * dim + i] - scalar(shift)
+            if wp.static(dim == 3):
+                return vin(F[0, 0] - h, F[0, 1], F[0, 2], F[1, 0], F[1, 1] - h, F[1, 2], F[2, 0], F[2, 1], F[2, 2] - h)
+            else:
+                return vin(F[0, 0] - h, F[0, 1], F[1, 0], F[1, 1] - h)
         else:
             s = La.singular_values(F)            # d s_i = (U^T dF V)_ii: finite at repeated values
-            Cg = wp.transpose(F) @ F
-            for i in range(dim):
-                z[i] = s[i] - scalar(shift)
-                for j in range(dim):
-                    z[dim + i * dim + j] = Cg[i, j]
-                z[dim + i * dim + i] = z[dim + i * dim + i] - scalar(shift)
-            z[dim + dim * dim] = wp.determinant(F) - scalar(shift)
-        o = mlp(z, W1, W2, W3, b1, b2, b3)
-        T1 = mat()
-        for i in range(dim):
-            for j in range(dim):
-                T1[i, j] = o[i * dim + j]                      # row-major, as torch's view(-1, 3, 3)
-        if wp.static(no_rot):
-            return T1
+            C = wp.transpose(F) @ F
+            J = wp.determinant(F)
+            if wp.static(dim == 3):
+                return vin(s[0] - h, s[1] - h, s[2] - h, C[0, 0] - h, C[0, 1], C[0, 2], C[1, 0], C[1, 1] - h, C[1, 2],
+                           C[2, 0], C[2, 1], C[2, 2] - h, J - h)
+            else:
+                return vin(s[0] - h, s[1] - h, C[0, 0] - h, C[0, 1], C[1, 0], C[1, 1] - h, J - h)
+
+    @wp.func
+    def as_matrix(o: vout):
+        """T1 from the network output, row-major (as torch's view(-1, 3, 3))."""
+        if wp.static(dim == 3):
+            return mat(o[0], o[1], o[2], o[3], o[4], o[5], o[6], o[7], o[8])
         else:
-            U, sc, V = La.svd_const(F)
-            R = La.polar(F, U, sc, V)                          # U V^T with a derivative finite at F = I
-            return R @ (scalar(0.5) * (T1 + wp.transpose(T1)))
+            return mat(o[0], o[1], o[2], o[3])
 
-    if biases:
-        @wp.func
-        def elastic(F: mat, w: Weights):
-            return response(F, w.e_W1, w.e_W2, w.e_W3, w.e_b1, w.e_b2, w.e_b3)
-
-        @wp.func
-        def plastic(F: mat, w: Weights):
-            return response(F, w.p_W1, w.p_W2, w.p_W3, w.p_b1, w.p_b2, w.p_b3)
-    else:
-        @wp.func
-        def elastic(F: mat, w: Weights):
-            return response(F, w.e_W1, w.e_W2, w.e_W3, w.e_W1, w.e_W2, w.e_W3)
-
-        @wp.func
-        def plastic(F: mat, w: Weights):
-            return response(F, w.p_W1, w.p_W2, w.p_W3, w.p_W1, w.p_W2, w.p_W3)
+    elastic, mlp_e = network(True)
+    plastic, mlp_p = network(False)
 
     @wp.func
     def kirchhoff(s: LawState, prm: Params, w: Weights):
@@ -238,4 +302,4 @@ def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
         out.F = Ft + scalar(alpha) * plastic(Ft, w)        # Alg. 4 line 9; App. C.3 Eq. 34
         return out
 
-    return SimpleNamespace(kirchhoff=kirchhoff, update=update, mlp=mlp, response=response)
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update, elastic=elastic, plastic=plastic)
