@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import jax
 import jax.numpy as jnp
 from jax.scipy.special import erf
 
@@ -35,8 +36,12 @@ def make(law, dim: int) -> SimpleNamespace:
         eye = jnp.eye(dim, dtype=F.dtype)
         if no_rot:
             return mlp((F - shift * eye).reshape(-1), w, net).reshape(dim, dim)
-        z = jnp.concatenate([singular_values(F) - shift, (F.T @ F - shift * eye).reshape(-1),
-                             (jnp.linalg.det(F) - shift)[None]])
+        s = singular_values(F)
+        C = F.T @ F
+        # F^T F = I exactly means sigma = 1 exactly (an SVD may miss it by round-off): the exact value,
+        # with the derivative d s kept (as on Warp), so tau(I) = 0 bit for bit on every backend
+        s = jnp.where(jnp.all(C == eye), 1.0 + (s - jax.lax.stop_gradient(s)), s)
+        z = jnp.concatenate([s - shift, (C - shift * eye).reshape(-1), (jnp.linalg.det(F) - shift)[None]])
         T1 = mlp(z, w, net).reshape(dim, dim)
         return polar_rotation(F) @ (0.5 * (T1 + T1.T))
 

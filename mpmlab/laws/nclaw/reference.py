@@ -50,7 +50,10 @@ def features(F, law):
     if law.no_rotation:
         return (F - shift * eye).reshape(-1), None
     U, s, V = svd_rotations(F)
-    z = np.concatenate([s - shift, (F.T @ F - shift * eye).reshape(-1), [np.linalg.det(F) - shift]])
+    C = F.T @ F
+    if np.all(C == eye):        # F^T F = I exactly: sigma = 1 exactly (an SVD may miss it by round-off)
+        s = np.ones(d)
+    z = np.concatenate([s - shift, (C - shift * eye).reshape(-1), [np.linalg.det(F) - shift]])
     return z, U @ V.T
 
 
@@ -82,8 +85,10 @@ def update(state, grad_v, dt, prm, w, law=None):
 
 def rest_tangent(w, dim: int, law=None, net: str = "e"):
     """C_ijkl = d tau_ij / d F_kl at F = I (= dP/dF there when the rest stress vanishes), with the
-    singular values' derivative of the backends at U = V = I: d sigma_i = dF_ii. Exact: the network's
-    Jacobian at the rest input is W3 diag(gelu'(a2)) W2 diag(gelu'(a1)) W1."""
+    singular values' derivative of the backends at U = V = I: d sigma_i = dF_ii (sigma is not
+    differentiable at F = I: along a non-diagonal dF it moves by the sorted eigenvalues of sym(dF); this
+    is the one-sided convention the gradients use, an estimate for the CFL bound). Exact otherwise: the
+    network's Jacobian at the rest input is W3 diag(gelu'(a2)) W2 diag(gelu'(a1)) W1."""
     law = _law(law)
     eye = np.eye(dim)
     z0, _ = features(eye, law)
