@@ -93,6 +93,8 @@ def test_rest_state_exact_with_finite_jax_gradients():
             new = evaluate(law, dim, b, "update", [{"F": eye}], {}, np.zeros((1, dim, dim)), 1e-3)[0]["F"]
             assert np.all(tau == 0.0), (b, dim, tau)
             assert np.array_equal(new, eye), (b, dim, new)
+        if dim == 2:
+            continue                # the gradients: 3D only (each jit of both networks costs seconds)
         fns = law_functions(law, dim)
         wj = {k: jnp.asarray(a) for k, a in w.items()}
         row = jnp.zeros((0,))

@@ -180,7 +180,8 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
     test_params: ClassVar[Mapping[str, float]] = {}
     test_options: ClassVar[Mapping[str, Any]] = {}
     #: the transfers the exhaustive test suites (every law x transfer x dimension) pair this law with;
-    #: None: all. A law whose fused kernels are costly to compile (a neural law) names a few.
+    #: None: all. A law whose fused kernels are costly to compile (a neural law) names a few, or none
+    #: (``()``: its own tests run the conformance kit on it).
     test_transfers: ClassVar[tuple[str, ...] | None] = None
     #: False for a law whose Kirchhoff stress is not symmetric in general (NCLaw's tau = R T F^T, as
     #: released): the conformance kit then does not require tau = tau^T (angular momentum is then not
@@ -216,6 +217,13 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
 
     def __hash__(self):
         return hash((type(self), self._config_key()))
+
+    def code_key(self) -> tuple:
+        """The part of the configuration that changes a backend's generated code (the Warp struct and
+        kernel names are derived from it, so equal keys share compiled kernels across processes); by
+        default every field. A law whose options also hold data (a weights file, a seed) leaves those
+        out, so a new weights file does not recompile its kernels."""
+        return self._config_key()
 
     def _config_key(self) -> tuple:
         if not dataclasses.is_dataclass(self):
