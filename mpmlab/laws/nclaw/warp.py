@@ -9,7 +9,16 @@ The two networks are evaluated inside the kernels (the law update is fused into 
   accumulates into a scalar is wrong in Warp 1.19 (0.7 % on mlp_elastic's dtau/dF), so the automatic
   one is not used for these loops.
 * ``"unrolled"``: every loop ``range(wp.static(n))`` with Warp's automatic adjoint (mlp_elastic's
-  form); about 5,500 multiply-adds per network are unrolled, forward and adjoint.
+  form); about 5,500 multiply-adds per network are unrolled, forward and adjoint. Kept for the
+  measurement only: its gradients are wrong (the writes h[i] = ... into local vectors lose their
+  adjoint; measured vs jax.grad: dW2, dW3 zero, dW1 and dF 11-12 % off).
+
+Measured (2-core CPU, 1 Warp thread, NCLaw's 1,000-particle cube, 3D MLS fp32,
+``benchmarks/nclaw_warp.py``): cold build + first step 17.7 s for both forms (fixed_corotated: 15.3 s;
+the nclaw G2P kernel alone ~11.5 s), forward 13.9 ms/step ("adjoint") vs 14.6 ms ("unrolled") vs
+1.6 ms for fixed_corotated; JAX: 8.6 ms/step (fixed_corotated 2.7 ms). Vector/matrix types of size 64
+would need the weights as matrix-typed arrays (the generated ``Weights`` struct holds scalar arrays),
+and a tile kernel cannot be fused into the per-particle G2P kernel; neither was tried.
 """
 
 import math
