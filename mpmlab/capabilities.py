@@ -61,7 +61,7 @@ def markdown(builtin_only: bool = False) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for law_name in _laws(builtin_only):
         law = registry.laws.get(law_name)
-        params = ", ".join(f"{p.name} [{p.unit}]" for p in getattr(law, "params", ()))
+        params = ", ".join(f"{p.name} [{p.unit}]" for p in getattr(law, "params", ())) or "none (shared weights)"
         cells = ["✓" if ok[(law_name, t, b)] else "–" for b in backends for t in transfers]
         # a law's functions are the same on the fast and the differentiable path of each backend
         grads = ", ".join(b for b in backends if b in getattr(law, "implementations", {})) or "–"

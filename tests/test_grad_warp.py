@@ -68,8 +68,12 @@ def fd_errors(st, c, obs, steps, keys, seed=0, scale=None):
 
 
 # ---- every law x transfer ----------------------------------------------------------------------------
-@pytest.mark.parametrize("transfer", TRANSFERS)
-@pytest.mark.parametrize("law", LAWS)
+#: (law, transfer) pairs: every transfer, or the few a law declares (``test_transfers``: a neural law)
+CASES = [(law, t) for law in LAWS for t in TRANSFERS
+         if registry.laws.get(law).test_transfers is None or t in registry.laws.get(law).test_transfers]
+
+
+@pytest.mark.parametrize("law,transfer", CASES)
 def test_fd_matches_autograd(law, transfer):
     st = stepper(("law_scene", law), transfer)
     c = sheared_controls(st)
@@ -82,7 +86,9 @@ def test_fd_matches_autograd(law, transfer):
     ref = st.rollout(state, steps=STEPS[-1], every=STEPS[0])
     np.testing.assert_allclose(y.numpy()[[0, 1]], ref.x[[0, 1]], rtol=0, atol=1e-12)
     np.testing.assert_allclose(y.numpy()[2], ref.x[-1], rtol=0, atol=1e-12)
-    errs = fd_errors(st, c, obs, STEPS, ("x", "v", "law"), scale={"x": 0.01})
+    g = st.groups[0]
+    keys = ("x", "v") + (("law",) if g.law.param_names() else ()) + (("law_weights",) if g.weights else ())
+    errs = fd_errors(st, c, obs, STEPS, keys, scale={"x": 0.01})
     for k, (e, ad) in errs.items():
         assert abs(ad) > 1e-9, f"{k}: the directional derivative {ad:g} is too small to test anything"
         assert e <= 1e-6, f"{law}/{transfer}: d/d{k} autograd vs central differences, relative error {e:.2e}"

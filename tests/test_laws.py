@@ -49,7 +49,9 @@ def test_rotation_equivariance_and_symmetry(name, dim):
 @pytest.mark.parametrize("name", LAWS)
 def test_parameters_declare_units_and_ranges(name):
     law = registry.laws.get(name)
-    assert law.params, "a law must declare its parameters"
+    # a law declares its parameters, or carries its constants in shared weights (a neural law)
+    assert law.params or law.from_config(law.test_options, name).weight_shapes(2), \
+        "a law must declare its parameters (or shared weights)"
     for p in law.params:
         assert p.unit, f"{name}.{p.name} has no unit"
         assert p.low < p.high

@@ -179,6 +179,14 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
     #: the ``mpmlab.testing`` scenes; the conformance kit takes its test cases from here
     test_params: ClassVar[Mapping[str, float]] = {}
     test_options: ClassVar[Mapping[str, Any]] = {}
+    #: the transfers the exhaustive test suites (every law x transfer x dimension) pair this law with;
+    #: None: all. A law whose fused kernels are costly to compile (a neural law) names a few, or none
+    #: (``()``: its own tests run the conformance kit on it).
+    test_transfers: ClassVar[tuple[str, ...] | None] = None
+    #: False for a law whose Kirchhoff stress is not symmetric in general (NCLaw's tau = R T F^T, as
+    #: released): the conformance kit then does not require tau = tau^T (angular momentum is then not
+    #: conserved exactly by the stress).
+    symmetric_stress: ClassVar[bool] = True
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -209,6 +217,13 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
 
     def __hash__(self):
         return hash((type(self), self._config_key()))
+
+    def code_key(self) -> tuple:
+        """The part of the configuration that changes a backend's generated code (the Warp struct and
+        kernel names are derived from it, so equal keys share compiled kernels across processes); by
+        default every field. A law whose options also hold data (a weights file, a seed) leaves those
+        out, so a new weights file does not recompile its kernels."""
+        return self._config_key()
 
     def _config_key(self) -> tuple:
         if not dataclasses.is_dataclass(self):
@@ -259,6 +274,13 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
     def wave_speed(cls, params: Mapping[str, float], density: float) -> float:
         """Largest elastic wave speed [m/s] (P-wave or sound speed) for the CFL bound."""
 
+    def instance_wave_speed(self, params: Mapping[str, float], density: float, dim: int,
+                            weights: Mapping[str, Any]) -> float:
+        """The wave speed of this configured instance with its shared ``weights`` (what ``dt: auto``
+        uses: ``Scene.wave_speed``); by default the class's ``wave_speed(params, density)``. A law whose
+        stiffness lives in its weights (a neural law) overrides it."""
+        return self.wave_speed(params, density)
+
     # ---- state and shared weights ---------------------------------------------------------------
     @classmethod
     def state_spec(cls, name: str) -> StateField:
@@ -278,6 +300,11 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
     def initial_weights(self, dim: int) -> dict[str, np.ndarray]:
         """The shared arrays' starting values (float64; e.g. loaded from a weights file)."""
         return {k: np.zeros(s) for k, s in self.weight_shapes(dim).items()}
+
+    def weights_metadata(self, dim: int) -> dict[str, str]:
+        """String metadata written into a weights file of this instance (safetensors ``metadata``), e.g.
+        the configuration its arrays belong to; none by default."""
+        return {}
 
     def check_weights(self, weights: Mapping[str, Any], dim: int, where: str) -> None:
         """Refuse weights whose names or shapes differ from ``weight_shapes`` (one line, names the law)."""

@@ -238,9 +238,14 @@ class Scene:
         """Largest elastic wave speed over all bodies [m/s]."""
         c = 0.0
         for b, body in enumerate(self.bodies):
+            where = f"scene '{self.name}', body {body.name or b}"
             law = registry.laws.get(body.material)
-            prm = law.resolve_params(body.params, f"scene '{self.name}', body {body.name or b}", density=body.density)
-            c = max(c, law.wave_speed(prm, body.density))
+            prm = law.resolve_params(body.params, where, density=body.density)
+            inst = law.from_config(body.options, where)
+            # a law with shared weights sees them (its stiffness may live there: a neural law)
+            weights = (next(g.weights for g in self.particles().groups if g.law == inst)
+                       if inst.weight_shapes(self.dim) else {})
+            c = max(c, inst.instance_wave_speed(prm, body.density, self.dim, weights))
         return c
 
     def cfl_number(self, dt: float, speed: float | None = None) -> float:

@@ -278,7 +278,9 @@ def _write_law_weights(out: Path, fit, raw) -> dict[str, str]:
                   for k, a in controls["law_weights"][g].items()}
         name = f"law_weights_{law.name}.safetensors"
         # the run directory was checked before the fit (summary.json guard), so a resumed run replaces it
-        write_atomically(out / name, lambda tmp, arrays=arrays: save_file(arrays, str(tmp)), overwrite=True)
+        meta = law.weights_metadata(fit.stepper.dim) or None     # e.g. nclaw's dim, variant, alpha
+        write_atomically(out / name, lambda tmp, arrays=arrays, meta=meta: save_file(arrays, str(tmp), metadata=meta),
+                         overwrite=True)
         files[law.name] = name
     return files
 

@@ -27,28 +27,37 @@ def _row(law, prm) -> np.ndarray:
     return param_row(law, prm) if isinstance(prm, Mapping) else np.asarray(prm, float)
 
 
-def _takes_dim(fn) -> bool:
+def _takes(fn, name: str) -> bool:
     try:
-        return "dim" in inspect.signature(fn).parameters
+        return name in inspect.signature(fn).parameters
     except (TypeError, ValueError):
         return False
 
 
+def _extra(fn, law, dim) -> dict:
+    """Keywords a reference function accepts beyond (state, prm, w): ``dim=`` (references whose state
+    carries no dimension, J only) and ``law=`` (the law instance: its options, e.g. a network variant)."""
+    kw = {"dim": dim} if _takes(fn, "dim") else {}
+    if _takes(fn, "law"):
+        kw["law"] = law
+    return kw
+
+
 def ref_kirchhoff(law, state, prm, dim, weights=None):
-    """``reference.kirchhoff(state, prm, w)``; references whose state carries no dimension (J only)
-    take ``dim=`` as well, which is passed wherever the function accepts it."""
+    """``reference.kirchhoff(state, prm, w)``, with ``dim=`` and ``law=`` where the function accepts them."""
     law = law_instance(law)
     ref = _reference(law)
     w = law.initial_weights(dim) if weights is None else weights
-    kw = {"dim": dim} if _takes_dim(ref.kirchhoff) else {}
-    return np.asarray(ref.kirchhoff(state, _named(law, prm), w, **kw), dtype=float)
+    return np.asarray(ref.kirchhoff(state, _named(law, prm), w, **_extra(ref.kirchhoff, law, dim)), dtype=float)
 
 
 def ref_update(law, state, grad_v, dt, prm, dim, weights=None):
     law = law_instance(law)
     ref = _reference(law)
     w = law.initial_weights(dim) if weights is None else weights
-    return ref.update(state, np.asarray(grad_v, float), dt, _named(law, prm), w)
+    kw = _extra(ref.update, law, dim)
+    kw.pop("dim", None)
+    return ref.update(state, np.asarray(grad_v, float), dt, _named(law, prm), w, **kw)
 
 
 def _reference(law):

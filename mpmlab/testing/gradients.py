@@ -82,14 +82,16 @@ def check_gradients(law, backend: str, transfer: str = "apic", dim: int = 2, *, 
                     tol: float = 1e-6, seed: int = 0, min_derivative: float = 1e-9) -> dict:
     """Central differences vs reverse-mode AD (``jax.grad`` / torch autograd through Warp) of the kit's
     observation loss, w.r.t. each of ``keys``: ``x``, ``v`` (initial positions, velocities), ``law``
-    (the per-particle parameters), ``law_weights`` (shared weights; skipped for laws without). fp64;
+    (the per-particle parameters; skipped for laws without), ``law_weights`` (shared weights; skipped for
+    laws without). fp64;
     the relative error at the best step must be <= ``tol`` and |<grad, d>| > ``min_derivative``.
 
     Returns ``{key: {"error": e, "derivative": <grad, d>}}``."""
     name = law_name(law)
     st = _stepper(law, backend, transfer, dim)
     c = st.controls()
-    keys = [k for k in keys if not (k == "law_weights" and not c["law_weights"][0])]
+    keys = [k for k in keys if not (k == "law_weights" and not c["law_weights"][0])
+            and not (k == "law" and not st.groups[0].law.param_names())]   # a law without parameters
     where = f"law '{name}' {dim}D {backend} {transfer}"
     if backend == "jax":
         res = _jax(st, c, keys, steps, seed)

@@ -25,6 +25,21 @@ def polar_rotation(F):
     return spectral(_ones, False, F, jnp.zeros((), F.dtype))
 
 
+@jax.custom_jvp
+def singular_values(F):
+    """The s of ``svd_rotations`` (the last one carries det(F)'s sign) with the derivative
+    ds_i = (U^T dF V)_ii, finite at repeated singular values (where the SVD's own JVP divides by
+    s_i^2 - s_j^2); the same derivative as Warp's ``singular_values``."""
+    return svd_rotations(F)[1]
+
+
+@singular_values.defjvp
+def _singular_values_jvp(primals, tangents):
+    (F,), (dF,) = primals, tangents
+    U, s, V = svd_rotations(F)
+    return s, jnp.einsum("ji,jk,ki->i", U, dF, V)
+
+
 def _ones(s, p):
     return jnp.ones_like(s) + 0.0 * p
 

@@ -60,7 +60,7 @@ def law_types(law, dim: int, precision: str) -> SimpleNamespace:
     """
     T = warp_types(dim, precision)
     # stable across processes (Warp's kernel cache keys on the generated source, names included)
-    digest = hashlib.sha1(repr(law._config_key()).encode()).hexdigest()[:8]
+    digest = hashlib.sha1(repr(law.code_key()).encode()).hexdigest()[:8]
     key = f"{type(law).__module__}.{type(law).__qualname__}_{digest}_{dim}d_{precision}".replace(".", "_")
     fields = [(f.name, field_dtype(T, f.resolved_shape(dim)), f.resolved_shape(dim)) for f in law.state]
     LawState = _struct("LawState", {n: d for n, d, _ in fields}, key)
