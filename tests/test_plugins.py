@@ -112,21 +112,42 @@ def test_plugin_transfer_runs_from_the_cli(plugin_path, tmp_path, backend):
     assert np.abs(C).max() > 1e-3 and np.abs(C + np.swapaxes(C, 1, 2)).max() < 1e-12   # RPIC's C: skew
 
 
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_plugin_state_law_and_boundary_run_from_the_cli(plugin_path, tmp_path, backend):
+    """The plugin's hardening sand (a state field q of its own) on its conveyor belt (a plugin boundary),
+    from the CLI on each backend: q is stored in trajectory.h5 and colours the recording."""
+    from mpmlab.io.h5 import read_trajectory
+
+    run_dir = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "mpmlab", "scene=conveyor_sand", f"backend={backend}", "steps=60",
+                           "frame_every=20", "output.color_by=q", f"hydra.run.dir={run_dir}"],
+                          env=with_plugin(plugin_path), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    s = json.loads((run_dir / "summary.json").read_text())
+    assert s["laws"] == ["dp_hardening"] and s["status"] == "ok"
+    traj = read_trajectory(run_dir / "trajectory.h5")
+    assert "q" in traj.fields and np.all(np.isfinite(traj.fields["q"]))
+    assert traj.v[-1][:, 0].mean() > 0.01          # the belt drags the sand along +x
+    assert (run_dir / "recording.rrd").is_file()
+
+
 def test_conformance_kit_passes_on_the_plugin_laws(plugin_path, tmp_path):
-    """``mpmlab.testing.check_law`` on the installed plugin's two laws, with their own test_params: the
+    """``mpmlab.testing.check_law`` on the installed plugin's three laws (dp_hardening: a state field q
+    of its own), with their own test_params: the
     reference, rest state, equivariance, JAX = Warp trajectories and gradients, 2D, APIC, both backends.
     JAX gradients on ``mlp_elastic`` (its shared weights are the new path), Warp gradients on both:
     neo_hookean's JAX gradient would add one more 10-15 s JAX compile."""
     code = (
         "import json\n"
         "from mpmlab.testing import check_law\n"
-        "r = [check_law('neo_hookean', gradients=('warp',)), check_law('mlp_elastic')]\n"
+        "r = [check_law('neo_hookean', gradients=('warp',)), check_law('mlp_elastic'),\n"
+        "     check_law('dp_hardening', gradients=('warp',))]\n"
         "print(json.dumps(r))\n"
     )
     proc = python(code, with_plugin(plugin_path), tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    neo, mlp = json.loads(proc.stdout.strip().splitlines()[-1])
-    for r in (neo, mlp):
+    neo, mlp, dph = json.loads(proc.stdout.strip().splitlines()[-1])
+    for r in (neo, mlp, dph):
         assert r["failures"] == []
         assert {"reference[jax,2d]", "reference[warp,2d]", "rest_state[2d]", "equivariance[2d]",
                 "backends_agree[apic,2d]", "gradients[warp,apic,2d]"} <= set(r["checks"]), r["checks"].keys()

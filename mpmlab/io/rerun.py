@@ -350,7 +350,10 @@ class RecordingWriter(AtomicWriter):
             static = stepper._trajectory([], [], ())
         if int(every) < 1:
             raise ConfigError(f"RecordingWriter: every must be >= 1 (got {every}).")
-        if color_by not in ("material", "body", *_SCALAR_NEEDS):
+        from ..core.interfaces import registered_state_fields
+
+        # a law's declared field (a plugin's q) is checked against the first frame's fields (log_frame)
+        if color_by not in ("material", "body", *_SCALAR_NEEDS) and color_by not in registered_state_fields():
             _check_color_by(color_by, ())
         AtomicWriter.__init__(self, path, overwrite)
         self.static = static
