@@ -209,8 +209,7 @@ class Fit:
         """One rollout, one gradient and one optimiser step per epoch (optimiser and schedule as the
         adapter's ``optimizer_init`` takes them: optax on JAX, torch.optim factories on Warp)."""
         ad = self.adapter
-        loss = self.loss_function()
-        vg = ad.value_and_grad(loss)
+        vg = self.epoch_objective()
         raw, state = ad.optimizer_init(opt_cfg, sched_cfg, self.init_raw())
         if checkpoint is not None and resume and checkpoint.exists():
             self.epoch, self.history, raw, state = ad.load_checkpoint(checkpoint, raw, state)
@@ -227,6 +226,7 @@ class Fit:
                     self._locate(raw)
                 gn = ad.grad_norm(g)
                 self._record(self.epoch, val, raw, gn, time.perf_counter() - t0)
+                self.history[-1].update(self.epoch_extras(raw, g))
                 raw, state = ad.optimizer_step(state, raw, g)
                 self._epoch_done(bar, val, on_epoch)
                 if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
@@ -235,8 +235,22 @@ class Fit:
                     break
         finally:
             bar.close()
-        self.final_loss = ad.value(loss, raw)
+        self.final_loss = self.final_value(raw)
         return raw
+
+    # ---- what a subclass changes (mpmlab.inverse.teacher: teacher-forced segments) ----------------------------
+    def epoch_objective(self) -> Callable:
+        """``raw -> (loss, why_invalid or None, gradient or None)`` for the epoch ``self.epoch``: here
+        one rollout of the whole schedule."""
+        return self.adapter.value_and_grad(self.loss_function())
+
+    def epoch_extras(self, raw, grad) -> dict[str, Any]:
+        """Entries added to the epoch's history record (and to the recording)."""
+        return {}
+
+    def final_value(self, raw) -> float:
+        """The loss at the final parameters."""
+        return self.adapter.value(self.loss_function(), raw)
 
     def _locate(self, raw):
         """Turn a non-finite gradient into a GradientError naming step and particle."""

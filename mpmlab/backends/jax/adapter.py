@@ -67,18 +67,21 @@ class JaxAdapter:
 
     # ---- gradients -------------------------------------------------------------------------------
     def value_and_grad(self, loss):
+        """``loss(raw, *data) -> (value, invalid)`` -> ``(raw, *data) -> (value, why or None, grad or None)``;
+        the gradient is w.r.t. ``raw`` only, ``data`` (arrays) are traced arguments: new values of the
+        same shapes reuse the compiled function."""
         vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
 
-        def value_and_grad(raw):
-            (val, bad), g = vg(raw)
+        def value_and_grad(raw, *data):
+            (val, bad), g = vg(raw, *data)
             val = float(val)
             if bool(bad):
                 return val, DIVERGED, None
             return val, None, (g if np.isfinite(val) else None)
         return value_and_grad
 
-    def value(self, loss, raw):
-        return float(loss(raw)[0])
+    def value(self, loss, raw, *data):
+        return float(loss(raw, *data)[0])
 
     def check_gradient(self, grad):
         return JD.check_gradient(grad)
@@ -116,6 +119,21 @@ class JaxAdapter:
         opt, opt_state = state
         updates, opt_state = opt.update(grad, opt_state, raw)
         return optax.apply_updates(raw, updates), (opt, opt_state)
+
+    def grouped_optimizer(self, names, groups, schedule, epochs):
+        """One Adam per group ``{label: {lr, clip, params}}``: ``optax.multi_transform`` of
+        ``clip_by_global_norm(clip)`` (the group's own norm) then ``adam`` at the group's learning rate,
+        decayed to 0 over ``epochs`` by ``cosine_decay_schedule`` (= torch's CosineAnnealingLR(T_max=epochs)
+        stepped once per epoch) or constant."""
+        import optax
+
+        label_of = {n: label for label, g in groups.items() for n in g["params"]}
+        tx = {}
+        for label, g in groups.items():
+            lr = optax.cosine_decay_schedule(g["lr"], int(epochs)) if schedule == "cosine" else g["lr"]
+            parts = [optax.clip_by_global_norm(g["clip"])] if g["clip"] is not None else []
+            tx[label] = optax.chain(*parts, optax.adam(lr))
+        return optax.multi_transform(tx, {n: label_of[n] for n in names}), None
 
     def save_checkpoint(self, path, epoch, history, raw, state):
         path = Path(path)

@@ -47,6 +47,19 @@ def _map(f, tree, *rest):
     return f(tree, *rest)
 
 
+class GroupClippedAdam(torch.optim.Adam):
+    """Adam whose parameter groups are each clipped to their own gradient norm (``clip``) before the
+    step: NCLaw's ``clip_grad_norm_(net.parameters(), 0.1)`` per network. A non-finite norm raises
+    (``error_if_nonfinite``): a NaN gradient is never scaled into the weights."""
+
+    def step(self, closure=None):
+        for g in self.param_groups:
+            if g.get("clip") is not None:
+                torch.nn.utils.clip_grad_norm_([q for q in g["params"] if q.grad is not None], g["clip"],
+                                               error_if_nonfinite=True)
+        return super().step(closure)
+
+
 class WarpAdapter:
     name = "warp"
     checkpoint_suffix = "pt"
@@ -107,12 +120,14 @@ class WarpAdapter:
 
     # ---- gradients -------------------------------------------------------------------------------
     def value_and_grad(self, loss):
-        def value_and_grad(raw):
+        """``loss(raw, *data) -> (value, invalid)`` -> ``(raw, *data) -> (value, why or None, grads or None)``
+        (gradients of ``raw``'s leaves, in order)."""
+        def value_and_grad(raw, *data):
             params = _leaves(raw)
             for q in params:                 # what optimizer.zero_grad() does (set_to_none)
                 q.grad = None
             try:
-                val = loss(raw)[0]
+                val = loss(raw, *data)[0]
             except SimulationDiverged as exc:
                 return float("nan"), f"the rollout diverged ({exc})", None
             v = float(val.detach())
@@ -122,9 +137,9 @@ class WarpAdapter:
             return v, None, [q.grad for q in params]
         return value_and_grad
 
-    def value(self, loss, raw):
+    def value(self, loss, raw, *data):
         with torch.no_grad():
-            return float(loss(raw)[0])
+            return float(loss(raw, *data)[0])
 
     def check_gradient(self, grad):
         return all(bool(torch.isfinite(g).all()) for g in grad if g is not None)
@@ -158,8 +173,23 @@ class WarpAdapter:
         sched = schedule(opt) if schedule is not None else None
         return raw, (opt, sched)
 
+    def grouped_optimizer(self, names, groups, schedule, epochs):
+        """One Adam per group ``{label: {lr, clip, params}}`` (``GroupClippedAdam``: torch.optim.Adam with one
+        param group per label, each clipped to its own gradient norm before the step) and, for
+        ``schedule: cosine``, ``CosineAnnealingLR(T_max=epochs)`` stepped once per epoch."""
+        def optimizer(params):
+            by_name = dict(zip(names, params))
+            return GroupClippedAdam([{"params": [by_name[n] for n in g["params"]], "lr": g["lr"], "clip": g["clip"],
+                                      "label": label} for label, g in groups.items()])
+        sched = ((lambda opt: torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(epochs)))
+                 if schedule == "cosine" else None)
+        return optimizer, sched
+
     def optimizer_step(self, state, raw, grad):
         opt, sched = state
+        for q, g in zip(_leaves(raw), grad or ()):       # gradients summed on the host (teacher forcing)
+            if g is not None and q.grad is not g:
+                q.grad = g
         opt.step()
         if sched is not None:
             sched.step()
