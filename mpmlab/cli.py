@@ -190,10 +190,10 @@ def _run_job(cfg, ctx, hc, multirun: bool, job: dict) -> dict:
 
 
 def _status_of(exc: BaseException) -> str:
-    from .core.errors import ConfigError, SimulationDiverged
+    from .core.errors import ConfigError, FitDiverged, GradientError, SimulationDiverged
     from .io.files import OutputExistsError
 
-    if isinstance(exc, SimulationDiverged):
+    if isinstance(exc, (SimulationDiverged, FitDiverged, GradientError)):
         return "diverged"
     if isinstance(exc, KeyboardInterrupt):
         return "interrupted"
@@ -272,7 +272,7 @@ def describe_error(exc: BaseException) -> tuple[int, str]:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from .core.errors import ConfigError, MpmlabError, SimulationDiverged
+    from .core.errors import ConfigError, FitDiverged, GradientError, MpmlabError, SimulationDiverged
     from .core.signals import RunInterrupted, stop_reason
     from .io.files import OutputError, OutputExistsError
 
@@ -282,6 +282,8 @@ def describe_error(exc: BaseException) -> tuple[int, str]:
         return code, f"{stop_reason(exc)}" + (f" {detail}" if detail else "") + "."
     if isinstance(exc, SimulationDiverged):
         return EXIT_DIVERGED, str(exc) + (f" ({detail.split('; ', 1)[1]})" if "; " in detail else "")
+    if isinstance(exc, (FitDiverged, GradientError)):      # the optimisation diverged, not the input
+        return EXIT_DIVERGED, str(exc)
     if isinstance(exc, OutputExistsError):
         return EXIT_CONFIG, (f"'{exc.path}' already exists (an earlier run's output); rerun with "
                              f"output.overwrite=true to replace it, or choose another directory with hydra.run.dir=PATH.")

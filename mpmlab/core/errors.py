@@ -68,6 +68,11 @@ class SimulationDiverged(MpmlabError):
         super().__init__(msg)
 
 
+class FitDiverged(MpmlabError):
+    """The loss of a fit became NaN/Inf (the optimiser pushed the parameters somewhere unstable); the CLI
+    exits with the divergence code (3)."""
+
+
 class GradientError(MpmlabError):
     """A gradient through a rollout became NaN/Inf; names where it arose (never silently zeroed).
 

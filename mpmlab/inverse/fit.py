@@ -27,15 +27,11 @@ import numpy as np
 
 from ..core import signals
 from ..core.autodiff import adapter
-from ..core.errors import ConfigError, MpmlabError
+from ..core.errors import ConfigError, FitDiverged, MpmlabError
 from ..observations import ObservationSchedule
 from .parameters import FitParameter
 
 log = logging.getLogger("mpmlab")
-
-
-class FitDiverged(MpmlabError):
-    """The loss of a fit became NaN/Inf (the optimiser pushed the parameters somewhere unstable)."""
 
 
 def _atomic_pickle(path: Path, obj: Any) -> None:
@@ -158,9 +154,11 @@ class Fit:
     # ---- the loop -----------------------------------------------------------------------------------------
     def run(self, epochs: int, optimizer_cfg, schedule_cfg=None, checkpoint: Path | None = None,
             checkpoint_every: int = 10, resume: bool = True, progress: bool | None = None,
-            on_epoch: Callable[[int, float, dict], None] | None = None, tolerance: float = 0.0) -> dict:
+            on_epoch: Callable[[int, float, dict], None] | None = None, tolerance: float = 0.0,
+            on_checkpoint: Callable[[Any], None] | None = None) -> dict:
         """Optimise for ``epochs`` epochs (total, counting those done before a resume); returns the
-        final trainable values. ``on_epoch(epoch, loss, values)`` runs after every epoch."""
+        final trainable values. ``on_epoch(epoch, loss, values)`` runs after every epoch,
+        ``on_checkpoint(raw)`` after every checkpoint written (gradient optimisers)."""
         if self.reference is None:
             self.make_reference()
         from .lm import LevenbergMarquardt
@@ -169,7 +167,7 @@ class Fit:
             return self._run_lm(epochs, optimizer_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
                                 tolerance)
         return self._run_gradient(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume, progress,
-                                  on_epoch, tolerance)
+                                  on_epoch, tolerance, on_checkpoint)
 
     def _bar(self, epochs, progress):
         """The progress bar, once the checkpoint (if any) is loaded; a resume is said in the run's log."""
@@ -205,7 +203,8 @@ class Fit:
                            f"last good epoch: {last}); lower the learning rate, bound the parameter with transform: "
                            f"softplus, or check the data.")
 
-    def _run_gradient(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol):
+    def _run_gradient(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol,
+                      on_checkpoint=None):
         """One rollout, one gradient and one optimiser step per epoch (optimiser and schedule as the
         adapter's ``optimizer_init`` takes them: optax on JAX, torch.optim factories on Warp)."""
         ad = self.adapter
@@ -231,6 +230,8 @@ class Fit:
                 self._epoch_done(bar, val, on_epoch)
                 if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
                     ad.save_checkpoint(checkpoint, self.epoch, self.history, raw, state)
+                    if on_checkpoint is not None:
+                        on_checkpoint(raw)
                 if val <= tol:
                     break
         finally:

@@ -185,10 +185,15 @@ class TeacherForcedFit(Fit):
             return val * scale, bad
         return loss
 
-    def _value_and_grad(self, length: int):
-        if length not in self._vg:
-            self._vg[length] = self.adapter.value_and_grad(self._segment_objective(length))
-        return self._vg[length]
+    def _value_and_grad(self, length: int, grad: bool = True):
+        key = (length, grad)
+        if key not in self._vg:
+            if grad:
+                self._vg[key] = self.adapter.value_and_grad(self._segment_objective(length))
+            else:
+                loss = self._segment_objective(length)
+                self._vg[key] = lambda raw, *data: (self.adapter.value(loss, raw, *data), None, True)
+        return self._vg[key]
 
     def _carry_after(self, raw, init, length):
         """C and the law state after a segment (kinematics-only reset), detached."""
@@ -197,15 +202,16 @@ class TeacherForcedFit(Fit):
         raise MpmlabError("teacher forcing with reset [x, v] (kinematics only) is not available yet: it needs the "
                           "rollout's end state (C, F) from the differentiable observe; use reset [x, v, C, F].")
 
-    def epoch_loss(self, raw, epoch: int, fraction: float | None = None):
-        """(loss, why invalid or None, gradient or None, info) of one teacher-forced epoch."""
+    def epoch_loss(self, raw, epoch: int, fraction: float | None = None, grad: bool = True):
+        """(loss, why invalid or None, gradient or None, info) of one teacher-forced epoch; ``grad=False``:
+        the loss alone (no backward pass; the gradient entry is None)."""
         f = self.segment_fraction if fraction is None else fraction
         segs = self.forcing.segments(epoch, self.epochs)
         n_seg = len(segs)
         chosen = chosen_segments(n_seg, f, self.seed, epoch)
         scale = LOSS_SCALE * n_seg / self.forcing.steps * n_seg / len(chosen)
         d = self._backend_data()
-        total, grad, carry = 0.0, None, None
+        total, acc, carry = 0.0, None, None
         chosen_set = set(int(k) for k in chosen)
         for k, (s, L) in enumerate(segs):
             if k not in chosen_set and self.forcing.full_reset:
@@ -216,14 +222,15 @@ class TeacherForcedFit(Fit):
                 if k not in chosen_set:
                     continue
             tv = d["v"][s + 1:s + L + 1]
-            val, why, g = self._value_and_grad(L)(raw, init, d["x"][s + 1:s + L + 1], tv, self.ops.asarray(scale))
+            val, why, g = self._value_and_grad(L, grad)(raw, init, d["x"][s + 1:s + L + 1], tv, self.ops.asarray(scale))
             if why is not None or g is None:
                 return val, why, None, {}
             total += val
-            grad = g if grad is None else self.ops.tree_map(lambda a, b: a + b, grad, g)
+            if grad:
+                acc = g if acc is None else self.ops.tree_map(lambda a, b: a + b, acc, g)
         info = {"period": self.forcing.period(epoch, self.epochs), "segments": n_seg,
                 "segments_backpropagated": int(len(chosen))}
-        return total, None, grad, info
+        return total, None, (acc if grad else None), info
 
     # ---- Fit hooks ------------------------------------------------------------------------------------
     def values(self, raw) -> dict[str, Any]:
@@ -262,7 +269,7 @@ class TeacherForcedFit(Fit):
 
     def final_value(self, raw) -> float:
         """The full teacher-forced loss (every segment) at the last epoch's period."""
-        val, why, _, _ = self.epoch_loss(raw, min(self.epoch, self.epochs), fraction=1.0)
+        val, why, _, _ = self.epoch_loss(raw, min(self.epoch, self.epochs), fraction=1.0, grad=False)
         return float(val) if why is None else float("nan")
 
     def optimizer(self, groups: Mapping[str, Mapping[str, Any]], schedule: str = "cosine"):

@@ -1,0 +1,270 @@
+"""``task=nclaw_train``: learn a neural constitutive law from one trajectory (NCLaw, Ma et al. 2023,
+Sec. 3.4 and App. D.2), on either backend.
+
+    mpmlab -m experiment=nclaw_datasets                       # the four ground-truth trajectories
+    mpmlab task=nclaw_train scene=nclaw_jelly material=nclaw task.dataset=PATH/trajectory.h5
+
+The scene is the training scene with the learned law (``material=nclaw``); the dataset is that
+scene's ground-truth rollout with x, v, C and F at every step (``experiment=nclaw_datasets``). One
+epoch is one teacher-forced pass over the trajectory (:mod:`mpmlab.inverse.teacher`) and one Adam
+step per network: the release's schedule is the default (300 epochs, lr 1.0 elastic / 0.1 plastic,
+cosine to 0, gradient norm clipped to 0.1 per network, period 25 -> 200 steps, whole-state reset).
+
+Outputs in the run directory: ``nclaw_weights.safetensors`` (the trained law; both backends read it
+through ``material.options.weights_file``), ``train_checkpoint.*`` (every ``checkpoint_every``
+epochs: rerun the same command with the same ``hydra.run.dir`` to resume), ``recording.rrd`` (loss,
+period, learning rates and gradient norms per epoch), ``train.png`` and ``summary.json``.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List
+
+import numpy as np
+
+from ..config import TaskConfig, register_task_schema
+from ..config import build_scene, check_run_options, make_transfer_from_config
+from ..core.errors import ConfigError
+from .common import RECORDING, SUMMARY, write_config, write_json
+
+log = logging.getLogger("mpmlab")
+WEIGHTS = "nclaw_weights.safetensors"
+PLOT = "train.png"
+#: each network's weight names start with its prefix (mpmlab.laws.nclaw: e_W1 ... p_b3)
+NETS = {"elastic": "e_", "plastic": "p_"}
+
+
+@dataclass
+class NclawTrainConfig(TaskConfig):
+    """Train the ``nclaw`` law of the scene on a ground-truth trajectory by teacher forcing."""
+
+    name: str = "nclaw_train"
+    #: the ground-truth trajectory.h5 (x, v, C, F at every step: experiment=nclaw_datasets)
+    dataset: str = ""
+    epochs: int = 300
+    #: per network: Adam learning rate and gradient-norm clip (null: none)
+    nets: Dict[str, Any] = field(default_factory=lambda: {"elastic": {"lr": 1.0, "clip": 0.1},
+                                                          "plastic": {"lr": 0.1, "clip": 0.1}})
+    #: cosine (to 0 over the epochs, NCLaw) | constant
+    lr_schedule: str = "cosine"
+    #: teacher forcing: the period from ``start`` (epoch 0) to ``end`` (last epoch) steps, and what a
+    #: reset restores: [x, v, C, F] (the release) or [x, v] (kinematics only)
+    teacher: Dict[str, Any] = field(default_factory=lambda: {"start": 25.0, "end": 200.0, "reset": ["x", "v", "C", "F"]})
+    #: back-propagate this random fraction of the segments per epoch (rescaled: unbiased, cheaper)
+    segment_fraction: float = 1.0
+    #: weight of the velocity term (NCLaw Tab. 7; 0: the release's position-only loss)
+    velocity_weight: float = 0.0
+    #: seed of the segment draws (segment_fraction < 1)
+    seed: int = 0
+    #: steps per recomputed segment of a backward pass (memory; not the teacher-forcing segments)
+    segment: int = 100
+    checkpoint_every: int = 1
+    #: continue from train_checkpoint.* in the run directory if present
+    resume: bool = True
+    #: keep XLA CPU's YNNPACK fusions (JAX; they make backward passes ~2x slower)
+    jax_ynn_fusions: bool = False
+
+
+register_task_schema("nclaw_train", NclawTrainConfig)
+
+
+def _plain(node):
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    return OmegaConf.to_container(node, resolve=True) if isinstance(node, (DictConfig, ListConfig)) else node
+
+
+def nclaw_group(stepper):
+    """(index, group) of the scene's one ``nclaw`` material group."""
+    found = [(i, g) for i, g in enumerate(stepper.groups) if g.law.name == "nclaw"]
+    if len(found) != 1:
+        laws = sorted({g.law.name for g in stepper.groups})
+        raise ConfigError(f"task=nclaw_train trains one nclaw body; scene '{stepper.scene.name}' has laws {laws}: "
+                          f"add material=nclaw (one body).")
+    return found[0]
+
+
+def load_truth(path: str, stepper, steps: int) -> dict[str, np.ndarray]:
+    """x, v, C, F [steps + 1, N, ...] of a ground-truth dataset, checked against the scene."""
+    from ..io.h5 import read_trajectory
+
+    traj = read_trajectory(path, require_complete=True)
+    n = stepper.particles.count
+    scene_of = traj.meta.get("scene", "?")
+    if traj.x.shape[1] != n:
+        raise ConfigError(f"dataset '{path}' has {traj.x.shape[1]} particles, scene '{stepper.scene.name}' has {n}: it was "
+                          f"made for another scene (its scene: '{scene_of}'); rerun experiment=nclaw_datasets for it.")
+    st = np.asarray(traj.step, np.int64)
+    if st.size < 2 or np.any(np.diff(st) != 1) or st[0] != 0:
+        every = int(np.min(np.diff(st))) if st.size > 1 else 0
+        raise ConfigError(f"dataset '{path}' keeps every {every}-th step; teacher forcing needs every step "
+                          f"(scene.frame_every=1, as experiment=nclaw_datasets writes).")
+    if st[-1] < steps:
+        raise ConfigError(f"dataset '{path}' has {int(st[-1])} steps; the training needs {steps} (scene.steps).")
+    dt = float(traj.meta.get("dt", stepper.dt))
+    if abs(dt - float(stepper.dt)) > 1e-9 * max(dt, 1e-30):
+        raise ConfigError(f"dataset '{path}' was made with dt = {dt:g} s, the scene steps dt = {float(stepper.dt):g} s; "
+                          f"use the dataset's scene settings.")
+    P = stepper.particles
+    if not np.allclose(np.asarray(traj.x[0], float), P.x, atol=1e-5 * max(1.0, float(np.abs(P.x).max()))):
+        raise ConfigError(f"dataset '{path}' (scene '{scene_of}'): its first frame's positions are not the scene's "
+                          f"particles (another sampling or scene); rerun experiment=nclaw_datasets with this scene.")
+    out = {"x": traj.x, "v": traj.v}
+    for k in ("C", "F"):
+        if k in traj.fields:
+            if len(traj.field_particles.get(k, np.arange(n))) != n:
+                raise ConfigError(f"dataset '{path}': field {k} covers {len(traj.field_particles[k])} of {n} particles; "
+                                  f"teacher forcing needs it for every particle.")
+            out[k] = traj.fields[k]
+    return out
+
+
+def run(cfg, ctx) -> dict:
+    from .. import __version__
+    from ..core.autodiff import adapter_for_backend
+    from ..inverse.parameters import FitParameter
+    from ..inverse.teacher import TeacherForcedFit, TeacherForcing
+    from ..simulator import build_stepper
+    from .inverse import _write_law_weights
+
+    t_task = time.perf_counter()
+    out = Path(ctx.output_dir)
+    check_run_options(cfg)
+    tc = cfg.task
+    if not tc.dataset:
+        raise ConfigError("task=nclaw_train needs task.dataset=PATH/trajectory.h5 (the ground truth: "
+                          "mpmlab -m experiment=nclaw_datasets).")
+    scene = build_scene(cfg)
+    transfer = make_transfer_from_config(cfg)
+    backend, precision = cfg.backend.name, cfg.precision.name
+    ad = adapter_for_backend(backend, precision)
+    ad.before_build(tc)
+    steps = int(cfg.steps)
+    teacher = _plain(tc.teacher) or {}
+    unknown = sorted(set(teacher) - {"start", "end", "reset"})
+    if unknown:
+        raise ConfigError(f"task.teacher: unknown option(s) {unknown}; use start, end, reset.")
+    forcing = TeacherForcing(steps=steps, start=float(teacher.get("start", 25.0)), end=float(teacher.get("end", 200.0)),
+                             reset=tuple(teacher.get("reset", ("x", "v", "C", "F"))))
+    nets = _plain(tc.nets) or {}
+    bad = sorted(set(nets) - set(NETS))
+    if bad or not nets:
+        raise ConfigError(f"task.nets: {bad or 'none'}; give elastic and/or plastic, each {{lr, clip}}.")
+    ckpt = out / f"train_checkpoint.{ad.checkpoint_suffix}"
+    if (out / SUMMARY).exists() and not ctx.overwrite and not (tc.resume and ckpt.exists()):
+        raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
+
+    stepper = build_stepper(scene, backend, transfer, precision)
+    gi, group = nclaw_group(stepper)
+    truth = load_truth(str(tc.dataset), stepper, steps)
+    body = scene.bodies[int(stepper.particles.body_id[group.start])].name
+    params, groups = [], {}
+    for label, prefix in NETS.items():
+        if label not in nets:
+            continue
+        names = [k for k in group.weights if k.startswith(prefix)]
+        groups[label] = names
+        params += [FitParameter(name=k, target="law_weights", field=k, form="array", body=body) for k in names]
+    for p in params:
+        p.bind(scene, stepper, [])
+    write_config(out, cfg, True)
+    fit = TeacherForcedFit(stepper, scene, params, truth, forcing, epochs=int(tc.epochs),
+                           segment_fraction=float(tc.segment_fraction), velocity_weight=float(tc.velocity_weight),
+                           seed=int(tc.seed), groups=groups, segment=int(tc.segment))
+    optimizer, sched = fit.optimizer({k: nets[k] for k in groups}, str(tc.lr_schedule))
+    log.info("nclaw_train: %s on %s/%s/%s, %d particles, %d steps, %d epochs, nets %s, reset %s, segment_fraction %g",
+             scene.name, backend, transfer.name, precision, stepper.particles.count, steps, int(tc.epochs),
+             ", ".join(groups), list(forcing.reset), float(tc.segment_fraction))
+
+    rec = _recorder(out, cfg, scene.name) if cfg.output.recording else None
+
+    def on_epoch(epoch, loss, values):
+        h = fit.history[-1]
+        if rec is not None:
+            scalars = {"period": h["period"], "segments": h["segments"]}
+            scalars.update({f"lr/{k}": v for k, v in h["lr"].items()})
+            scalars.update({f"grad_norm/{k}": v for k, v in h["grad_norms"].items()})
+            rec.log(epoch, loss, scalars)
+
+    try:
+        raw = fit.run(int(tc.epochs), optimizer, sched, checkpoint=ckpt, checkpoint_every=int(tc.checkpoint_every),
+                      resume=bool(tc.resume), progress=ctx.progress, on_epoch=on_epoch,
+                      on_checkpoint=lambda raw: _write_law_weights_as(out, fit, raw))
+    finally:
+        if rec is not None:
+            rec.close()
+    weights = _write_law_weights_as(out, fit, raw)
+    hist = fit.history
+    times = np.diff([0.0] + [h["time_s"] for h in hist]) if hist else np.array([])
+    summary = {
+        "task": "nclaw_train", "status": "ok", "scene": scene.name, "backend": backend, "transfer": transfer.name,
+        "precision": precision, "particles": int(stepper.particles.count), "steps": steps, "dt": float(stepper.dt),
+        "dataset": str(tc.dataset), "weights": weights, "law": group.law.weights_metadata(stepper.dim),
+        "epochs": int(fit.epoch), "epochs_planned": int(tc.epochs),
+        "nets": {k: nets[k] for k in groups}, "lr_schedule": str(tc.lr_schedule),
+        "teacher": {"start": forcing.start, "end": forcing.end, "reset": list(forcing.reset)},
+        "segment_fraction": float(tc.segment_fraction), "velocity_weight": float(tc.velocity_weight),
+        "initial_loss": float(hist[0]["loss"]) if hist else None,
+        "final_loss": float(fit.final_loss),
+        "final_loss_note": "the full teacher-forced loss (every segment) at the last epoch's period",
+        "seconds_per_epoch": float(np.median(times[1:])) if len(times) > 1 else (float(times[0]) if len(times) else None),
+        "history": hist,
+        "wall_time_s": None,
+        "mpmlab_version": __version__,
+        "overrides": list(ctx.job.get("overrides", [])),
+    }
+    if cfg.output.plots and hist:
+        plot_training(out / PLOT, hist, f"{scene.name}: nclaw on {backend}/{transfer.name}/{precision}")
+    summary["wall_time_s"] = float(time.perf_counter() - t_task)
+    write_json(out / SUMMARY, summary, True)
+    print(f"mpmlab: nclaw_train {scene.name} {backend}: {fit.epoch} epochs in {summary['wall_time_s']:.1f} s, loss "
+          f"{summary['initial_loss']:.3e} -> {summary['final_loss']:.3e}; weights {out / WEIGHTS}", flush=True)
+    return summary
+
+
+def _write_law_weights_as(out: Path, fit, raw) -> str:
+    """The trained law as ``nclaw_weights.safetensors`` (atomic; replaced at every checkpoint)."""
+    from .inverse import _write_law_weights
+
+    files = _write_law_weights(out, fit, raw)
+    os.replace(out / files["nclaw"], out / WEIGHTS)
+    return WEIGHTS
+
+
+def _recorder(out: Path, cfg, scene_name: str):
+    from ..io.rerun import EpochRecorder, unique_recording_id
+
+    return EpochRecorder(out / RECORDING, unique_recording_id(f"nclaw_train-{scene_name}-{out.name}"),
+                         title="NCLaw training", overwrite=True, units={"period": "steps"})
+
+
+def plot_training(path: Path, history, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    e = [h["epoch"] for h in history]
+    fig, axs = plt.subplots(1, 3, figsize=(14, 3.8))
+    axs[0].semilogy(e, [h["loss"] for h in history])
+    axs[0].set_xlabel("epoch"); axs[0].set_title("teacher-forced loss")
+    ax2 = axs[1]
+    for k in history[0]["lr"]:
+        ax2.plot(e, [h["lr"][k] for h in history], label=f"lr {k}")
+    ax2.set_xlabel("epoch"); ax2.set_title("learning rate"); ax2.legend(fontsize=7)
+    tw = ax2.twinx()
+    tw.plot(e, [h["period"] for h in history], "k--", lw=0.8)
+    tw.set_ylabel("period [steps] (dashed)")
+    for k in history[0]["grad_norms"]:
+        axs[2].semilogy(e, [max(h["grad_norms"][k], 1e-30) for h in history], label=k)
+    axs[2].set_xlabel("epoch"); axs[2].set_title("gradient norm (before clipping)"); axs[2].legend(fontsize=7)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)

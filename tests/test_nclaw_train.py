@@ -1,0 +1,274 @@
+"""Training a neural constitutive law by teacher forcing (NCLaw, Ma et al. 2023, Sec. 3.4, App. D.2;
+``mpmlab.inverse.teacher``, ``task=nclaw_train``).
+
+Small sizes (2 cores): the 2D training scene ``nclaw_square_2d`` (64 particles, 200 steps of 5e-4 s,
+fixed corotated ground truth), fp64. Each backend compiles its nclaw step once per segment length, so
+the trainings here use a constant period (``start = end``): one length.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import mpmlab
+from mpmlab.boundaries import Walls
+from mpmlab.core.errors import ConfigError, TimeStepError
+from mpmlab.inverse.parameters import FitParameter
+from mpmlab.inverse.teacher import TeacherForcedFit, TeacherForcing, chosen_segments
+from mpmlab.laws.nclaw import Law
+
+NAMES = ["e_W1", "e_W2", "e_W3", "p_W1", "p_W2", "p_W3"]
+GROUPS = {"elastic": NAMES[:3], "plastic": NAMES[3:]}
+NETS = {"elastic": {"lr": 1.0, "clip": 0.1}, "plastic": {"lr": 0.1, "clip": 0.1}}
+
+
+# ---- the schedule -------------------------------------------------------------------------------------
+def test_period_schedule_and_segments():
+    tf = TeacherForcing(steps=1000)
+    assert tf.period(0, 300) == 25.0 and tf.period(300, 300) == 200.0       # the release's 25 -> 200
+    assert 25.0 < tf.period(150, 300) < 200.0
+    assert math.isclose(tf.period(150, 300), 112.5)                         # the cosine's midpoint
+    for e in (0, 1, 37, 150, 299, 300):
+        segs = tf.segments(e, 300)
+        assert len(segs) == math.ceil(1000 / tf.period(e, 300) - 1e-9)
+        # a partition of the steps into equal segments (lengths differ by at most one)
+        covered = np.concatenate([np.arange(s, s + L) for s, L in segs])
+        np.testing.assert_array_equal(covered, np.arange(1000))
+        lengths = [L for _, L in segs]
+        assert max(lengths) - min(lengths) <= 1
+    assert len(tf.segments(0, 300)) == 40 and len(tf.segments(300, 300)) == 5
+    with pytest.raises(ConfigError, match="reset"):
+        TeacherForcing(steps=10, reset=("x",))
+    with pytest.raises(ConfigError, match="segment_fraction"):
+        chosen_segments(10, 0.0, 0, 0)
+    # seeded draws: the same per (seed, epoch), different between epochs
+    a, b = chosen_segments(40, 0.25, 3, 7), chosen_segments(40, 0.25, 3, 7)
+    np.testing.assert_array_equal(a, b)
+    assert len(a) == 10 and not np.array_equal(a, chosen_segments(40, 0.25, 3, 8))
+    np.testing.assert_array_equal(chosen_segments(40, 1.0, 3, 7), np.arange(40))
+
+
+# ---- a tiny 2D problem --------------------------------------------------------------------------------------
+def square_scene(material, params, options=None, velocity=(1.0, -1.5), omega=4.0, dt=5e-4):
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.3, 0.3], "hi": [0.7, 0.7]}, material=material, params=params,
+                       density=1000.0, velocity=list(velocity), angular_velocity=omega, particles_per_cell=1,
+                       options=options or {})
+    return mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
+                        boundaries=[Walls(default="separate", thickness=3)], dt=dt, name="nclaw_square_2d")
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """200 steps of the fixed corotated square (JAX, MLS, fp64): x, v, C, F at every step."""
+    st = mpmlab.build_stepper(square_scene("fixed_corotated", {"E": 1e5, "nu": 0.2}), "jax", "mls", "fp64")
+    traj = st.rollout(steps=200, every=1, fields=("F", "C"))
+    return {"x": traj.x, "v": traj.v, "C": traj.fields["C"], "F": traj.fields["F"]}
+
+
+def make_fit(backend, truth, steps, epochs, period, options=None, **kw):
+    st = mpmlab.build_stepper(square_scene("nclaw", {}, options), backend, "mls", "fp64")
+    params = [FitParameter(name=n, target="law_weights", field=n, form="array").bind(st.scene, st, []) for n in NAMES]
+    tr = {k: a[:steps + 1] for k, a in truth.items()}
+    return TeacherForcedFit(st, st.scene, params, tr, TeacherForcing(steps=steps, start=period, end=period),
+                            epochs=epochs, groups=GROUPS, **kw)
+
+
+def trained_like(dim=2, seed=7, scale=10.0):
+    """Weights far from the Xavier start (10x; 30x would be too stiff for dt = 5e-4)."""
+    law = Law()
+    rng = np.random.default_rng(seed)
+    return {k: scale * a * (1.0 + 0.5 * rng.standard_normal(a.shape)) for k, a in law.initial_weights(dim).items()}
+
+
+_FITS = {}
+
+
+def fit20(backend, truth):
+    """A 20-step teacher-forced fit in 4 segments of 5 steps (one compile per backend for the tests)."""
+    if backend not in _FITS:
+        _FITS[backend] = make_fit(backend, truth, steps=20, epochs=1, period=5.0)
+    return _FITS[backend]
+
+
+def weights(fit, w):
+    raw = {n: fit.ops.asarray(w[n]) for n in NAMES}
+    return {n: a.clone().requires_grad_(True) for n, a in raw.items()} if fit.backend == "warp" else raw
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_loss_gradient_matches_central_differences(backend, truth):
+    """d loss / d weights through a teacher-forced 20-step fp64 rollout (4 segments of 5) against
+    central differences along a random direction of all 9,600 weights, on each backend."""
+    fit = fit20(backend, truth)
+    ops = fit.ops
+    w0 = trained_like()
+    raw = weights(fit, w0)
+    val, why, g, info = fit.epoch_loss(raw, 0)
+    assert why is None and info["segments"] == 4 and val > 0
+    g = g if isinstance(g, dict) else dict(zip(NAMES, g))
+    rng = np.random.default_rng(1)
+    d = {n: rng.standard_normal(w0[n].shape) for n in NAMES}
+    ad = sum(float(np.sum(ops.numpy(g[n]) * d[n])) for n in NAMES)
+
+    def loss_at(h):
+        r = {n: ops.asarray(w0[n] + h * d[n]) for n in NAMES}
+        return fit.epoch_loss(r, 0, grad=False)[0]
+    h = 1e-4
+    fd = (loss_at(h) - loss_at(-h)) / (2 * h)
+    assert abs(ad) > 0
+    assert abs(fd - ad) <= 1e-6 * abs(ad), (fd, ad)
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_segment_fraction_is_an_unbiased_estimate(backend, truth):
+    """fraction 1 = the full loss; a fraction that keeps one of n segments, averaged over which one is
+    kept, is the full loss and gradient again."""
+    fit = fit20(backend, truth)                                             # 4 segments of 5
+    raw = weights(fit, trained_like())
+    full, _, gfull, _ = fit.epoch_loss(raw, 0, fraction=1.0)
+    gfull = gfull if isinstance(gfull, dict) else dict(zip(NAMES, gfull))
+    seen, vals, grads = set(), [], []
+    for seed in range(40):
+        fit.seed = seed
+        k = int(chosen_segments(4, 0.25, seed, 0)[0])
+        if k in seen:
+            continue
+        seen.add(k)
+        v, _, g, info = fit.epoch_loss(raw, 0, fraction=0.25)
+        assert info["segments_backpropagated"] == 1
+        vals.append(v)
+        grads.append(g if isinstance(g, dict) else dict(zip(NAMES, g)))
+    fit.seed = 0
+    assert seen == {0, 1, 2, 3}
+    assert math.isclose(np.mean(vals), full, rel_tol=1e-12)
+    for n in NAMES:
+        ref = fit.ops.numpy(gfull[n])
+        np.testing.assert_allclose(np.mean([fit.ops.numpy(g[n]) for g in grads], axis=0), ref,
+                                   rtol=1e-10, atol=1e-12 * float(np.abs(ref).max()))
+
+
+def test_training_lowers_the_loss_and_resumes_on_jax(truth, tmp_path):
+    """A 2D 200-step training lowers the loss >= 10x within 30 epochs (the release's lrs, clip and
+    cosine schedule; period 50); stopped at epoch 12 and resumed from its checkpoint, the curve is the
+    uninterrupted one."""
+    import shutil
+
+    ck, ck12 = tmp_path / "ck.pkl", tmp_path / "ck12.pkl"
+    fit = make_fit("jax", truth, steps=200, epochs=30, period=50.0)
+    opt, sch = fit.optimizer(NETS)
+    fit.run(30, opt, sch, progress=False, checkpoint=ck, checkpoint_every=1,
+            on_checkpoint=lambda raw: shutil.copy(ck, ck12) if fit.epoch == 12 else None)
+    losses = [h["loss"] for h in fit.history]
+    assert len(losses) == 30 and min(losses[-5:]) <= 0.1 * losses[0], losses
+    assert fit.final_loss <= 0.1 * losses[0]
+    h = fit.history[0]
+    assert h["period"] == 50.0 and h["segments"] == 4 and set(h["grad_norms"]) == {"elastic", "plastic"}
+    assert h["lr"] == {"elastic": 1.0, "plastic": 0.1}
+
+    again = make_fit("jax", truth, steps=200, epochs=30, period=50.0)       # a new process would do the same
+    opt, sch = again.optimizer(NETS)
+    again.run(30, opt, sch, progress=False, checkpoint=ck12, checkpoint_every=1)
+    assert len(again.history) == 30
+    np.testing.assert_allclose([h["loss"] for h in again.history], losses, rtol=1e-10)
+
+
+# ---- the task, from the command line -------------------------------------------------------------------------
+def mpmlab_cli(args, cwd, expect=0):
+    proc = subprocess.run([sys.executable, "-m", "mpmlab", *args], cwd=cwd, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == expect, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    d = tmp_path_factory.mktemp("nclaw_data")
+    mpmlab_cli(["scene=nclaw_square_2d", "transfer=mls", "precision=fp64", "output.fields=[F,C]",
+                "output.recording=false", "output.plots=false", f"hydra.run.dir={d}"], d)
+    return d / "trajectory.h5"
+
+
+TRAIN = ["task=nclaw_train", "scene=nclaw_square_2d", "material=nclaw", "transfer=mls", "precision=fp64"]
+
+
+def test_train_task_on_warp_and_reuse_on_jax(dataset, tmp_path):
+    """task=nclaw_train on Warp: the loss falls >= 10x in 30 epochs; summary, recording, weight file;
+    the weights drive the law on JAX and Warp to the same 100-step rollout (<= 1e-9 m)."""
+    from mpmlab.io.h5 import read_trajectory
+    from mpmlab.io.rerun import read_recording_component
+
+    run = tmp_path / "train"
+    mpmlab_cli(TRAIN + ["backend=warp", f"task.dataset={dataset}", "task.epochs=30", "task.teacher.start=50",
+                        "task.teacher.end=50", f"hydra.run.dir={run}"], tmp_path)
+    s = json.loads((run / "summary.json").read_text())
+    losses = [h["loss"] for h in s["history"]]
+    assert s["status"] == "ok" and s["epochs"] == 30 and min(losses[-5:]) <= 0.1 * losses[0], losses
+    assert s["weights"] == "nclaw_weights.safetensors" and s["law"]["dim"] == "2" and s["seconds_per_epoch"] > 0
+    assert {"period", "lr", "grad_norms", "segments"} <= set(s["history"][-1])
+    assert (run / "train.png").stat().st_size > 0 and (run / "train_checkpoint.pt").exists()
+    rec = run / "recording.rrd"
+    for entity in ("metrics/loss", "metrics/period", "metrics/lr/elastic", "metrics/grad_norm/plastic"):
+        assert len(read_recording_component(rec, entity, "Scalars:scalars", index="epoch")) == 30, entity
+    weights = run / "nclaw_weights.safetensors"
+    xs = {}
+    for backend in ("jax", "warp"):
+        out = tmp_path / f"reuse_{backend}"
+        mpmlab_cli(["scene=nclaw_square_2d", "material=nclaw", f"+material.options.weights_file={weights}",
+                    f"backend={backend}", "transfer=mls", "precision=fp64", "scene.steps=100", "output.recording=false",
+                    "output.plots=false", f"hydra.run.dir={out}"], tmp_path)
+        xs[backend] = read_trajectory(str(out / "trajectory.h5")).x
+    assert float(np.abs(xs["jax"] - xs["warp"]).max()) <= 1e-9
+
+
+def test_train_task_refuses_bad_datasets(dataset, truth, tmp_path):
+    """One line, exit code 2: no dataset; a dataset kept every 2nd step; one of another scene (CLI). A
+    dataset without C and F (API: the same check)."""
+    from mpmlab.io.h5 import read_trajectory, write_trajectory
+    from mpmlab.tasks.nclaw_train import load_truth
+
+    common = TRAIN + ["task.epochs=1", "output.recording=false", "output.plots=false"]
+    p = mpmlab_cli(common + [f"hydra.run.dir={tmp_path / 'a'}"], tmp_path, expect=2)
+    assert "task.dataset" in p.stderr.strip().splitlines()[-1]
+    traj = read_trajectory(str(dataset))
+    sparse = tmp_path / "sparse.h5"
+    write_trajectory(sparse, dataclasses.replace(traj, x=traj.x[::2], v=traj.v[::2], time=traj.time[::2],
+                                                 step=traj.step[::2], fields={k: a[::2] for k, a in traj.fields.items()}))
+    p = mpmlab_cli(common + [f"task.dataset={sparse}", f"hydra.run.dir={tmp_path / 'c'}"], tmp_path, expect=2)
+    assert "every 2-th step" in p.stderr.strip().splitlines()[-1]
+    p = mpmlab_cli(common + [f"task.dataset={dataset}", "scene.bodies.square.particles_per_cell=4",
+                             f"hydra.run.dir={tmp_path / 'd'}"], tmp_path, expect=2)
+    assert "256" in p.stderr and "64 particles" in p.stderr.strip().splitlines()[-1]
+    # without C and F: the fit names what is missing
+    fit = fit20("jax", truth)
+    bare = {"x": truth["x"], "v": truth["v"]}
+    with pytest.raises(ConfigError, match="needs C, F at every step"):
+        TeacherForcedFit(fit.stepper, fit.scene, fit.parameters, bare, fit.forcing, epochs=1, groups=GROUPS)
+    plain = tmp_path / "plain.h5"
+    write_trajectory(plain, dataclasses.replace(traj, fields={}, field_particles={}))
+    got = load_truth(str(plain), fit.stepper, 20)
+    assert set(got) == {"x", "v"}
+
+
+def test_train_diverging_gives_fit_diverged(dataset, tmp_path):
+    """A learning rate that blows the law up: FitDiverged, exit code 3, one line."""
+    p = mpmlab_cli(TRAIN + ["backend=warp", f"task.dataset={dataset}", "task.epochs=3", "task.nets.elastic.lr=1.0e4",
+                            "scene.steps=20", "task.teacher.start=20", "task.teacher.end=20", "output.recording=false",
+                            "output.plots=false", f"hydra.run.dir={tmp_path / 'x'}"], tmp_path, expect=3)
+    assert "diverged" in p.stderr.strip().splitlines()[-1]
+
+
+def test_dt_auto_needs_a_wave_speed(tmp_path):
+    """A network with zero weights has no stiffness at rest: dt: auto is refused (a fixed dt is required)."""
+    from mpmlab.laws.nclaw import save_weights
+
+    law = Law()
+    path = tmp_path / "zero.safetensors"
+    save_weights(str(path), {k: np.zeros(s) for k, s in law.weight_shapes(2).items()}, law, dim=2)
+    scene = square_scene("nclaw", {}, {"weights_file": str(path)}, velocity=(0.0, 0.0), omega=0.0, dt="auto")
+    with pytest.raises(TimeStepError, match="nonzero wave speed"):
+        scene.resolve_dt()
