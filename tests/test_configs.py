@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
@@ -105,7 +106,10 @@ def test_nclaw_scenes_match_appendix_d(cfg_of):
         assert scene.resolve_dt() == pytest.approx(5e-4) and cfg.steps == 1000
         assert [g.law.name for g in P.groups] == [law]
         assert P.x.mean(axis=0) == pytest.approx([0.5, 0.5, 0.5])  # centred in the 1 m box
-        assert (P.x.max(0) - P.x.min(0) + scene.dx) == pytest.approx([0.5] * 3)  # 0.5 m cube
+        # NCLaw's lattice: linspace(0.25, 0.75, 10) per axis, the faces included, V = 0.5^3 / 1000
+        assert P.x.min(0) == pytest.approx([0.25] * 3) and P.x.max(0) == pytest.approx([0.75] * 3)
+        assert np.unique(P.x[:, 0]) == pytest.approx(np.linspace(0.25, 0.75, 10))
+        assert P.volume == pytest.approx(np.full(1000, 1.25e-4)) and P.mass.sum() == pytest.approx(125.0)
         assert scene.gravity[1] == pytest.approx(-9.8)
         assert abs(P.v.std(axis=0)).sum() > 0  # linear + angular velocity
 

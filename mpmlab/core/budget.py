@@ -274,6 +274,11 @@ def estimate_bodies(scene) -> list[BodyEstimate]:
             # candidates 2n x D per draw: the draw, the scaled copy, contains temporaries, concatenation
             out.append(BodyEstimate(name, n, 2 * n, 4 * 2 * n * dim * 8, True))
             continue
+        if body.sampling == "lattice":      # linspace per axis: exactly prod(lattice) points
+            lat = body.lattice if body.lattice is not None and len(body.lattice) == dim else None
+            n = math.prod(int(a) for a in lat) if lat is not None else 0
+            out.append(BodyEstimate(name, n, n, 3 * n * dim * 8, True))
+            continue
         k = round(int(body.particles_per_cell) ** (1.0 / dim))
         if k < 1 or k**dim != int(body.particles_per_cell):
             out.append(BodyEstimate(name, 0, 0, 0, True))   # sample() refuses it with its own message

@@ -3,7 +3,10 @@
 Particles are sampled on a sub-lattice of the background grid: each cell holds ``k^D`` points
 (``particles_per_cell = k^D``) at ``(i + (j + 1/2)/k) dx``, so bodies that touch never overlap and
 a box body gets exactly its volume. ``jittered`` moves each point uniformly inside its sub-cell;
-``random`` draws ``count`` points uniformly in the shape (the Taichi ``mpm3d`` convention).
+``random`` draws ``count`` points uniformly in the shape (the Taichi ``mpm3d`` convention);
+``lattice`` (box bodies only) puts ``np.linspace(lo, hi, n)`` points on each axis, the faces included,
+with volume = box volume / point count (NCLaw's training cube, App. D.1: 10 per axis over a 0.5 m cube,
+spacing 0.0556 m, not on the B-spline knots that cell-centred points sit on).
 """
 from __future__ import annotations
 
@@ -153,12 +156,47 @@ def make_shape(kind: str, **kw) -> Shape:
         raise ConfigError(f"shape '{kind}' got wrong arguments ({exc}).") from None
 
 
+SAMPLINGS = ("regular", "jittered", "random", "lattice")
+
+
+def check_lattice(shape: Shape, dim: int, sampling: str, lattice, where: str = "body") -> tuple[int, ...] | None:
+    """The points per axis of a ``lattice`` sampling as a tuple (None for the other samplings), or a
+    one-line ``ConfigError``; ``where`` is ``"<scene name>|<body key>"`` or a body key
+    (``scene.bodies.cube``)."""
+    scene, _, key = where.rpartition("|")
+    at = f"scene '{scene}': " if scene else ""
+    if sampling != "lattice":
+        if lattice is not None:
+            raise ConfigError(f"{at}{key}.lattice = {list(lattice)} is only read by sampling 'lattice'; set "
+                              f"{key}.sampling=lattice or remove {key}.lattice.")
+        return None
+    if lattice is None:
+        raise ConfigError(f"{at}sampling 'lattice' needs {key}.lattice = [n_x, ...] ({dim} point counts per axis, "
+                          f"faces included; NCLaw's cube: {[10] * dim}).")
+    if not isinstance(shape, Box):
+        raise ConfigError(f"{at}{key}: sampling 'lattice' fills a box, but the shape is "
+                          f"'{type(shape).__name__.lower()}'; use sampling regular, jittered or random.")
+    n = list(lattice)
+    if len(n) != dim or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 2 for k in n):
+        raise ConfigError(f"{at}{key}.lattice = {n} must be {dim} integers >= 2 (points per axis, faces included).")
+    return tuple(int(k) for k in n)
+
+
 def sample(shape: Shape, dim: int, dx: float, particles_per_cell: int = 1, sampling: str = "regular",
-           count: int | None = None, seed: int = 0) -> tuple[np.ndarray, float]:
-    """Sample particle positions inside ``shape``; returns ``(x [N, D], volume per particle)``."""
+           count: int | None = None, seed: int = 0, lattice=None, where: str = "body") -> tuple[np.ndarray, float]:
+    """Sample particle positions inside ``shape``; returns ``(x [N, D], volume per particle)``.
+
+    ``lattice`` (with ``sampling="lattice"``): points per axis, ``np.linspace(lo, hi, n)`` each;
+    ``where`` names the body in error messages (``"<scene>|scene.bodies.cube"``)."""
     lo, hi = shape.bounds(dim)
     if len(lo) != dim:
         raise ConfigError(f"shape {shape} has {len(lo)} coordinates but the scene is {dim}D.")
+    n_axis = check_lattice(shape, dim, sampling, lattice, where)
+    if n_axis is not None:
+        # NCLaw App. D.1 (experiments/configs/env/blob/shape/cube.yaml): linspace per axis, faces included
+        axes = [np.linspace(a, b, k) for a, b, k in zip(lo, hi, n_axis)]
+        pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, dim)
+        return pts, shape.volume(dim) / len(pts)
     rng = np.random.default_rng(seed)
     if sampling == "random":
         if not count:
@@ -182,6 +220,6 @@ def sample(shape: Shape, dim: int, dx: float, particles_per_cell: int = 1, sampl
     if sampling == "jittered":
         pts = pts + (rng.random(pts.shape) - 0.5) * h
     elif sampling != "regular":
-        raise ConfigError(f"unknown sampling '{sampling}'; use 'regular', 'jittered' or 'random'.")
+        raise ConfigError(f"unknown sampling '{sampling}'; use 'regular', 'jittered', 'random' or 'lattice'.")
     pts = pts[shape.contains(pts)]
     return pts, h**dim
