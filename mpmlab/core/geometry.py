@@ -115,10 +115,56 @@ class Mesh(Shape):
         return np.asarray(b[0]), np.asarray(b[1])
 
     def contains(self, x):
-        return self._mesh().contains(x)
+        m = self._mesh()
+        return contains_parity(m.vertices, m.faces, x)
 
     def volume(self, dim):
         return float(self._mesh().volume)
+
+
+def _generic_rotation() -> np.ndarray:
+    """A fixed rotation by generic angles: rays along its z axis are parallel to no lattice axis, so
+    lattice points and axis-aligned mesh features do not fall exactly on a projected edge or vertex."""
+    a, b, c = 0.3179, 0.5813, 0.2371
+    rz = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    ry = np.array([[math.cos(b), 0.0, math.sin(b)], [0.0, 1.0, 0.0], [-math.sin(b), 0.0, math.cos(b)]])
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(c), -math.sin(c)], [0.0, math.sin(c), math.cos(c)]])
+    return rz @ ry @ rx
+
+
+def contains_parity(vertices, faces, x) -> np.ndarray:
+    """Inside test of points ``x [N, 3]`` in a closed triangle mesh by ray parity: a point is inside
+    when a ray from it crosses the surface an odd number of times.
+
+    Vectorised over the points a triangle's projection can cover (points sorted along one axis, one
+    slice per triangle), so 60k points in a 4k-triangle mesh take about a second, where trimesh's
+    ``contains`` without Embree takes minutes (NCLaw's ~30k-particle mesh bodies, Sec. 4 (c))."""
+    R = _generic_rotation()
+    V = np.asarray(vertices, float) @ R.T
+    P = np.asarray(x, float) @ R.T
+    T = V[np.asarray(faces)]                                   # [F, 3 corners, 3]
+    order = np.argsort(P[:, 0], kind="stable")
+    px = P[order, 0]
+    lo = np.searchsorted(px, T[:, :, 0].min(1), "left")
+    hi = np.searchsorted(px, T[:, :, 0].max(1), "right")
+    hits = np.zeros(len(P), np.int64)
+    for f in np.nonzero(hi > lo)[0]:
+        (x0, y0, z0), (x1, y1, z1), (x2, y2, z2) = T[f]
+        idx = order[lo[f]:hi[f]]
+        q = P[idx]
+        m = (q[:, 1] >= min(y0, y1, y2)) & (q[:, 1] <= max(y0, y1, y2))
+        if not m.any():
+            continue
+        idx, q = idx[m], q[m]
+        d = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+        if d == 0.0:                                           # edge-on triangle: no crossing
+            continue
+        l0 = ((y1 - y2) * (q[:, 0] - x2) + (x2 - x1) * (q[:, 1] - y2)) / d
+        l1 = ((y2 - y0) * (q[:, 0] - x2) + (x0 - x2) * (q[:, 1] - y2)) / d
+        l2 = 1.0 - l0 - l1
+        cross = (l0 >= 0) & (l1 >= 0) & (l2 >= 0) & (l0 * z0 + l1 * z1 + l2 * z2 > q[:, 2])
+        hits[idx[cross]] += 1
+    return hits % 2 == 1
 
 
 @lru_cache(maxsize=16)
