@@ -126,9 +126,12 @@ class BodyConfig:
     #: initial angular velocity about the body's centroid [rad/s]: a number in 2D, a 3-vector in 3D
     angular_velocity: Optional[Any] = None
     particles_per_cell: int = 1
-    #: ``regular``, ``jittered`` or ``random`` (with ``count``)
+    #: ``regular``, ``jittered``, ``random`` (with ``count``) or ``lattice`` (with ``lattice``)
     sampling: str = "regular"
     count: Optional[int] = None
+    #: ``sampling: lattice`` (box bodies): points per axis, ``np.linspace(lo, hi, n)`` with the faces
+    #: included, volume = box volume / point count (NCLaw's training cube: [10, 10, 10])
+    lattice: Optional[List[int]] = None
     particle_volume: Optional[float] = None
     #: set false to leave the body out (``scene.bodies.<name>.enabled=false``)
     enabled: bool = True

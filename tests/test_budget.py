@@ -24,6 +24,11 @@ from mpmlab.core.errors import ConfigError
 from mpmlab.core.scene import Body, Scene
 
 
+#: nclaw_jelly's cube sampled one particle per cell (its own NCLaw lattice does not depend on dx): the
+#: tests that refine dx to stress the budget need the count to follow dx
+CELL = ("scene.bodies.cube.sampling=regular", "scene.bodies.cube.lattice=null")
+
+
 def _scene(*overrides):
     """A scene from the packaged config, particles not sampled."""
     scene = build_scene(compose(list(overrides)), validate=False)
@@ -42,7 +47,8 @@ def _scene(*overrides):
     ["scene=granular_cylinder_3d", "scene.resolution=cpu"],
     ["scene=cylinder_wall_gravity"],                               # cylinder, x axis, 8 per cell
     ["scene=nclaw_jelly"],
-    ["scene=nclaw_jelly", "scene.bodies.cube.shape.lo=[0.2501,0.2533,0.31]", "scene.dx=0.0371"],  # off-lattice
+    ["scene=nclaw_jelly", *CELL],                                  # 1 per cell
+    ["scene=nclaw_jelly", *CELL, "scene.bodies.cube.shape.lo=[0.2501,0.2533,0.31]", "scene.dx=0.0371"],  # off-lattice
 ], ids=lambda o: "-".join(a.split("=", 1)[1] for a in o))
 def test_particle_estimate_matches_sampling(overrides):
     scene = _scene(*overrides)
@@ -78,7 +84,7 @@ def test_particle_estimate_jittered(overrides):
 
 def test_sampling_peak_is_the_lattice():
     """nclaw_jelly at dx = 1e-5: 50000^3 lattice points; the sampler's meshgrid alone is 910 TiB."""
-    scene = _scene("scene.dx=1e-5")
+    scene = _scene(*CELL, "scene.dx=1e-5")
     (body,) = budget.estimate_bodies(scene)
     assert 50_000**3 <= body.lattice <= 50_001**3    # floor/ceil of the bounds may add a layer
     assert body.particles == 50_000**3
@@ -88,7 +94,7 @@ def test_sampling_peak_is_the_lattice():
 
 # ---- memory ------------------------------------------------------------------------------------
 def test_memory_refuses_dx_1e5_within_a_second_without_allocating():
-    scene = _scene("scene.dx=1e-5")         # build_scene(validate=False) does not sample
+    scene = _scene(*CELL, "scene.dx=1e-5")         # build_scene(validate=False) does not sample
     available = int(21.3 * GiB)
     tracemalloc.start()
     t0 = time.perf_counter()
@@ -108,7 +114,7 @@ def test_memory_refuses_dx_1e5_within_a_second_without_allocating():
     # the suggested dx fits (below the warning threshold, even)
     dx_fit = float(re.search(r"set scene\.dx >= ([0-9.e+-]+) ", msg).group(1))
     assert 1e-3 < dx_fit < 1e-2
-    fit = _scene(f"scene.dx={dx_fit}")
+    fit = _scene(*CELL, f"scene.dx={dx_fit}")
     assert budget.estimate_memory(fit, "jax", "fp32", "mls")["total"] <= 0.5 * available
     budget.check_memory(fit, "jax", "fp32", "mls", available=available)   # no error
 
@@ -126,20 +132,20 @@ def test_memory_refusal_on_a_directly_built_scene():
 
 
 def test_memory_estimate_parts_scale_with_dx():
-    a = budget.estimate_memory(_scene("scene.dx=0.02", "scene.dt=1e-4"), "jax", "fp32", "mls")
-    b = budget.estimate_memory(_scene("scene.dx=0.01", "scene.dt=1e-4"), "jax", "fp32", "mls")
+    a = budget.estimate_memory(_scene(*CELL, "scene.dx=0.02", "scene.dt=1e-4"), "jax", "fp32", "mls")
+    b = budget.estimate_memory(_scene(*CELL, "scene.dx=0.01", "scene.dt=1e-4"), "jax", "fp32", "mls")
     for part in ("particles", "grid", "scratch"):
         assert 6 < b[part] / a[part] < 10          # dx^-3
     assert a["total"] == max(a["sampling"], a["particles"] + a["grid"] + a["scratch"]) + a["runtime"]
-    w = budget.estimate_memory(_scene("scene.dx=0.01", "scene.dt=1e-4"), "warp", "fp32", "mls", threads=4)
-    w1 = budget.estimate_memory(_scene("scene.dx=0.01", "scene.dt=1e-4"), "warp", "fp32", "mls", threads=1)
+    w = budget.estimate_memory(_scene(*CELL, "scene.dx=0.01", "scene.dt=1e-4"), "warp", "fp32", "mls", threads=4)
+    w1 = budget.estimate_memory(_scene(*CELL, "scene.dx=0.01", "scene.dt=1e-4"), "warp", "fp32", "mls", threads=1)
     assert w["grid"] > 2 * w1["grid"]              # one private P2G grid per CPU thread
-    gpu = budget.estimate_memory(_scene("scene.dx=0.01"), "warp", "fp32", "mls", device="cuda:0")
+    gpu = budget.estimate_memory(_scene(*CELL, "scene.dx=0.01"), "warp", "fp32", "mls", device="cuda:0")
     assert gpu["grid"] == 0                        # on the device, not in host memory
 
 
 def test_memory_warning_one_line(caplog):
-    scene = _scene("scene.dx=0.01", "scene.dt=1e-4")
+    scene = _scene(*CELL, "scene.dx=0.01", "scene.dt=1e-4")
     need = budget.estimate_memory(scene, "jax", "fp32", "mls")["total"]
     with caplog.at_level(logging.WARNING, logger="mpmlab"):
         est = budget.check_memory(scene, "jax", "fp32", "mls", available=int(need / 0.7))

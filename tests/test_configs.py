@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
@@ -23,6 +24,9 @@ def options(group: str) -> list[str]:
 
 
 SCENES = options("scene")
+#: scenes sampled from meshes (~30k particles at their default resolution): built at "tiny" here
+TINY_BUILD = {"mesh_blob_drop", "nclaw_geometry_jelly", "nclaw_geometry_sand", "nclaw_geometry_plasticine",
+              "nclaw_geometry_water", "nclaw_incline", "nclaw_contact"}
 EXPERIMENTS = options("experiment")
 
 
@@ -50,7 +54,9 @@ def test_the_issue_lists_exist():
         "precision": ["fp32", "fp64"], "task": ["simulate", "replay"],
         "scene": ["nclaw_jelly", "nclaw_sand", "nclaw_plasticine", "nclaw_water", "dam_break_2d",
                   "granular_collapse_2d", "dam_break_3d_obstacles", "granular_column_3d", "granular_cylinder_3d",
-                  "cylinder_wall_gravity", "jelly_pool_drop", "mesh_blob_drop", "mpm3d_fluid"],
+                  "cylinder_wall_gravity", "jelly_pool_drop", "mesh_blob_drop", "mpm3d_fluid",
+                  "nclaw_geometry_jelly", "nclaw_geometry_sand", "nclaw_geometry_plasticine", "nclaw_geometry_water",
+                  "nclaw_incline", "nclaw_contact"],
         "hydra/launcher": ["local", "parallel", "slurm"],
     }.items():
         assert set(names) <= set(options(group)), group
@@ -78,8 +84,8 @@ def test_every_scene_composes_and_builds(cfg_of, scene):
     cfg = cfg_of(f"scene={scene}")
     assert cfg.scene.name == scene
     OmegaConf.to_container(cfg, resolve=True)
-    # trimesh's point-in-mesh test is slow: the mesh scene is built at its tiny resolution here
-    built = build_scene(cfg_of(f"scene={scene}", "scene.resolution=tiny") if scene == "mesh_blob_drop" else cfg)  # validates laws, parameters, shapes, domain, boundaries, CFL
+    # mesh sampling is the slow part: the mesh scenes are built at their tiny resolution here
+    built = build_scene(cfg_of(f"scene={scene}", "scene.resolution=tiny") if scene in TINY_BUILD else cfg)  # validates laws, parameters, shapes, domain, boundaries, CFL
     facts = describe_scene(built)
     assert facts["particles"] > 0 and facts["dim"] == cfg.scene.dim
     assert cfg.steps > 0 and cfg.frame_every > 0
@@ -105,7 +111,10 @@ def test_nclaw_scenes_match_appendix_d(cfg_of):
         assert scene.resolve_dt() == pytest.approx(5e-4) and cfg.steps == 1000
         assert [g.law.name for g in P.groups] == [law]
         assert P.x.mean(axis=0) == pytest.approx([0.5, 0.5, 0.5])  # centred in the 1 m box
-        assert (P.x.max(0) - P.x.min(0) + scene.dx) == pytest.approx([0.5] * 3)  # 0.5 m cube
+        # NCLaw's lattice: linspace(0.25, 0.75, 10) per axis, the faces included, V = 0.5^3 / 1000
+        assert P.x.min(0) == pytest.approx([0.25] * 3) and P.x.max(0) == pytest.approx([0.75] * 3)
+        assert np.unique(P.x[:, 0]) == pytest.approx(np.linspace(0.25, 0.75, 10))
+        assert P.volume == pytest.approx(np.full(1000, 1.25e-4)) and P.mass.sum() == pytest.approx(125.0)
         assert scene.gravity[1] == pytest.approx(-9.8)
         assert abs(P.v.std(axis=0)).sum() > 0  # linear + angular velocity
 

@@ -274,6 +274,11 @@ def estimate_bodies(scene) -> list[BodyEstimate]:
             # candidates 2n x D per draw: the draw, the scaled copy, contains temporaries, concatenation
             out.append(BodyEstimate(name, n, 2 * n, 4 * 2 * n * dim * 8, True))
             continue
+        if body.sampling == "lattice":      # linspace per axis: exactly prod(lattice) points
+            lat = body.lattice if body.lattice is not None and len(body.lattice) == dim else None
+            n = math.prod(int(a) for a in lat) if lat is not None else 0
+            out.append(BodyEstimate(name, n, n, 3 * n * dim * 8, True))
+            continue
         k = round(int(body.particles_per_cell) ** (1.0 / dim))
         if k < 1 or k**dim != int(body.particles_per_cell):
             out.append(BodyEstimate(name, 0, 0, 0, True))   # sample() refuses it with its own message
@@ -382,16 +387,21 @@ def carried_fields(scene, transfer=None) -> set[str]:
     return out
 
 
-def field_particles(scene, fields: Iterable[str], transfer=None) -> dict[str, int]:
-    """Particles each stored field covers (C: all; a law field: the groups whose law carries it)."""
+def field_particles(scene, fields: Iterable[str], transfer=None, derived: Iterable[str] = ()) -> dict[str, int]:
+    """Particles each stored field covers (C: all; a law field: the groups whose law carries it, and
+    for a field in ``derived`` also those it is synthesised for: :mod:`mpmlab.io.derived`)."""
+    from ..io.derived import RULES
+
     groups = _laws(scene)
     N = sum(n for _, n in groups)
+    derived = set(derived)
     out = {}
     for f in fields:
         if f == "C":
             out[f] = N if _transfer(transfer).needs_affine else 0
         else:
-            out[f] = sum(n for law, n in groups if f in law.state_fields)
+            src = RULES[f].source if f in derived and f in RULES else None
+            out[f] = sum(n for law, n in groups if f in law.state_fields or (src and src in law.state_fields))
     return out
 
 
@@ -809,7 +819,11 @@ def output_preflight(cfg, scene, output_dir: str | os.PathLike, *, steps: int | 
     requested = list(out_cfg.get("fields", []) if fields is None else fields)
     if "all" in requested:                 # every carried field (output.fields default)
         requested = list(dict.fromkeys([f for f in requested if f != "all"] + sorted(carried)))
-    fields = [f for f in requested if f in carried]
+    from ..io.derived import RULES
+
+    # a field asked for by name that some law can only have synthesised (F from J) is written too
+    derived = [f for f in requested if f in RULES and RULES[f].source in carried]
+    fields = [f for f in requested if f in carried or f in derived]
     T, R = frame_counts(steps, every, record_every)
     write_traj, write_rec = bool(out_cfg.get("trajectory", True)), bool(out_cfg.get("recording", True))
     if keep_frames is None:
@@ -818,7 +832,7 @@ def output_preflight(cfg, scene, output_dir: str | os.PathLike, *, steps: int | 
         memory_preflight(cfg, scene, frames=T, fields=fields, steps=steps, frame_every=every, available=available)
     P = max(len(registry.laws.get(b.material).param_names()) for b in scene.bodies)
     sizes = estimate_outputs(estimate_particles(scene), scene.dim, precision, T, fields, R,
-                             field_particles=field_particles(scene, fields, tr), params_per_particle=P,
+                             field_particles=field_particles(scene, fields, tr, derived), params_per_particle=P,
                              color_scalar=str(out_cfg.get("color_by", "material")) not in ("material", "body"),
                              trajectory=write_traj, recording=write_rec)
     check_outputs_fit(output_dir, sizes, free, steps=steps, frame_every=every, record_every=record_every)

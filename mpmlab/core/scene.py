@@ -31,7 +31,9 @@ class Body:
         angular_velocity: initial angular velocity [rad/s] about the body's centroid (scalar in 2D,
             3-vector in 3D).
         particles_per_cell: k^D points per cell (regular / jittered sampling).
-        sampling: ``regular``, ``jittered`` or ``random`` (then ``count`` particles).
+        sampling: ``regular``, ``jittered``, ``random`` (then ``count`` particles) or ``lattice`` (a box
+            only: ``lattice`` = points per axis, ``np.linspace(lo, hi, n)`` with the faces included,
+            volume = box volume / point count; NCLaw's training cube is ``[10, 10, 10]``).
         particle_volume: override of the per-particle volume [m^D] (e.g. Taichi mpm3d's quirk).
         options: the law's configuration (its instance fields: network widths, a weights file, ...);
             bodies with the same material and options share one law instance and its weights.
@@ -48,6 +50,7 @@ class Body:
     count: int | None = None
     particle_volume: float | None = None
     name: str = ""
+    lattice: Sequence[int] | None = None
     options: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
@@ -181,7 +184,8 @@ class Scene:
             if not body.density > 0:
                 raise ConfigError(f"{where}: density = {body.density} must be positive.")
             x, vol = sample(body.shape, self.dim, self.dx, body.particles_per_cell, body.sampling,
-                            body.count, seed=self.seed + b)
+                            body.count, seed=self.seed + b, lattice=body.lattice,
+                            where=f"{self.name}|scene.bodies.{body.name or b}")
             if len(x) == 0:
                 raise ConfigError(f"{where}: the shape contains no particle at dx = {self.dx}; enlarge it or refine dx.")
             if body.particle_volume is not None:

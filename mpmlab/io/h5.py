@@ -263,12 +263,15 @@ class TrajectoryWriter(AtomicWriter):
     readable temporary file (``mpmlab.io.files.handle_stale_temps`` recovers it), and each frame first
     checks that it fits on the disk: a full disk ends the stream with ``OutputError`` ("no space
     left on device") and the frames before it published, marked incomplete.
+        field_attrs: attributes of the frame datasets, ``{field: {name: value}}`` (e.g. ``frames/F``
+            of a field synthesised from another: :mod:`mpmlab.io.derived`).
         config_yaml, extra_attrs, compression, overwrite: as for ``write_trajectory``.
     """
 
     def __init__(self, path: str | os.PathLike, static: Trajectory | None = None, *, stepper=None,
                  fields: Sequence[str] = (), every: int | None = None, config_yaml: str = "",
-                 extra_attrs: dict | None = None, compression: str | None = "lzf", overwrite: bool = False):
+                 extra_attrs: dict | None = None, compression: str | None = "lzf", overwrite: bool = False,
+                 field_attrs: dict | None = None):
         if (static is None) == (stepper is None):
             raise ConfigError("TrajectoryWriter needs exactly one of static= (a Trajectory) or stepper=.")
         if static is None:
@@ -284,6 +287,7 @@ class TrajectoryWriter(AtomicWriter):
         self.every = every
         self.config_yaml = config_yaml
         self.extra_attrs = extra_attrs
+        self.field_attrs = dict(field_attrs or {})
         self.comp = _compression_kwargs(compression)
         self.dt = float((static.meta or {}).get("dt", np.nan))
         self.frame_count = 0
@@ -375,7 +379,9 @@ class TrajectoryWriter(AtomicWriter):
         arrays = {"x": np.asarray(x), "v": np.asarray(v), **{k: np.asarray(fields[k]) for k in self.fields}}
         if self.frame_count == 0:
             for name, arr in arrays.items():
-                _create_frame_dataset(fr, name, arr.shape, arr.dtype, self.comp)
+                ds = _create_frame_dataset(fr, name, arr.shape, arr.dtype, self.comp)
+                for k, v in self.field_attrs.get(name, {}).items():
+                    ds.attrs[k] = _attr_value(v)
             _create_frame_dataset(fr, "time", (), np.float64, self.comp)
             _create_frame_dataset(fr, "step", (), np.int64, self.comp)
             fp = self._f["field_particles"]

@@ -84,6 +84,12 @@ def run(cfg, ctx) -> dict:
     backend, precision = cfg.backend.name, cfg.precision.name
     every, steps = int(cfg.frame_every), int(cfg.steps)
     fields = stored_fields(list(cfg.output.fields), scene, transfer)
+    # a field asked for by name that a law does not carry but can be made from what it carries
+    # (F = J^(1/d) I for a J-only law: mpmlab.io.derived), written with the others and marked as such
+    from ..io.derived import apply_derived, derived_metadata, plan_derived
+
+    derived = plan_derived([f for f in cfg.output.fields if f != "all"], scene.particles().groups)
+    written = fields + tuple(f for f in derived if f not in fields)
     if cfg.output.recording:
         from ..io.rerun import color_choices
 
@@ -98,7 +104,7 @@ def run(cfg, ctx) -> dict:
     if steps % every:
         log.info("steps = %d is not a multiple of frame_every = %d: frames are kept at steps 0, %d, ..., %d "
                  "and at the last step, %d.", steps, every, every, steps - steps % every, steps)
-    check_output_sizes(cfg, scene, out, steps, every, fields)
+    check_output_sizes(cfg, scene, out, steps, every, written)
 
     options = {}
     if cfg.backend.check_every is not None:
@@ -137,18 +143,26 @@ def run(cfg, ctx) -> dict:
 
         from ..io.h5 import TrajectoryWriter
 
+        meta_derived = derived_metadata(derived, scene.dim)
         writer = TrajectoryWriter(
-            out / TRAJECTORY, static, fields=fields, every=every,
+            out / TRAJECTORY, static, fields=written, every=every,
             config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overwrite=ctx.overwrite,
+            # what a consumer checks a dataset against (mpmlab.nclaw.data.load_dataset): the scene, its
+            # particle count, the rollout's steps and frame spacing (dt is a schema attribute), the
+            # laws per material group (/materials) and the fields synthesised from others
             extra_attrs={"scene": scene.name, "resolution": str(cfg.scene.resolution), "task": "simulate",
-                         "seed": int(cfg.seed), "source": str(cfg.scene.source)},
+                         "seed": int(cfg.seed), "source": str(cfg.scene.source), "particles": int(P.count),
+                         "steps": steps, "frame_every": every, "fields_json": list(written),
+                         "derived_fields": meta_derived},
+            field_attrs={k: {"derived_from": m["source"], "derived_formula": m["formula"],
+                             "derived_particles_json": m["particles"]} for k, m in meta_derived.items()},
         )
 
     def on_frame(i, npstate):   # runs whole (signals.deferred in the rollout): every output gets the frame
         t0 = time.perf_counter()
         clock(i, npstate, npstate["step"])
         if writer is not None:
-            writer(i, npstate)
+            writer(i, apply_derived(npstate, derived, scene.dim) if derived else npstate)
         series(i, npstate)
         walls.update(npstate["x"], int(npstate["step"]))
         clock.output(time.perf_counter() - t0)
@@ -225,6 +239,8 @@ def run(cfg, ctx) -> dict:
         "steps_saved": int(done) if kept else 0,
         "frame_every": every,
         "frames": int(frames),
+        "fields": list(written) if cfg.output.trajectory else list(fields),
+        "derived_fields": derived_metadata(derived, scene.dim) if cfg.output.trajectory else {},
         "last_frame": {"step": int(done), "time": float(time_s[-1]) if frames else 0.0},
         "wall_time_s": None,
         "build_time_s": float(build_time),
