@@ -56,6 +56,7 @@ class Fit:
         self.history: list[dict[str, Any]] = []
         self.epoch = 0
         self.lm_stop: str | None = None     # why a Levenberg-Marquardt fit stopped early
+        self.stopped_early = False          # a gradient fit ended by its stop() budget
 
     # ---- reference data --------------------------------------------------------------------------
     def truth_controls(self):
@@ -155,10 +156,11 @@ class Fit:
     def run(self, epochs: int, optimizer_cfg, schedule_cfg=None, checkpoint: Path | None = None,
             checkpoint_every: int = 10, resume: bool = True, progress: bool | None = None,
             on_epoch: Callable[[int, float, dict], None] | None = None, tolerance: float = 0.0,
-            on_checkpoint: Callable[[Any], None] | None = None) -> dict:
+            on_checkpoint: Callable[[Any], None] | None = None, stop: Callable[[], bool] | None = None) -> dict:
         """Optimise for ``epochs`` epochs (total, counting those done before a resume); returns the
         final trainable values. ``on_epoch(epoch, loss, values)`` runs after every epoch,
-        ``on_checkpoint(raw)`` after every checkpoint written (gradient optimisers)."""
+        ``on_checkpoint(raw)`` after every checkpoint written (gradient optimisers); ``stop()`` returning
+        True ends the fit after the current epoch, checkpointed (a time budget: rerun to continue)."""
         if self.reference is None:
             self.make_reference()
         from .lm import LevenbergMarquardt
@@ -167,7 +169,7 @@ class Fit:
             return self._run_lm(epochs, optimizer_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
                                 tolerance)
         return self._run_gradient(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume, progress,
-                                  on_epoch, tolerance, on_checkpoint)
+                                  on_epoch, tolerance, on_checkpoint, stop)
 
     def _bar(self, epochs, progress):
         """The progress bar, once the checkpoint (if any) is loaded; a resume is said in the run's log."""
@@ -204,7 +206,7 @@ class Fit:
                            f"softplus, or check the data.")
 
     def _run_gradient(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol,
-                      on_checkpoint=None):
+                      on_checkpoint=None, stop=None):
         """One rollout, one gradient and one optimiser step per epoch (optimiser and schedule as the
         adapter's ``optimizer_init`` takes them: optax on JAX, torch.optim factories on Warp)."""
         ad = self.adapter
@@ -228,11 +230,13 @@ class Fit:
                 self.history[-1].update(self.epoch_extras(raw, g))
                 raw, state = ad.optimizer_step(state, raw, g)
                 self._epoch_done(bar, val, on_epoch)
-                if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs):
+                stopping = stop is not None and self.epoch < epochs and stop()
+                if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs or stopping):
                     ad.save_checkpoint(checkpoint, self.epoch, self.history, raw, state)
                     if on_checkpoint is not None:
                         on_checkpoint(raw)
-                if val <= tol:
+                if val <= tol or stopping:
+                    self.stopped_early = stopping
                     break
         finally:
             bar.close()

@@ -65,6 +65,9 @@ class NclawTrainConfig(TaskConfig):
     checkpoint_every: int = 1
     #: continue from train_checkpoint.* in the run directory if present
     resume: bool = True
+    #: stop this run (checkpointed; the same command continues) after this many epochs / seconds (0: no limit)
+    stop_after_epochs: int = 0
+    stop_after_s: float = 0.0
     #: keep XLA CPU's YNNPACK fusions (JAX; they make backward passes ~2x slower)
     jax_ynn_fusions: bool = False
 
@@ -89,38 +92,23 @@ def nclaw_group(stepper):
 
 
 def load_truth(path: str, stepper, steps: int) -> dict[str, np.ndarray]:
-    """x, v, C, F [steps + 1, N, ...] of a ground-truth dataset, checked against the scene."""
-    from ..io.h5 import read_trajectory
+    """x, v, C, F [steps + 1, N, ...] of a ground-truth dataset (``mpmlab.nclaw.data.load_dataset``: every
+    step, all four fields), checked against the scene: particle count, dt, length, first positions."""
+    from ..nclaw.data import load_dataset
 
-    traj = read_trajectory(path, require_complete=True)
-    n = stepper.particles.count
-    scene_of = traj.meta.get("scene", "?")
-    if traj.x.shape[1] != n:
-        raise ConfigError(f"dataset '{path}' has {traj.x.shape[1]} particles, scene '{stepper.scene.name}' has {n}: it was "
-                          f"made for another scene (its scene: '{scene_of}'); rerun experiment=nclaw_datasets for it.")
-    st = np.asarray(traj.step, np.int64)
-    if st.size < 2 or np.any(np.diff(st) != 1) or st[0] != 0:
-        every = int(np.min(np.diff(st))) if st.size > 1 else 0
-        raise ConfigError(f"dataset '{path}' keeps every {every}-th step; teacher forcing needs every step "
-                          f"(scene.frame_every=1, as experiment=nclaw_datasets writes).")
-    if st[-1] < steps:
-        raise ConfigError(f"dataset '{path}' has {int(st[-1])} steps; the training needs {steps} (scene.steps).")
-    dt = float(traj.meta.get("dt", stepper.dt))
-    if abs(dt - float(stepper.dt)) > 1e-9 * max(dt, 1e-30):
-        raise ConfigError(f"dataset '{path}' was made with dt = {dt:g} s, the scene steps dt = {float(stepper.dt):g} s; "
-                          f"use the dataset's scene settings.")
-    P = stepper.particles
-    if not np.allclose(np.asarray(traj.x[0], float), P.x, atol=1e-5 * max(1.0, float(np.abs(P.x).max()))):
-        raise ConfigError(f"dataset '{path}' (scene '{scene_of}'): its first frame's positions are not the scene's "
-                          f"particles (another sampling or scene); rerun experiment=nclaw_datasets with this scene.")
-    out = {"x": traj.x, "v": traj.v}
-    for k in ("C", "F"):
-        if k in traj.fields:
-            if len(traj.field_particles.get(k, np.arange(n))) != n:
-                raise ConfigError(f"dataset '{path}': field {k} covers {len(traj.field_particles[k])} of {n} particles; "
-                                  f"teacher forcing needs it for every particle.")
-            out[k] = traj.fields[k]
-    return out
+    ds = load_dataset(path)
+    n, name = stepper.particles.count, stepper.scene.name
+    if ds.n != n:
+        raise ConfigError(f"dataset '{path}' has {ds.n} particles, scene '{name}' has {n}: it was made for another "
+                          f"scene (its scene: '{ds.scene}'); rerun experiment=nclaw_datasets for this one.")
+    ds.check_matches(dt=float(stepper.dt))
+    if ds.steps < steps:
+        raise ConfigError(f"dataset '{path}' has {ds.steps} steps; the training needs {steps} (scene.steps).")
+    x0 = stepper.particles.x
+    if not np.allclose(ds.x[0], x0, atol=1e-5 * max(1.0, float(np.abs(x0).max()))):
+        raise ConfigError(f"dataset '{path}' (scene '{ds.scene}'): its first frame's positions are not the particles of "
+                          f"scene '{name}' (another sampling or body); rerun experiment=nclaw_datasets with this scene.")
+    return {"x": ds.x, "v": ds.v, "C": ds.C, "F": ds.F}
 
 
 def run(cfg, ctx) -> dict:
@@ -190,10 +178,18 @@ def run(cfg, ctx) -> dict:
             scalars.update({f"grad_norm/{k}": v for k, v in h["grad_norms"].items()})
             rec.log(epoch, loss, scalars)
 
+    t_run, first = time.perf_counter(), [None]
+
+    def stop():
+        if first[0] is None:
+            first[0] = fit.epoch - 1          # the epoch this run started at (after a resume: later)
+        ran = fit.epoch - first[0]
+        return ((int(tc.stop_after_epochs) > 0 and ran >= int(tc.stop_after_epochs))
+                or (float(tc.stop_after_s) > 0 and time.perf_counter() - t_run >= float(tc.stop_after_s)))
     try:
         raw = fit.run(int(tc.epochs), optimizer, sched, checkpoint=ckpt, checkpoint_every=int(tc.checkpoint_every),
                       resume=bool(tc.resume), progress=ctx.progress, on_epoch=on_epoch,
-                      on_checkpoint=lambda raw: _write_law_weights_as(out, fit, raw))
+                      on_checkpoint=lambda raw: _write_law_weights_as(out, fit, raw), stop=stop)
     finally:
         if rec is not None:
             rec.close()
@@ -201,7 +197,7 @@ def run(cfg, ctx) -> dict:
     hist = fit.history
     times = np.diff([0.0] + [h["time_s"] for h in hist]) if hist else np.array([])
     summary = {
-        "task": "nclaw_train", "status": "ok", "scene": scene.name, "backend": backend, "transfer": transfer.name,
+        "task": "nclaw_train", "status": "partial" if fit.epoch < int(tc.epochs) else "ok", "scene": scene.name, "backend": backend, "transfer": transfer.name,
         "precision": precision, "particles": int(stepper.particles.count), "steps": steps, "dt": float(stepper.dt),
         "dataset": str(tc.dataset), "weights": weights, "law": group.law.weights_metadata(stepper.dim),
         "epochs": int(fit.epoch), "epochs_planned": int(tc.epochs),
@@ -221,7 +217,9 @@ def run(cfg, ctx) -> dict:
         plot_training(out / PLOT, hist, f"{scene.name}: nclaw on {backend}/{transfer.name}/{precision}")
     summary["wall_time_s"] = float(time.perf_counter() - t_task)
     write_json(out / SUMMARY, summary, True)
-    print(f"mpmlab: nclaw_train {scene.name} {backend}: {fit.epoch} epochs in {summary['wall_time_s']:.1f} s, loss "
+    more = (f" (stopped at epoch {fit.epoch} of {int(tc.epochs)}: rerun the same command to continue)"
+            if fit.epoch < int(tc.epochs) else "")
+    print(f"mpmlab: nclaw_train {scene.name} {backend}: {fit.epoch} epochs{more} in {summary['wall_time_s']:.1f} s, loss "
           f"{summary['initial_loss']:.3e} -> {summary['final_loss']:.3e}; weights {out / WEIGHTS}", flush=True)
     return summary
 

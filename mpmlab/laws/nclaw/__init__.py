@@ -45,6 +45,7 @@ soft, so give a fixed dt for training runs.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -65,7 +66,10 @@ class Law(AbstractConstitutiveLaw):
 
     name: ClassVar[str] = "nclaw"
     params = ()
-    state = (DEFORMATION_GRADIENT,)
+    #: F is guarded for finiteness only, not det F > 0: the networks are defined for any F (the release
+    #: has no guard), and an untrained law ("ours-init", NCLaw Tab. 1) inverts elements while its
+    #: positions stay finite: its error is a number, not a divergence
+    state = (dataclasses.replace(DEFORMATION_GRADIENT, check=None),)
     plastic = True
     reference = _reference
     #: tau = R T F^T is not symmetric in general (the release does not symmetrise it)

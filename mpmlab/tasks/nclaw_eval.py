@@ -1,0 +1,255 @@
+"""``task=nclaw_eval``: a learned law against the ground truth on NCLaw's evaluation scenes (Ma et al.
+2023, Sec. 4, Tabs. 1-2), on either backend.
+
+    mpmlab task=nclaw_eval task.material=jelly task.weights=RUN/nclaw_weights.safetensors
+    mpmlab task=nclaw_eval task.material=jelly                       # "ours-init": the untrained nets
+
+For each case of :func:`mpmlab.nclaw.scenes.eval_cases` (or given ones), the ground truth (the
+material's true law) and the learned law (``material=nclaw`` with the weights) are rolled out from
+the same initial state, without teacher forcing, and compared by NCLaw's metric: the mean over frames
+0, 5, 10, ... of the per-coordinate position MSE [m^2] (:func:`~mpmlab.nclaw.scenes.position_mse`).
+Ground-truth rollouts are kept (``truth/<case>.npz``) and reused by later evaluations in the same
+run directory or from ``task.truth_dir``, so ours, ours-init and other weights share them.
+
+Outputs: ``summary.json`` (per case: the metric, the paper's value where Tabs. 1-2 give one, wall
+times, particles, steps, status), ``eval.md`` (the table), ``eval.png`` (MSE per frame) and the
+ground-truth cache. A learned rollout that diverges is reported as such; the other cases still run.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, List
+
+import numpy as np
+
+from ..config import TaskConfig, register_task_schema
+from ..core.errors import ConfigError, SimulationDiverged
+from .common import SUMMARY, write_config, write_json, write_text
+
+log = logging.getLogger("mpmlab")
+
+#: NCLaw Tab. 1 ("ours", "ours-init") and Tab. 2 ("ours" (a) time, (b) velocity: mean of seeds 1, 7, 8,
+#: (c) geometry); JELL-O (a) lost its leading digit in the seed text (None: report only)
+PAPER = {
+    "ours": {
+        "jelly": {"reconstruction": 2.4e-4, "time": None, "velocity": 2.4e-4, "geometry": 4.1e-4},
+        "sand": {"reconstruction": 2.6e-5, "time": 4.2e-5, "velocity": 6.5e-5, "geometry": 3.6e-4},
+        "plasticine": {"reconstruction": 6.5e-5, "time": 1.4e-4, "velocity": 4.6e-5, "geometry": 2.3e-4},
+        "water": {"reconstruction": 2.0e-5, "time": 3.5e-4, "velocity": 1.9e-5, "geometry": 2.4e-4},
+    },
+    "ours-init": {
+        "jelly": {"reconstruction": 1.1e-1, "time": None, "velocity": 6.6e-2, "geometry": 1.2e-1},
+        "sand": {"reconstruction": 4.8e-2, "time": 1.5e-1, "velocity": 2.7e-2, "geometry": 5.0e-2},
+        "plasticine": {"reconstruction": 4.6e-2, "time": 1.3e-1, "velocity": 2.7e-2, "geometry": 5.8e-2},
+        "water": {"reconstruction": 6.8e-2, "time": 3.0e-1, "velocity": 4.1e-2, "geometry": 1.0e-1},
+    },
+}
+DEFAULT_CASES = ["reconstruction", "time", "velocity_seed1", "velocity_seed7", "velocity_seed8", "geometry"]
+TABLE = "eval.md"
+PLOT = "eval.png"
+
+
+@dataclass
+class NclawEvalConfig(TaskConfig):
+    """Roll a learned nclaw law out beside the ground truth on NCLaw's evaluation scenes."""
+
+    name: str = "nclaw_eval"
+    #: the training material whose true law is the ground truth: jelly | sand | plasticine | water
+    material: str = ""
+    #: the trained weights (nclaw_weights.safetensors of task=nclaw_train); empty: the untrained
+    #: initialisation (NCLaw's "ours-init")
+    weights: str = ""
+    #: case names of mpmlab.nclaw.scenes.eval_cases(material) ("all": every one), or mappings
+    #: {name, scene, steps, overrides: [...]} for scenes of your own
+    cases: List[Any] = field(default_factory=lambda: list(DEFAULT_CASES))
+    #: Hydra overrides added to every run (both the truth and the learned law)
+    overrides: List[str] = field(default_factory=list)
+    #: a directory of ground-truth rollouts (truth/<case>.npz) to reuse; default: this run's
+    truth_dir: str = ""
+    #: a label for the evaluated weights in the table (default: ours, or ours-init without weights)
+    label: str = ""
+
+
+register_task_schema("nclaw_eval", NclawEvalConfig)
+
+
+def _plain(node):
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    return OmegaConf.to_container(node, resolve=True) if isinstance(node, (DictConfig, ListConfig)) else node
+
+
+def resolve_cases(material: str, wanted) -> list:
+    """The EvalCase list: names from ``eval_cases(material)`` ("all" = every one) or custom mappings."""
+    from ..nclaw.scenes import EvalCase, eval_cases
+
+    known = {c.name: c for c in eval_cases(material)}
+    wanted = _plain(wanted) or []
+    if wanted == ["all"] or wanted == "all":
+        return list(known.values())
+    out = []
+    for i, c in enumerate(wanted):
+        if isinstance(c, str):
+            if c not in known:
+                raise ConfigError(f"task.cases[{i}] = '{c}' is not an NCLaw case for {material}; choose from "
+                                  f"{', '.join(known)} or 'all', or give {{name, scene, steps}}.")
+            out.append(known[c])
+        elif isinstance(c, dict):
+            missing = [k for k in ("name", "scene", "steps") if k not in c]
+            if missing:
+                raise ConfigError(f"task.cases[{i}]: a custom case needs name, scene and steps (missing {missing}).")
+            out.append(EvalCase(str(c["name"]), str(c["scene"]), tuple(c.get("overrides", ())), int(c["steps"]),
+                                str(c.get("description", "custom case")), material,
+                                frame_every=int(c.get("frame_every", 5))))
+        else:
+            raise ConfigError(f"task.cases[{i}] = {c!r}: give a case name or a mapping {{name, scene, steps}}.")
+    if not out:
+        raise ConfigError("task.cases is empty; give case names (e.g. [reconstruction]) or 'all'.")
+    return out
+
+
+def rollout(overrides: list[str], steps: int, every: int):
+    """(positions [T, N, D] every ``every`` steps, wall time s, particles) of one composed run."""
+    from ..config import build_scene, compose, make_transfer_from_config
+    from ..simulator import build_stepper
+
+    cfg = compose(overrides)
+    scene = build_scene(cfg)
+    stepper = build_stepper(scene, cfg.backend.name, make_transfer_from_config(cfg), cfg.precision.name)
+    t0 = time.perf_counter()
+    traj = stepper.rollout(steps=steps, every=every)
+    return np.asarray(traj.x), time.perf_counter() - t0, int(stepper.particles.count)
+
+
+def run(cfg, ctx) -> dict:
+    from .. import __version__
+    from ..nclaw.scenes import MATERIALS
+
+    t_task = time.perf_counter()
+    out = Path(ctx.output_dir)
+    tc = cfg.task
+    material = str(tc.material)
+    if material not in MATERIALS:
+        raise ConfigError(f"task.material = '{material}': give the training material, one of {', '.join(MATERIALS)} "
+                          f"(its true law is the ground truth).")
+    weights = str(tc.weights or "")
+    if weights and not Path(weights).is_file():
+        raise ConfigError(f"task.weights = '{weights}' does not exist; give the nclaw_weights.safetensors of a "
+                          f"task=nclaw_train run, or leave it empty for the untrained law (ours-init).")
+    label = str(tc.label or ("ours" if weights else "ours-init"))
+    cases = resolve_cases(material, tc.cases)
+    if (out / SUMMARY).exists() and not ctx.overwrite:
+        raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
+    write_config(out, cfg, True)
+    common = [f"backend={cfg.backend.name}", f"transfer={cfg.transfer.name}", f"precision={cfg.precision.name}",
+              "output.recording=false", *(_plain(tc.overrides) or [])]
+    truth_dir = Path(tc.truth_dir) if tc.truth_dir else out / "truth"
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    from tqdm.auto import tqdm
+
+    results, curves = {}, {}
+    bar = tqdm(cases, disable=None if ctx.progress is None else not ctx.progress, unit="case", leave=False)
+    for case in bar:
+        bar.set_postfix_str(case.name)
+        every = case.frame_every
+        cache = truth_dir / f"{case.name}_{cfg.backend.name}_{cfg.precision.name}.npz"
+        if cache.exists():
+            with np.load(cache) as z:
+                xt, t_truth, n = z["x"], float(z["wall_s"]), int(z["x"].shape[1])
+        else:
+            xt, t_truth, n = rollout(case.truth() + common, case.steps, every)
+            tmp = cache.with_name(cache.stem + ".tmp.npz")
+            np.savez_compressed(tmp, x=xt, wall_s=t_truth)
+            tmp.replace(cache)
+        entry: dict[str, Any] = {"scene": case.scene, "steps": case.steps, "particles": n, "frame_every": every,
+                                 "description": case.description, "truth_wall_s": t_truth, "tags": list(case.tags)}
+        try:
+            xl, t_learned, _ = rollout(case.learned(weights or None) + common, case.steps, every)
+        except SimulationDiverged as exc:
+            entry.update(status="diverged", mse=None, message=str(exc).splitlines()[0])
+            log.warning("nclaw_eval %s: the learned law diverged (%s)", case.name, entry["message"])
+        else:
+            stride = case.metric_every
+            d = (xl[::stride].astype(np.float64) - xt[::stride].astype(np.float64))
+            per_frame = np.mean(d * d, axis=(1, 2))
+            entry.update(status="ok", mse=case.mse(xl, xt), learned_wall_s=t_learned)
+            curves[case.name] = (np.arange(len(per_frame)) * stride * every, per_frame)
+        results[case.name] = entry
+    bar.close()
+
+    table = _aggregate(results, PAPER.get(label, PAPER["ours"]).get(material, {}))
+    summary = {"task": "nclaw_eval", "status": "ok", "material": material, "weights": weights or None, "label": label,
+               "backend": cfg.backend.name, "transfer": cfg.transfer.name, "precision": cfg.precision.name,
+               "metric": "mean over frames 0, 5, 10, ... of the per-coordinate position MSE [m^2] (NCLaw Tabs. 1-2)",
+               "cases": results, "table": table, "wall_time_s": None, "mpmlab_version": __version__,
+               "overrides": list(ctx.job.get("overrides", []))}
+    write_text(out / TABLE, _markdown(summary), True)
+    if cfg.output.plots and curves:
+        _plot(out / PLOT, curves, f"nclaw_eval {material} ({label}) on {cfg.backend.name}")
+    summary["wall_time_s"] = float(time.perf_counter() - t_task)
+    write_json(out / SUMMARY, summary, True)
+    line = ", ".join(f"{k} {_fmt(v['mse'])}" for k, v in table.items())
+    print(f"mpmlab: nclaw_eval {material} ({label}) {cfg.backend.name}: {line} -> {out}", flush=True)
+    return summary
+
+
+def _aggregate(results: dict, paper: dict) -> dict:
+    """Tab. 1-2 rows: each case, and ``velocity`` = the mean over the seeds (Tab. 2 (b))."""
+    table = {}
+    for name, r in results.items():
+        key = "velocity" if name.startswith("velocity_seed") else name
+        if key == "velocity":
+            continue
+        table[name] = {"mse": r["mse"], "paper": paper.get(key), "ratio": _ratio(r["mse"], paper.get(key))}
+    seeds = [r for k, r in results.items() if k.startswith("velocity_seed")]
+    if seeds:
+        vals = [r["mse"] for r in seeds]
+        m = float(np.mean(vals)) if all(v is not None for v in vals) else None
+        table["velocity"] = {"mse": m, "paper": paper.get("velocity"), "ratio": _ratio(m, paper.get("velocity")),
+                             "seeds": len(seeds)}
+    return table
+
+
+def _ratio(a, b):
+    return None if a is None or b is None else float(a / b)
+
+
+def _fmt(v):
+    return "n/a" if v is None else f"{v:.2e}"
+
+
+def _markdown(s: dict) -> str:
+    lines = [f"# NCLaw evaluation: {s['material']} ({s['label']}), {s['backend']}/{s['transfer']}/{s['precision']}", "",
+             f"Metric: {s['metric']}. Weights: `{s['weights'] or 'the untrained initialisation'}`.", "",
+             "| case | mpmlab | paper | mpmlab / paper |", "|---|---|---|---|"]
+    for k, r in s["table"].items():
+        ratio = "" if r["ratio"] is None else f"{r['ratio']:.2f}"
+        lines.append(f"| {k} | {_fmt(r['mse'])} | {_fmt(r['paper'])} | {ratio} |")
+    lines += ["", "| case | particles | steps | status | truth s | learned s |", "|---|---|---|---|---|---|"]
+    for k, r in s["cases"].items():
+        lines.append(f"| {k} | {r['particles']} | {r['steps']} | {r['status']} | {r['truth_wall_s']:.1f} | "
+                     f"{r.get('learned_wall_s', float('nan')):.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _plot(path: Path, curves: dict, title: str) -> None:
+    import os
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for name, (steps, mse) in curves.items():
+        ax.semilogy(steps, np.maximum(mse, 1e-16), label=name)
+    ax.set_xlabel("step"); ax.set_ylabel("position MSE per coordinate [m²]"); ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
