@@ -21,7 +21,7 @@ from mpmlab.boundaries import Walls
 from mpmlab.core.errors import ConfigError, TimeStepError
 from mpmlab.inverse.parameters import FitParameter
 from mpmlab.inverse.teacher import TeacherForcedFit, TeacherForcing, chosen_segments
-from mpmlab.laws.nclaw import Law
+from mpmlab.laws.nclaw import Law, save_weights
 
 NAMES = ["e_W1", "e_W2", "e_W3", "p_W1", "p_W2", "p_W3"]
 GROUPS = {"elastic": NAMES[:3], "plastic": NAMES[3:]}
@@ -264,11 +264,37 @@ def test_train_diverging_gives_fit_diverged(dataset, tmp_path):
 
 def test_dt_auto_needs_a_wave_speed(tmp_path):
     """A network with zero weights has no stiffness at rest: dt: auto is refused (a fixed dt is required)."""
-    from mpmlab.laws.nclaw import save_weights
-
     law = Law()
     path = tmp_path / "zero.safetensors"
     save_weights(str(path), {k: np.zeros(s) for k, s in law.weight_shapes(2).items()}, law, dim=2)
     scene = square_scene("nclaw", {}, {"weights_file": str(path)}, velocity=(0.0, 0.0), omega=0.0, dt="auto")
     with pytest.raises(TimeStepError, match="nonzero wave speed"):
         scene.resolve_dt()
+
+
+def test_kinematics_only_reset_carries_C_and_F(truth, tmp_path):
+    """reset [x, v]: each segment restarts from the ground-truth x, v with the C and F the simulation
+    reached (not the ground truth's); with one segment it is the whole-state reset's loss."""
+    st = mpmlab.build_stepper(square_scene("nclaw", {}), "warp", "mls", "fp64")
+    params = [FitParameter(name=n, target="law_weights", field=n, form="array").bind(st.scene, st, []) for n in NAMES]
+    tr = {k: a[:21] for k, a in truth.items()}
+    kv = TeacherForcedFit(st, st.scene, params, {"x": tr["x"], "v": tr["v"]},
+                          TeacherForcing(steps=20, start=10, end=10, reset=("x", "v")), epochs=1, groups=GROUPS)
+    w = trained_like()
+    raw = weights(kv, w)
+    init0 = kv._initial(0, None)
+    carry = kv._carry_after(raw, init0, 10)
+    # the simulation's own F and C after 10 steps from the scene's initial state, with these weights
+    path = tmp_path / "w.safetensors"
+    save_weights(str(path), w, Law(), dim=2)
+    free = mpmlab.build_stepper(square_scene("nclaw", {}, {"weights_file": str(path)}), "warp", "mls", "fp64")
+    traj = free.rollout(steps=10, every=10, fields=("F", "C"))
+    np.testing.assert_allclose(kv.ops.numpy(carry["law_state"][0]["F"]), traj.fields["F"][-1], atol=1e-12)
+    np.testing.assert_allclose(kv.ops.numpy(carry["C"]), traj.fields["C"][-1], atol=1e-9)
+    assert np.abs(traj.fields["F"][-1] - tr["F"][10]).max() > 1e-4        # not the ground truth's F
+    val, why, g, info = kv.epoch_loss(raw, 0)
+    assert why is None and info["segments"] == 2 and val > 0
+    one = TeacherForcedFit(st, st.scene, params, {"x": tr["x"], "v": tr["v"]},
+                           TeacherForcing(steps=20, start=20, end=20, reset=("x", "v")), epochs=1, groups=GROUPS)
+    full = TeacherForcedFit(st, st.scene, params, tr, TeacherForcing(steps=20, start=20, end=20), epochs=1, groups=GROUPS)
+    assert math.isclose(one.epoch_loss(raw, 0)[0], full.epoch_loss(raw, 0)[0], rel_tol=1e-12)

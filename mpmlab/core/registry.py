@@ -128,6 +128,7 @@ def _register_builtins() -> None:
         boundaries.register(name, f"mpmlab.boundaries:{cls}")
     boundaries.register("body_force", "mpmlab.boundaries.body_force:BodyForce")
     observations.register("lagrangian", "mpmlab.observations:Lagrangian")
+    observations.register("particle_state", "mpmlab.observations:ParticleState")
     observations.register("eulerian", "mpmlab.observations:Eulerian")
 
 

@@ -118,9 +118,15 @@ class TeacherForcedFit(Fit):
             raise ConfigError(f"teacher-forced fit: the optimiser groups {self.groups} must list each parameter "
                               f"({names}) exactly once.")
         self._obs_v = Lagrangian(quantity="v")
+        if not forcing.full_reset:
+            other = sorted({f for g in stepper.groups for f in g.law.state_fields} - {"F"})
+            if other:
+                raise ConfigError(f"teacher forcing with reset [x, v] carries C and F across a reset; the scene's laws "
+                                  f"also keep {other}: use reset [x, v, C, F].")
         self.truth = self._check_truth(truth)
         self.reference = self.truth["x"]            # Fit.run generates no reference data
-        self._vg: dict[int, Any] = {}
+        self._vg: dict[Any, Any] = {}
+        self._state_obs: dict[str, Any] = {}
         self._data = None
         self.last_epoch: dict[str, Any] = {}
 
@@ -196,11 +202,24 @@ class TeacherForcedFit(Fit):
         return self._vg[key]
 
     def _carry_after(self, raw, init, length):
-        """C and the law state after a segment (kinematics-only reset), detached."""
-        from ..core.errors import MpmlabError
+        """C and the law state F after a segment (kinematics-only reset), detached: one more forward
+        rollout of the segment, observed by ``ParticleState`` at its last step."""
+        from ..observations import ParticleState
 
-        raise MpmlabError("teacher forcing with reset [x, v] (kinematics only) is not available yet: it needs the "
-                          "rollout's end state (C, F) from the differentiable observe; use reset [x, v, C, F].")
+        c = dict(self.controls_of(raw))
+        c.update(init)
+        st, D, N = self.stepper, self.stepper.dim, self.stepper.particles.count
+        carry = {}
+        quantities = (["C"] if st.transfer.needs_affine else []) + ["F"]
+        for q in quantities:
+            obs = self._state_obs.setdefault(q, ParticleState(quantity=q))
+            y, bad = self.adapter.observe(st, c, obs, np.array([length]), self.segment)
+            a = self.ops.asarray(self.ops.numpy(y).reshape(N, D, D))       # detached: no gradient across a reset
+            if q == "C":
+                carry["C"] = a
+            else:
+                carry["law_state"] = tuple({"F": a[g.start:g.stop]} for g in st.groups)
+        return carry
 
     def epoch_loss(self, raw, epoch: int, fraction: float | None = None, grad: bool = True):
         """(loss, why invalid or None, gradient or None, info) of one teacher-forced epoch; ``grad=False``:

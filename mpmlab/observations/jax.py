@@ -32,3 +32,22 @@ def eulerian(obs, stepper):
         return (inside @ state[q]) / jnp.maximum(cnt, 1.0)[:, None]
 
     return SimpleNamespace(fn=fn, shape=(int(c.shape[0]), stepper.dim))
+
+
+def particle_state(obs, stepper):
+    idx = obs.indices(stepper.particles.count)
+    D, q = stepper.dim, obs.quantity
+    if q == "F":
+        missing = [g.law.name for g in stepper.groups if "F" not in g.law.state_fields]
+        if missing:
+            from ..core.errors import ConfigError
+            raise ConfigError(f"observation 'particle_state': quantity F needs every law to carry F; {missing} do not.")
+    if q == "C" and not stepper.transfer.needs_affine:
+        from ..core.errors import ConfigError
+        raise ConfigError(f"observation 'particle_state': transfer '{stepper.transfer.name}' carries no C.")
+
+    def fn(state):
+        a = state["C"] if q == "C" else jnp.concatenate([st["F"] for st in state["law"]], axis=0)
+        return a[idx].reshape(len(idx), D * D)
+
+    return SimpleNamespace(fn=fn, shape=(int(idx.shape[0]), D * D))

@@ -105,3 +105,56 @@ def eulerian(obs, stepper):
         wp.launch(K.finish, dim=L, inputs=[acc, cnt, out], device=dev)
 
     return SimpleNamespace(shape=(L, D), launch=launch)
+
+
+@lru_cache(maxsize=None)
+def _matrix_gather(dim: int, precision: str):
+    T = warp_types(dim, precision)
+    flat = wp.types.vector(dim * dim, T.scalar)
+
+    @wp.kernel(module="unique")
+    def gather_matrix(z: wp.array(dtype=T.mat), idx: wp.array(dtype=int), pos: wp.array(dtype=int),
+                      out: wp.array(dtype=flat)):
+        l = wp.tid()
+        m = z[idx[l]]
+        r = flat()
+        for i in range(dim):
+            for j in range(dim):
+                r[i * dim + j] = m[i, j]
+        out[pos[l]] = r
+
+    return gather_matrix
+
+
+def particle_state(obs, stepper):
+    """C or F of tracked particles from a scene-order state (the differentiable path's)."""
+    from ..core.errors import ConfigError
+
+    N, D = stepper.particles.count, stepper.dim
+    idx = obs.indices(N).astype(np.int64)
+    q, dev = obs.quantity, stepper.device
+    K = _matrix_gather(D, stepper.precision)
+    if q == "F":
+        missing = [g.law.name for g in stepper.groups if "F" not in g.law.state_fields]
+        if missing:
+            raise ConfigError(f"observation 'particle_state': quantity F needs every law to carry F; {missing} do not.")
+    blocks = []          # (group or None for C, local indices, output positions)
+    if q == "C":
+        blocks.append((None, idx, np.arange(len(idx))))
+    else:
+        for k, g in enumerate(stepper.groups):
+            sel = np.nonzero((idx >= g.start) & (idx < g.stop))[0]
+            if len(sel):
+                blocks.append((k, idx[sel] - g.start, sel))
+    arrays = [(k, wp.array(a.astype(np.int32), dtype=int, device=dev), wp.array(p.astype(np.int32), dtype=int, device=dev),
+               len(a)) for k, a, p in blocks]
+
+    def launch(state, out):
+        if _storage_perm(state) is not None:
+            raise ConfigError("observation 'particle_state' reads scene-order states (stepper.observe), not the "
+                              "sorted fast-path state.")
+        for k, ia, pa, n in arrays:
+            z = state.C if k is None else state.law[k]["F"]
+            wp.launch(K, dim=n, inputs=[z, ia, pa, out], device=dev)
+
+    return SimpleNamespace(shape=(len(idx), D * D), launch=launch, indices=idx)
