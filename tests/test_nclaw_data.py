@@ -192,7 +192,7 @@ def test_load_dataset_refusals(water_dataset, tmp_path):
     t.x, t.v, t.time, t.step = t.x[keep], t.v[keep], t.time[keep], t.step[keep]
     t.fields = {k: a[keep] for k, a in t.fields.items()}
     path = write_trajectory(tmp_path / "every2.h5", t)
-    msg = expect(path, "keeps every 2th step only (frame_every = 2)")
+    msg = expect(path, "keeps only every 2-th step (frame_every = 2)")
     assert "rerun experiment=nclaw_datasets" in msg
     assert traj.x.shape[0] == 4
 
