@@ -21,7 +21,9 @@ from mpmlab.core import budget
 import jax.numpy as jnp
 import mpmlab.backends.jax.stepper
 jnp.zeros(3).block_until_ready()
-scene = build_scene(compose(["scene.dx=0.02", "scene.bodies.cube.particles_per_cell=8", "scene.dt=1e-4"]),
+# the cube sampled per cell (nclaw_jelly's own NCLaw lattice has 1000 points at any dx)
+scene = build_scene(compose(["scene.dx=0.02", "scene.bodies.cube.sampling=regular", "scene.bodies.cube.lattice=null",
+                             "scene.bodies.cube.particles_per_cell=8", "scene.dt=1e-4"]),
                     validate=False)
 est = budget.estimate_memory(scene, "jax", "fp32", "mls", frames=3)
 base = psutil.Process().memory_info().rss

@@ -12,7 +12,11 @@ Layout (every array keeps the dtype of the ``Trajectory`` it came from, so a rou
                       params [N, P] (NaN-padded; attr names_json: the parameter names of each material)
     /materials        attrs: laws_json (per material: law, param_names, start, stop, provenance)
     /frames/          x [T, N, D], v [T, N, D], time [T], step [T] i8, and every Trajectory field
-                      (F [T, N_F, D, D], C, J, sigma, eps_p, ...); chunks (1, N, ...), lzf + shuffle
+                      (F [T, N_F, D, D], C, J, sigma, eps_p, ...); chunks (1, N, ...), lzf + shuffle;
+                      a field synthesised from another (F = J^(1/d) I for a J-only law,
+                      mpmlab.io.derived) has attrs derived_from, derived_formula,
+                      derived_particles_json, and the simulate task's root attribute
+                      derived_fields (JSON) says the same
     /field_particles/ <field> [N_F] i8: the particles each field covers
 
 A file is written to a temporary file in the target's directory, ``complete`` is set last, and the

@@ -148,7 +148,7 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
     every = int(attrs.get("frame_every", spacing[0] if len(spacing) else 1))
     if len(spacing) and (np.any(spacing != 1) or every != 1):
         k = int(spacing.max()) if np.any(spacing != 1) else every
-        raise ConfigError(f"NCLaw dataset '{path}' keeps every {k}th step only (frame_every = {k}); {RERUN} "
+        raise ConfigError(f"NCLaw dataset '{path}' keeps only every {k}-th step (frame_every = {k}); {RERUN} "
                           f"(it sets frame_every=1).")
     if len(step) and step[0] != 0:
         raise ConfigError(f"NCLaw dataset '{path}' starts at step {step[0]}, not at the initial state; {RERUN}.")
