@@ -138,6 +138,8 @@ def apply_numpy(obs: AbstractObservation, state: Mapping[str, np.ndarray]) -> np
     backend implementations are tested against."""
     x = np.asarray(state["x"], float)
     z = np.asarray(state[obs.quantity], float)
+    if isinstance(obs, ParticleState):
+        return z[obs.indices(len(x))].reshape(-1, x.shape[1] ** 2)
     if isinstance(obs, Lagrangian):
         return z[obs.indices(len(x))]
     if isinstance(obs, Eulerian):
