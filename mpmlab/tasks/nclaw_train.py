@@ -43,6 +43,11 @@ class NclawTrainConfig(TaskConfig):
     """Train the ``nclaw`` law of the scene on a ground-truth trajectory by teacher forcing."""
 
     name: str = "nclaw_train"
+    #: teacher (through the simulator, NCLaw's method) | labeled (the nets fitted to the dataset's
+    #: (F, tau) and (F_n, C_n+1 -> F_n+1) pairs: NCLaw's "labeled" baseline, mpmlab.nclaw.baselines)
+    method: str = "teacher"
+    #: labeled: epochs, batch size, learning rate (the release's supervised.yaml: 30, 1000, 0.1) and frame stride
+    labeled: Dict[str, Any] = field(default_factory=lambda: {"epochs": 30, "batch": 1000, "lr": 0.1, "stride": 1})
     #: the ground-truth trajectory.h5 (x, v, C, F at every step: experiment=nclaw_datasets)
     dataset: str = ""
     epochs: int = 300
@@ -148,6 +153,10 @@ def run(cfg, ctx) -> dict:
 
     stepper = build_stepper(scene, backend, transfer, precision)
     gi, group = nclaw_group(stepper)
+    if str(tc.method) == "labeled":
+        return _run_labeled(cfg, ctx, out, tc, scene, stepper, group, steps, t_task)
+    if str(tc.method) != "teacher":
+        raise ConfigError(f"task.method = '{tc.method}': use teacher (NCLaw's training) or labeled (the baseline).")
     truth = load_truth(str(tc.dataset), stepper, steps)
     body = scene.bodies[int(stepper.particles.body_id[group.start])].name
     params, groups = [], {}
@@ -221,6 +230,40 @@ def run(cfg, ctx) -> dict:
             if fit.epoch < int(tc.epochs) else "")
     print(f"mpmlab: nclaw_train {scene.name} {backend}: {fit.epoch} epochs{more} in {summary['wall_time_s']:.1f} s, loss "
           f"{summary['initial_loss']:.3e} -> {summary['final_loss']:.3e}; weights {out / WEIGHTS}", flush=True)
+    return summary
+
+
+def _run_labeled(cfg, ctx, out, tc, scene, stepper, group, steps, t_task) -> dict:
+    """NCLaw's "labeled" baseline: fit the nets to the dataset's constitutive pairs (no rollout)."""
+    from .. import __version__
+    from ..laws.nclaw import save_weights
+    from ..nclaw.baselines import fit_labeled, labeled_pairs
+    from ..nclaw.data import load_dataset
+
+    load_truth(str(tc.dataset), stepper, steps)                 # the same checks as a teacher-forced run
+    ds = load_dataset(str(tc.dataset))
+    opts = {"epochs": 30, "batch": 1000, "lr": 0.1, "stride": 1, **(_plain(tc.labeled) or {})}
+    unknown = sorted(set(opts) - {"epochs", "batch", "lr", "stride"})
+    if unknown:
+        raise ConfigError(f"task.labeled: unknown option(s) {unknown}; use epochs, batch, lr, stride.")
+    write_config(out, cfg, True)
+    pairs = labeled_pairs(ds, stride=int(opts["stride"]))
+    weights, report = fit_labeled(group.law, stepper.dim, pairs, ds.dt, epochs=int(opts["epochs"]),
+                                  batch=int(opts["batch"]), lr=float(opts["lr"]), seed=int(tc.seed),
+                                  progress=ctx.progress)
+    from ..io.files import write_atomically
+
+    write_atomically(out / WEIGHTS, lambda tmp: save_weights(str(tmp), weights, group.law, dim=stepper.dim),
+                     overwrite=True)
+    summary = {"task": "nclaw_train", "method": "labeled", "status": "ok", "scene": scene.name,
+               "particles": int(stepper.particles.count), "dataset": str(tc.dataset), "weights": WEIGHTS,
+               "law": group.law.weights_metadata(stepper.dim), "labeled": report, "true_law": ds.laws[0]["law"],
+               "wall_time_s": float(time.perf_counter() - t_task), "mpmlab_version": __version__,
+               "overrides": list(ctx.job.get("overrides", []))}
+    write_json(out / SUMMARY, summary, True)
+    print(f"mpmlab: nclaw_train (labeled) {scene.name}: elastic loss {report['e']['loss_initial']:.3e} -> "
+          f"{report['e']['loss_final']:.3e}, plastic {report['p']['loss_initial']:.3e} -> {report['p']['loss_final']:.3e} "
+          f"(relative MSE) in {summary['wall_time_s']:.1f} s; weights {out / WEIGHTS}", flush=True)
     return summary
 
 
