@@ -165,7 +165,8 @@ class TeacherForcedFit(Fit):
         if self.forcing.full_reset:
             if "C" in d:
                 init["C"] = d["C"][s]
-            init["law_state"] = tuple({f: d[f][s][g.start:g.stop] for f in g.law.state_fields} for g in self.stepper.groups)
+            init["law_state"] = tuple({f: d[f][s][g.start:g.stop] for f in g.law.state_fields}
+                                      for g in self.stepper.groups)
         elif carry is not None:
             init.update(carry)
         return init

@@ -21,7 +21,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, List
+from typing import Any, Dict, List
 
 import numpy as np
 
@@ -69,6 +69,8 @@ class NclawEvalConfig(TaskConfig):
     overrides: List[str] = field(default_factory=list)
     #: a directory of ground-truth rollouts (truth/<case>.npz) to reuse; default: this run's
     truth_dir: str = ""
+    #: instead of weights: the true law with these parameters (NCLaw's sys-id baseline), e.g. {E: 1.0e5}
+    law_params: Dict[str, float] = field(default_factory=dict)
     #: a label for the evaluated weights in the table (default: ours, or ours-init without weights)
     label: str = ""
 
@@ -139,7 +141,11 @@ def run(cfg, ctx) -> dict:
     if weights and not Path(weights).is_file():
         raise ConfigError(f"task.weights = '{weights}' does not exist; give the nclaw_weights.safetensors of a "
                           f"task=nclaw_train run, or leave it empty for the untrained law (ours-init).")
-    label = str(tc.label or ("ours" if weights else "ours-init"))
+    law_params = _plain(tc.law_params) or {}
+    if law_params and weights:
+        raise ConfigError("task.law_params (the true law refitted: sys-id) and task.weights (a learned nclaw) exclude "
+                          "each other; give one.")
+    label = str(tc.label or ("sys-id" if law_params else "ours" if weights else "ours-init"))
     cases = resolve_cases(material, tc.cases)
     if (out / SUMMARY).exists() and not ctx.overwrite:
         raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
@@ -167,7 +173,9 @@ def run(cfg, ctx) -> dict:
         entry: dict[str, Any] = {"scene": case.scene, "steps": case.steps, "particles": n, "frame_every": every,
                                  "description": case.description, "truth_wall_s": t_truth, "tags": list(case.tags)}
         try:
-            xl, t_learned, _ = rollout(case.learned(weights or None) + common, case.steps, every)
+            learned = (case.truth() + [f"material.params.{k}={float(v)!r}" for k, v in law_params.items()]
+                       if law_params else case.learned(weights or None))
+            xl, t_learned, _ = rollout(learned + common, case.steps, every)
         except SimulationDiverged as exc:
             entry.update(status="diverged", mse=None, message=str(exc).splitlines()[0])
             log.warning("nclaw_eval %s: the learned law diverged (%s)", case.name, entry["message"])
@@ -181,7 +189,8 @@ def run(cfg, ctx) -> dict:
     bar.close()
 
     table = _aggregate(results, PAPER.get(label, PAPER["ours"]).get(material, {}))
-    summary = {"task": "nclaw_eval", "status": "ok", "material": material, "weights": weights or None, "label": label,
+    summary = {"task": "nclaw_eval", "status": "ok", "material": material, "weights": weights or None,
+               "law_params": law_params or None, "label": label,
                "backend": cfg.backend.name, "transfer": cfg.transfer.name, "precision": cfg.precision.name,
                "metric": "mean over frames 0, 5, 10, ... of the per-coordinate position MSE [m^2] (NCLaw Tabs. 1-2)",
                "cases": results, "table": table, "wall_time_s": None, "mpmlab_version": __version__,

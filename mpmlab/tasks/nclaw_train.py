@@ -18,6 +18,7 @@ period, learning rates and gradient norms per epoch), ``train.png`` and ``summar
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -44,8 +45,12 @@ class NclawTrainConfig(TaskConfig):
 
     name: str = "nclaw_train"
     #: teacher (through the simulator, NCLaw's method) | labeled (the nets fitted to the dataset's
-    #: (F, tau) and (F_n, C_n+1 -> F_n+1) pairs: NCLaw's "labeled" baseline, mpmlab.nclaw.baselines)
+    #: (F, tau) and (F_n, C_n+1 -> F_n+1) pairs: NCLaw's "labeled" baseline, mpmlab.nclaw.baselines) |
+    #: sysid (the scene's own law family, its parameters fitted by the same teacher forcing from E^0.8,
+    #: 0.8 sigma_y, 0.8 phi: NCLaw's "sys-id"; run with the true material, not material=nclaw)
     method: str = "teacher"
+    #: sysid: Adam on the log of the true law's parameters (mpmlab's choice; the paper gives none)
+    sysid: Dict[str, Any] = field(default_factory=lambda: {"lr": 0.1, "clip": None})
     #: labeled: epochs, batch size, learning rate (the release's supervised.yaml: 30, 1000, 0.1) and frame stride
     labeled: Dict[str, Any] = field(default_factory=lambda: {"epochs": 30, "batch": 1000, "lr": 0.1, "stride": 1})
     #: the ground-truth trajectory.h5 (x, v, C, F at every step: experiment=nclaw_datasets)
@@ -113,7 +118,7 @@ def load_truth(path: str, stepper, steps: int) -> dict[str, np.ndarray]:
     if not np.allclose(ds.x[0], x0, atol=1e-5 * max(1.0, float(np.abs(x0).max()))):
         raise ConfigError(f"dataset '{path}' (scene '{ds.scene}'): its first frame's positions are not the particles of "
                           f"scene '{name}' (another sampling or body); rerun experiment=nclaw_datasets with this scene.")
-    return {"x": ds.x, "v": ds.v, "C": ds.C, "F": ds.F}
+    return {"x": ds.x, "v": ds.v, "C": ds.C, "F": ds.F, "J": np.linalg.det(ds.F)}
 
 
 def run(cfg, ctx) -> dict:
@@ -145,23 +150,30 @@ def run(cfg, ctx) -> dict:
                              reset=tuple(teacher.get("reset", ("x", "v", "C", "F"))))
     nets = _plain(tc.nets) or {}
     bad = sorted(set(nets) - set(NETS))
-    if bad or not nets:
+    if (bad or not nets) and str(tc.method) != "sysid":
         raise ConfigError(f"task.nets: {bad or 'none'}; give elastic and/or plastic, each {{lr, clip}}.")
     ckpt = out / f"train_checkpoint.{ad.checkpoint_suffix}"
     if (out / SUMMARY).exists() and not ctx.overwrite and not (tc.resume and ckpt.exists()):
         raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
 
     stepper = build_stepper(scene, backend, transfer, precision)
-    gi, group = nclaw_group(stepper)
-    if str(tc.method) == "labeled":
+    method = str(tc.method)
+    if method not in ("teacher", "labeled", "sysid"):
+        raise ConfigError(f"task.method = '{method}': use teacher (NCLaw's training), labeled or sysid (its baselines).")
+    if method == "sysid":
+        group = _one_group(stepper)
+    else:
+        gi, group = nclaw_group(stepper)
+    if method == "labeled":
         return _run_labeled(cfg, ctx, out, tc, scene, stepper, group, steps, t_task)
-    if str(tc.method) != "teacher":
-        raise ConfigError(f"task.method = '{tc.method}': use teacher (NCLaw's training) or labeled (the baseline).")
     truth = load_truth(str(tc.dataset), stepper, steps)
     body = scene.bodies[int(stepper.particles.body_id[group.start])].name
     params, groups = [], {}
+    if method == "sysid":
+        params, nets = _sysid_parameters(group, body), {"law": _plain(tc.sysid) or {"lr": 0.1, "clip": None}}
+        groups = {"law": [p.name for p in params]}
     for label, prefix in NETS.items():
-        if label not in nets:
+        if label not in nets or method == "sysid":
             continue
         names = [k for k in group.weights if k.startswith(prefix)]
         groups[label] = names
@@ -198,17 +210,20 @@ def run(cfg, ctx) -> dict:
     try:
         raw = fit.run(int(tc.epochs), optimizer, sched, checkpoint=ckpt, checkpoint_every=int(tc.checkpoint_every),
                       resume=bool(tc.resume), progress=ctx.progress, on_epoch=on_epoch,
-                      on_checkpoint=lambda raw: _write_law_weights_as(out, fit, raw), stop=stop)
+                      on_checkpoint=(None if method == "sysid" else lambda raw: _write_law_weights_as(out, fit, raw)),
+                      stop=stop)
     finally:
         if rec is not None:
             rec.close()
-    weights = _write_law_weights_as(out, fit, raw)
+    weights = None if method == "sysid" else _write_law_weights_as(out, fit, raw)
     hist = fit.history
     times = np.diff([0.0] + [h["time_s"] for h in hist]) if hist else np.array([])
     summary = {
         "task": "nclaw_train", "status": "partial" if fit.epoch < int(tc.epochs) else "ok", "scene": scene.name, "backend": backend, "transfer": transfer.name,
         "precision": precision, "particles": int(stepper.particles.count), "steps": steps, "dt": float(stepper.dt),
-        "dataset": str(tc.dataset), "weights": weights, "law": group.law.weights_metadata(stepper.dim),
+        "method": method, "dataset": str(tc.dataset), "weights": weights,
+        "law": group.law.weights_metadata(stepper.dim) if method != "sysid" else {"law": group.law.name},
+        "parameters": fit.report(raw) if method == "sysid" else None,
         "epochs": int(fit.epoch), "epochs_planned": int(tc.epochs),
         "nets": {k: nets[k] for k in groups}, "lr_schedule": str(tc.lr_schedule),
         "teacher": {"start": forcing.start, "end": forcing.end, "reset": list(forcing.reset)},
@@ -228,9 +243,45 @@ def run(cfg, ctx) -> dict:
     write_json(out / SUMMARY, summary, True)
     more = (f" (stopped at epoch {fit.epoch} of {int(tc.epochs)}: rerun the same command to continue)"
             if fit.epoch < int(tc.epochs) else "")
+    result = (f"weights {out / WEIGHTS}" if weights else "recovered " + ", ".join(
+        f"{k} {v['recovered']:.4g} (truth {v['truth']:.4g})" for k, v in summary["parameters"].items()))
     print(f"mpmlab: nclaw_train {scene.name} {backend}: {fit.epoch} epochs{more} in {summary['wall_time_s']:.1f} s, loss "
-          f"{summary['initial_loss']:.3e} -> {summary['final_loss']:.3e}; weights {out / WEIGHTS}", flush=True)
+          f"{summary['initial_loss']:.3e} -> {summary['final_loss']:.3e}; {result}", flush=True)
     return summary
+
+
+#: NCLaw's sys-id start (the release's ``random: True``): log E scaled by 0.8 (E^0.8), the rest x 0.8
+SYSID_START = {"E": "power", "bulk_modulus": "power", "yield_stress": "scale", "friction_angle": "scale"}
+
+
+def _one_group(stepper):
+    if len(stepper.groups) != 1:
+        raise ConfigError(f"task.method=sysid fits one body's law; scene '{stepper.scene.name}' has "
+                          f"{len(stepper.groups)} material groups.")
+    g = stepper.groups[0]
+    if g.law.name == "nclaw":
+        raise ConfigError("task.method=sysid fits the true law family: use the dataset's material "
+                          "(e.g. material=jelly), not material=nclaw.")
+    return g
+
+
+def _sysid_parameters(group, body):
+    """FitParameters of the law's fitted parameters, started as NCLaw's sys-id (log-parametrised)."""
+    from ..inverse.parameters import FitParameter
+
+    names = group.law.param_names()
+    truth = {n: float(np.asarray(group.params)[0, i]) for i, n in enumerate(names)}
+    out = []
+    for n, rule in SYSID_START.items():
+        if n in truth:
+            t = truth[n]
+            start = math.exp(0.8 * math.log(t)) if rule == "power" else 0.8 * t
+            out.append(FitParameter(name=n, target="law", param=n, form="scalar", transform="exp", init=start,
+                                    truth=t, body=body))
+    if not out:
+        raise ConfigError(f"task.method=sysid: law '{group.law.name}' has none of the parameters NCLaw's sys-id "
+                          f"fits ({', '.join(SYSID_START)}).")
+    return out
 
 
 def _run_labeled(cfg, ctx, out, tc, scene, stepper, group, steps, t_task) -> dict:
