@@ -30,6 +30,9 @@ MD = Path(__file__).resolve().parent / "nclaw.md"
 RES = RESULTS / "nclaw"
 RAW = OUT / "nclaw"
 MATERIALS = ("jelly", "sand", "plasticine", "water")
+#: Tab. 1 labeled and sys-id reconstruction
+PAPER_BASELINES = {"jelly": (8.0e-9, 1.7e-8), "sand": (7.1e-2, 2.7e-7), "plasticine": (5.5e-6, 5.8e-10),
+                   "water": (1.6e-7, 1.7e-8)}
 PAPER_TAB1 = {"jelly": (2.4e-4, 1.1e-1), "sand": (2.6e-5, 4.8e-2), "plasticine": (6.5e-5, 4.6e-2),
               "water": (2.0e-5, 6.8e-2)}
 
@@ -54,17 +57,20 @@ def dataset(material: str) -> Path:
     return path
 
 
-def train(material: str, backend: str, fraction: float, epochs: int, budget_s: float, precision: str) -> dict | None:
-    run = RES / "train" / f"{material}_{backend}"
+def train(material: str, backend: str, fraction: float, epochs: int, budget_s: float, precision: str,
+          method: str = "teacher") -> dict | None:
+    tag = "" if method == "teacher" else f"_{method}"
+    run = RES / "train" / f"{material}_{backend}{tag}"
     summary = run / "summary.json"
     if summary.exists():
         s = json.loads(summary.read_text())
-        if s.get("status") == "ok" and s.get("epochs_planned") == epochs:
+        if s.get("status") == "ok" and (method == "labeled" or s.get("epochs_planned") == epochs):
             return s
     if budget_s <= 60:
         return json.loads(summary.read_text()) if summary.exists() else None
     data = dataset(material)
-    rc = mpmlab(["task=nclaw_train", f"scene=nclaw_{material}", "material=nclaw", f"backend={backend}",
+    rc = mpmlab(["task=nclaw_train", f"task.method={method}", f"scene=nclaw_{material}",
+                 f"material={material if method == 'sysid' else 'nclaw'}", f"backend={backend}",
                  "transfer=mls", f"precision={precision}", f"task.dataset={data}", f"task.epochs={epochs}",
                  f"task.segment_fraction={fraction}", f"task.stop_after_s={max(budget_s - 120, 60):.0f}",
                  "output.overwrite=true", f"hydra.run.dir={run}"])
@@ -73,7 +79,8 @@ def train(material: str, backend: str, fraction: float, epochs: int, budget_s: f
     return json.loads(summary.read_text()) if summary.exists() else None
 
 
-def evaluate(material: str, backend: str, weights: Path | None, label: str, cases: list[str], precision: str):
+def evaluate(material: str, backend: str, weights: Path | None, label: str, cases: list[str], precision: str,
+             law_params: dict | None = None):
     run = RES / "eval" / f"{material}_{backend}_{label}"
     summary = run / "summary.json"
     if summary.exists():
@@ -83,6 +90,8 @@ def evaluate(material: str, backend: str, weights: Path | None, label: str, case
             "task.cases=[" + ",".join(cases) + "]", f"hydra.run.dir={run}"]
     if weights is not None:
         args.append(f"task.weights={weights}")
+    for k, v in (law_params or {}).items():
+        args.append(f"+task.law_params.{k}={v!r}")
     rc = mpmlab(args)
     return json.loads(summary.read_text()) if rc == 0 and summary.exists() else None
 
@@ -98,21 +107,31 @@ def report() -> None:
         if not s_path.exists():
             continue
         s = json.loads(s_path.read_text())
-        material, backend = run.name.rsplit("_", 1)
+        material, backend, *rest = run.name.split("_")
+        method = rest[0] if rest else "teacher"
+        if method == "labeled":             # no epochs of a rollout: its result is Tab. 1's labeled column
+            continue
         hist = s.get("history") or []
-        sched.append([material, backend, f"{s['epochs']} / {s['epochs_planned']}", s["segment_fraction"],
+        sched.append([material, backend, method, f"{s['epochs']} / {s['epochs_planned']}", s["segment_fraction"],
                       fmt(s.get("initial_loss")), fmt(s.get("final_loss")),
                       f"{s['seconds_per_epoch']:.1f}" if s.get("seconds_per_epoch") else "–",
                       f"{(hist[-1]['time_s'] / 3600):.2f}" if hist else "–", s["status"]])
-        ev = {lab: RES / "eval" / f"{material}_{backend}_{lab}" / "summary.json" for lab in ("ours", "ours-init")}
+        if method != "teacher":            # a baseline's run: reported in the row of its material
+            continue
+        ev = {lab: RES / "eval" / f"{material}_{backend}_{lab}" / "summary.json"
+              for lab in ("ours", "ours-init", "labeled", "sys-id")}
         ev = {k: json.loads(p.read_text()) for k, p in ev.items() if p.exists()}
         if "ours" in ev or "ours-init" in ev:
             tab = {k: v["table"] for k, v in ev.items()}
             pt = PAPER_TAB1.get(material, (None, None))
             r = tab.get("ours", {}).get("reconstruction", {}).get("mse")
             ri = tab.get("ours-init", {}).get("reconstruction", {}).get("mse")
+            rl = tab.get("labeled", {}).get("reconstruction", {}).get("mse")
+            rs = tab.get("sys-id", {}).get("reconstruction", {}).get("mse")
+            pb = PAPER_BASELINES.get(material, (None, None))
             rows1.append([material, backend, fmt(r), fmt(pt[0]), fmt(ri), fmt(pt[1]),
-                          "–" if r is None or ri is None else f"{ri / r:.0f}x"])
+                          "–" if r is None or ri is None else f"{ri / r:.0f}x", f"{fmt(rl)} ({fmt(pb[0])})",
+                          f"{fmt(rs)} ({fmt(pb[1])})"])
             o = tab.get("ours", {})
             rows2.append([material, backend] + [f"{fmt(o.get(k, {}).get('mse'))} ({fmt(o.get(k, {}).get('paper'))})"
                                                 for k in ("time", "velocity", "geometry")])
@@ -122,10 +141,11 @@ def report() -> None:
             "(unbiased; the issue accepts it within 2x of the full schedule's loss). Regenerate: "
             "`python benchmarks/nclaw.py --materials ... --budget-min N` (resumes; `--report` rewrites this).", "",
             "### Training", "",
-            *md_table(["material", "backend", "epochs", "segment_fraction", "initial loss", "final loss",
+            *md_table(["material", "backend", "method", "epochs", "segment_fraction", "initial loss", "final loss",
                        "s / epoch", "hours", "status"], sched), "",
             "### Tab. 1: reconstruction [m²]", "",
-            *md_table(["material", "backend", "ours", "paper", "ours-init", "paper init", "init / ours"], rows1), "",
+            *md_table(["material", "backend", "ours", "paper", "ours-init", "paper init", "init / ours",
+                       "labeled (paper)", "sys-id (paper)"], rows1), "",
             "### Tab. 2: generalisation, ours (paper) [m²]", "",
             *md_table(["material", "backend", "(a) time", "(b) velocity (3 seeds)", "(c) geometry"], rows2), "",
             f"Machine: {json.dumps(machine_info(load=True))}", ""]
@@ -142,6 +162,7 @@ def main():
     ap.add_argument("--precision", default="fp32")
     ap.add_argument("--budget-min", type=float, default=85.0, help="wall-clock budget of this invocation [min]")
     ap.add_argument("--cases", default="reconstruction,time,velocity_seed1,velocity_seed7,velocity_seed8,geometry")
+    ap.add_argument("--baselines", action="store_true", help="also the labeled and sys-id baselines (NCLaw Tab. 1)")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/nclaw.md from the results")
     ap.add_argument("--results", default=None, help="results folder (default benchmarks/results/nclaw); with it "
                                                     "the Markdown goes to <results>/nclaw.md")
@@ -169,6 +190,15 @@ def main():
             cases = csv(a.cases)
             evaluate(m, backend, weights, "ours", cases, a.precision)
             evaluate(m, backend, None, "ours-init", ["reconstruction"], a.precision)
+            if a.baselines:
+                lab = train(m, backend, 1.0, a.epochs, deadline - time.time(), a.precision, "labeled")
+                if lab is not None and lab.get("status") == "ok":
+                    evaluate(m, backend, RES / "train" / f"{m}_{backend}_labeled" / "nclaw_weights.safetensors",
+                             "labeled", ["reconstruction"], a.precision)
+                sid = train(m, backend, a.segment_fraction, a.epochs, deadline - time.time(), a.precision, "sysid")
+                if sid is not None and sid.get("status") == "ok":
+                    evaluate(m, backend, None, "sys-id", ["reconstruction"], a.precision,
+                             {k: v["recovered"] for k, v in sid["parameters"].items()})
     report()
 
 
