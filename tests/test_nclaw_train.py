@@ -381,3 +381,25 @@ def test_sysid_baseline(dataset, tmp_path):
                 "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], tmp_path)
     e = json.loads((ev / "summary.json").read_text())
     assert e["label"] == "sys-id" and e["cases"]["recon"]["mse"] <= 1e-6, e["cases"]
+
+
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_a_nan_gradient_is_located_in_its_segment(backend, truth, monkeypatch):
+    """A non-finite gradient in a teacher-forced epoch raises GradientError with the trajectory's step
+    (segment start + step inside it), never zeroed: here the data loss's derivative is NaN from the
+    third segment's (steps 10-15) second step."""
+    from mpmlab.core.errors import GradientError
+
+    fit = fit20(backend, truth)
+    raw = weights(fit, trained_like())
+    fit._bad_segment = (10, 5, fit._initial(10))
+    orig = fit.adapter.locate_nan_gradient
+
+    def poisoned(stepper, controls, observation, steps, data_loss, segment=None):
+        def bad(y):          # NaN derivative at the segment's second observed step only
+            return data_loss(y) + (y[1] * float("nan")).sum()
+        return orig(stepper, controls, observation, steps, bad, segment)
+    monkeypatch.setattr(fit.adapter, "locate_nan_gradient", poisoned)
+    with pytest.raises(GradientError) as err:
+        fit._locate(raw)
+    assert err.value.step == 12 and "segment starting at step 10" in str(err.value)

@@ -36,7 +36,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, GradientError
 from ..observations import Lagrangian, ObservationSchedule
 from .fit import Fit
 
@@ -127,6 +127,7 @@ class TeacherForcedFit(Fit):
         self.reference = self.truth["x"]            # Fit.run generates no reference data
         self._vg: dict[Any, Any] = {}
         self._state_obs: dict[str, Any] = {}
+        self._bad_segment = None          # (start, length, initial state) of the first non-finite gradient
         self._data = None
         self.last_epoch: dict[str, Any] = {}
 
@@ -242,15 +243,43 @@ class TeacherForcedFit(Fit):
                 if k not in chosen_set:
                     continue
             tv = d["v"][s + 1:s + L + 1]
-            val, why, g = self._value_and_grad(L, grad)(raw, init, d["x"][s + 1:s + L + 1], tv, self.ops.asarray(scale))
+            try:
+                val, why, g = self._value_and_grad(L, grad)(raw, init, d["x"][s + 1:s + L + 1], tv,
+                                                            self.ops.asarray(scale))
+            except GradientError as e:        # raised inside a backend's backward pass: the trajectory's step
+                raise GradientError(s + e.step, e.particle, e.field,
+                                    f"in the teacher-forced segment starting at step {s}; " + (e.hint or "")) from None
             if why is not None or g is None:
                 return val, why, None, {}
+            if grad and self._bad_segment is None and not self.adapter.check_gradient(g):
+                self._bad_segment = (s, L, init)
             total += val
             if grad:
                 acc = g if acc is None else self.ops.tree_map(lambda a, b: a + b, acc, g)
         info = {"period": self.forcing.period(epoch, self.epochs), "segments": n_seg,
                 "segments_backpropagated": int(len(chosen))}
         return total, None, (acc if grad else None), info
+
+    def _locate(self, raw):
+        """A non-finite gradient: replay the segment that produced it step by step (``GradientError``
+        with the trajectory's step: the segment's start plus the step inside it, and the particle)."""
+        if self._bad_segment is None:
+            raise GradientError(0, -1, "weights", "the summed gradient is non-finite although every segment's "
+                                               "is finite: an overflow in the sum; lower the loss scale")
+        s, L, init = self._bad_segment
+        self._bad_segment = None
+        c = dict(self.controls_of(raw))
+        c.update(init)
+        tx = self._backend_data()["x"][s + 1:s + L + 1]
+        n = float(self.stepper.particles.count * self.stepper.dim)
+        try:
+            self.adapter.locate_nan_gradient(self.stepper, c, self.observation, np.arange(1, L + 1),
+                                             lambda y: ((y - tx) ** 2).sum() / n, self.segment)
+        except GradientError as e:
+            raise GradientError(s + e.step, e.particle, e.field,
+                                f"in the teacher-forced segment starting at step {s}; " + (e.hint or "")) from None
+        raise GradientError(s, -1, "weights", f"the gradient of the segment starting at step {s} is non-finite "
+                                              f"but its replay is finite: check the weights for Inf")
 
     # ---- Fit hooks ------------------------------------------------------------------------------------
     def values(self, raw) -> dict[str, Any]:
