@@ -118,6 +118,17 @@ class Law(AbstractConstitutiveLaw):
                 out.update({f"{net}_b1": (w,), f"{net}_b2": (w,), f"{net}_b3": (o,)})
         return out
 
+    def weight_views(self, dim):
+        """The Warp form's vector copies (``warp.py``): each W as columns (the forward's a += W[:, j] x_j)
+        and as rows (the adjoint's g += W[i, :] g_i), each bias as one vector."""
+        out = {}
+        for net in NETS:
+            for k in ("W1", "W2", "W3"):
+                out.update({f"{net}_{k}c": (f"{net}_{k}", "cols"), f"{net}_{k}r": (f"{net}_{k}", "rows")})
+            if self.no_undeformed:
+                out.update({f"{net}_{k}v": (f"{net}_{k}", "whole") for k in ("b1", "b2", "b3")})
+        return out
+
     def weight_count(self, dim: int) -> int:
         return int(sum(np.prod(s) for s in self.weight_shapes(dim).values()))
 
