@@ -25,7 +25,12 @@ particles takes 6.5-8 ms in the former scalar form (2D scalar arrays, libm erff)
 64-vectors with libm erff, 0.47 ms as 64-vectors with the vectorised erf, against 0.69 ms batched in
 torch (1 thread, not counting the kernel split that it needs). A torch (or tile) evaluation between
 kernels splits the fused G2P kernel in three (the plastic network sits between G2P and the elastic
-one) and puts torch ops on the Warp tape path, so the in-kernel form is kept.
+one) and puts torch ops on the Warp tape path, so the in-kernel form is kept. A 1000-step forward:
+2.84 s (nclaw) vs 1.12 s (fixed_corotated), 2.49x, was 16.9 vs 1.8 ms/step before
+(``benchmarks/nclaw.md``). The GPU side is argued, not measured, in the README section.
+
+``make`` also returns ``mlp_e`` (the elastic MLP alone), ``features`` and ``vin`` for profiling
+kernels (``benchmarks/README.md``).
 """
 
 import math
@@ -137,6 +142,26 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
             a2 += W2c[j] * h1[j]
         return a1, h1, a2
 
+    def backprop(vg, n_out: int, vx, n_x: int):
+        """The adjoint of a layer a = W x (+ b), given g = d/da: returns W^T g, summed over the rows
+        W[i, :] (``vx`` vectors, SIMD), and accumulates G += g x^T into the weights' gradient."""
+
+        @wp.func
+        def back(g: vg, Wr: wp.array(dtype=vx), x: vx, G: wp.array2d(dtype=scalar)):
+            gx = vx()
+            for i in range(n_out):
+                gi = g[i]
+                gx += Wr[i] * gi
+                for j in range(n_x):
+                    wp.atomic_add(G, i, j, gi * x[j])
+            return gx
+
+        return back
+
+    back_h = backprop(vout, nout, vh, width)       # layer 3
+    back_hh = backprop(vh, width, vh, width)       # layer 2
+    back_z = backprop(vh, width, vin, nin)         # layer 1
+
     def network(elastic: bool):
         """The MLP of one network, z -> W3 gelu(W2 gelu(W1 z + b1) + b2) + b3, reading the column/row
         copies from the ``Weights`` struct. The struct itself is the argument (not its member arrays):
@@ -210,35 +235,16 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
             b1, b2, b3 = biases_of(w)
             a1, h1, a2 = hidden(z, W1c, W2c, b1, b2)       # recompute the activations
             h2 = act(a2)
-            # layer 3: out = W3 h2 + b3
-            g2 = vh()
-            for o in range(nout):
-                go = adj_ret[o]
-                g2 += W3r[o] * go
-                for j in range(width):
-                    wp.atomic_add(G3, o, j, go * h2[j])
-                if wp.static(biases):
-                    wp.atomic_add(B3, o, go)
-            g2 = wp.cw_mul(g2, act_prime(a2))
-            # layer 2: a2 = W2 h1 + b2
-            g1 = vh()
-            for i in range(width):
-                gi = g2[i]
-                g1 += W2r[i] * gi
-                for j in range(width):
-                    wp.atomic_add(G2, i, j, gi * h1[j])
-                if wp.static(biases):
-                    wp.atomic_add(B2, i, gi)
-            g1 = wp.cw_mul(g1, act_prime(a1))
-            # layer 1: a1 = W1 z + b1
-            gz = vin()
-            for i in range(width):
-                gi = g1[i]
-                gz += W1r[i] * gi
-                for j in range(nin):
-                    wp.atomic_add(G1, i, j, gi * z[j])
-                if wp.static(biases):
-                    wp.atomic_add(B1, i, gi)
+            # layer 3: out = W3 h2 + b3; layer 2: a2 = W2 h1 + b2; layer 1: a1 = W1 z + b1
+            g2 = wp.cw_mul(back_h(adj_ret, W3r, h2, G3), act_prime(a2))
+            g1 = wp.cw_mul(back_hh(g2, W2r, h1, G2), act_prime(a1))
+            gz = back_z(g1, W1r, z, G1)
+            if wp.static(biases):
+                for o in range(nout):
+                    wp.atomic_add(B3, o, adj_ret[o])
+                for i in range(width):
+                    wp.atomic_add(B2, i, g2[i])
+                    wp.atomic_add(B1, i, g1[i])
             wp.adjoint[z] += gz
 
         # the network input and T1 are built with constructors, not component assignment: Warp 1.19's
