@@ -326,5 +326,10 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
         out.F = Ft + scalar(alpha) * plastic(Ft, w)        # Alg. 4 line 9; App. C.3 Eq. 34
         return out
 
+    # the kernels that call these functions (the fused G2P + law kernel, the law's own kernels): -O3 and
+    # FMA contraction across statements on the CPU (Warp emits each multiply and add as its own
+    # statement, so -ffp-contract=on fuses none of the MLP's 64-wide multiply-adds); see the module doc
+    cpu_flags = (wp.config.cpu_compiler_flags or "-march=native") + " -ffp-contract=fast"
     return SimpleNamespace(kirchhoff=kirchhoff, update=update, elastic=elastic, plastic=plastic, mlp_e=mlp_e,
-                           features=features, vin=vin)
+                           features=features, vin=vin,
+                           module_options={"optimization_level": 3, "cpu_compiler_flags": cpu_flags})
