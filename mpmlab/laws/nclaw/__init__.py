@@ -48,7 +48,7 @@ networks run inside the fused G2P + law kernel on 64-wide Warp vectors (``weight
 row copies of the matrices), with a vectorised rational erf in fp32 (libm's exact erf in fp64). That
 was measured against batched torch evaluation between kernels (slower at 1,000 particles on the CPU
 even before the kernel split it needs) and kept. 1000 steps at 1,000 particles on one shared CPU
-core: 2.84 s vs 1.12 s for fixed_corotated (2.49x); JAX 1.95x.
+core: 2.8-3.3 s vs 1.1-1.25 s for fixed_corotated (2.49-2.67x, load average 2-4); JAX 1.88-1.95x.
 """
 from __future__ import annotations
 

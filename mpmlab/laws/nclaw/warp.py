@@ -17,7 +17,11 @@ each, on fixed-size Warp vectors of the hidden width (``wp.types.vector(64)``):
   into the sources' gradient arrays. Warp's own adjoint of a dynamic loop that accumulates into a
   scalar is wrong in Warp 1.19 (0.7 % on mlp_elastic's dtau/dF), so the automatic one is not used.
 * one SVD per network evaluation: the singular values fed to the network are those of the SVD that
-  also gives R = U V^T, with the derivative ds_i = (U^T dF V)_ii (``sv``).
+  also gives R = U V^T, with the derivative ds_i = (U^T dF V)_ii (``sv``);
+* the kernels that call these functions are compiled at -O3 with -ffp-contract=fast on the CPU
+  (``module_options``, read by ``kernels.law_module_options``): Warp emits each multiply and add as
+  its own statement, so the default contraction fuses none of the MLP's multiply-adds (paired, 1000
+  steps: 0.905x of the time with Warp's default flags).
 
 Measured (2-core shared CPU, 1 Warp thread, NCLaw's 1,000-particle cube, 3D MLS fp32;
 ``benchmarks/nclaw_warp.py``, ``benchmarks/README.md`` "NCLaw on Warp"): one network for 1,000
@@ -26,8 +30,8 @@ particles takes 6.5-8 ms in the former scalar form (2D scalar arrays, libm erff)
 torch (1 thread, not counting the kernel split that it needs). A torch (or tile) evaluation between
 kernels splits the fused G2P kernel in three (the plastic network sits between G2P and the elastic
 one) and puts torch ops on the Warp tape path, so the in-kernel form is kept. A 1000-step forward:
-2.84 s (nclaw) vs 1.12 s (fixed_corotated), 2.49x, was 16.9 vs 1.8 ms/step before
-(``benchmarks/nclaw.md``). The GPU side is argued, not measured, in the README section.
+2.8-3.3 s (nclaw) vs 1.1-1.25 s (fixed_corotated), 2.49-2.67x; it was 16.9 vs 1.8 ms/step
+before (``benchmarks/nclaw.md``). The GPU side is argued, not measured, in the README section.
 
 ``make`` also returns ``mlp_e`` (the elastic MLP alone), ``features`` and ``vin`` for profiling
 kernels (``benchmarks/README.md``).
