@@ -297,6 +297,14 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
         """Shapes of the group-level (shared) arrays; none by default."""
         return {}
 
+    def weight_views(self, dim: int) -> dict[str, tuple[str, str]]:
+        """Read-only re-laid copies of shared arrays that the Warp kernels read as vectors, ``{view:
+        (source, how)}``: ``how`` = ``"cols"`` (a 2D [r, c] source as c vectors of length r, view[j] =
+        source[:, j]), ``"rows"`` (r vectors of length c) or ``"whole"`` (a 1D source as one vector). They
+        are members of the Warp ``Weights`` struct next to the sources, rebuilt whenever the struct is
+        built from arrays, and take no gradient (the law's adjoint writes the sources'). None by default."""
+        return {}
+
     def initial_weights(self, dim: int) -> dict[str, np.ndarray]:
         """The shared arrays' starting values (float64; e.g. loaded from a weights file)."""
         return {k: np.zeros(s) for k, s in self.weight_shapes(dim).items()}

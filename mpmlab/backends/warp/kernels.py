@@ -400,6 +400,12 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool, tape: bool =
     return grid_update
 
 
+def law_module_options(impl) -> dict:
+    """Warp module options a law's Warp implementation asks for its kernels (``impl.module_options``,
+    e.g. CPU compiler flags for a compute-bound law); none by default."""
+    return dict(getattr(impl, "module_options", None) or {})
+
+
 @lru_cache(maxsize=None)
 def g2p_law_kernel(law, dim: int, precision: str, tr):
     """G2P of transfer scheme ``tr`` (a ``WarpTransfer``) fused with the law update of one material
@@ -430,7 +436,7 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
         else:
             return wp.matrix_from_cols(a, b)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", module_options=law_module_options(impl))
     def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
             grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
             tp: wp.array(dtype=scalar), goff: int, start: int,
@@ -551,7 +557,7 @@ def law_kernels(law, dim: int, precision: str):
     scalar, mat = T.scalar, T.mat
     impl = law.implementation("warp", "law")(law, dim, precision)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", module_options=law_module_options(impl))
     def update(state: L.StateArrays, grad_v: wp.array(dtype=mat), prm: wp.array2d(dtype=scalar), w: L.Weights,
                dt: scalar, offset: int, state_out: L.StateArrays, tau: wp.array(dtype=mat)):
         q = wp.tid()
@@ -560,7 +566,7 @@ def law_kernels(law, dim: int, precision: str):
         L.store_state(state_out, q, n)
         tau[offset + q] = impl.kirchhoff(n, P, w)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", module_options=law_module_options(impl))
     def stress(state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights, offset: int,
                tau: wp.array(dtype=mat)):
         q = wp.tid()

@@ -13,6 +13,7 @@ import linecache
 from functools import lru_cache
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
 from .types import warp_types
@@ -70,7 +71,17 @@ def law_types(law, dim: int, precision: str) -> SimpleNamespace:
     for k, s in wshapes.items():
         if not 1 <= len(s) <= 4:
             raise ValueError(f"law '{law.name}': weight '{k}' has {len(s)} dimensions; Warp arrays take 1-4.")
-    Weights = _struct("Weights", {k: _ARRAY_DIMS[len(s)](dtype=T.scalar) for k, s in wshapes.items()}, key)
+    # the law's vector views of its arrays (``AbstractConstitutiveLaw.weight_views``): one vector type each
+    views = {}
+    for v, (src, how) in law.weight_views(dim).items():
+        s = wshapes[src]
+        n = {"cols": lambda: s[0], "rows": lambda: s[-1], "whole": lambda: s[0]}[how]()
+        if (len(s) != 1) != (how != "whole"):
+            raise ValueError(f"law '{law.name}': weight view '{v}' ({how}) of '{src}' {s}: cols/rows take a 2D array, "
+                             f"whole a 1D one.")
+        views[v] = (src, how, wp.types.vector(n, T.scalar))
+    Weights = _struct("Weights", {**{k: _ARRAY_DIMS[len(s)](dtype=T.scalar) for k, s in wshapes.items()},
+                                  **{v: wp.array(dtype=vt) for v, (_, _, vt) in views.items()}}, key)
     ns = {"wp": wp, "scalar": T.scalar, "LawState": LawState, "StateArrays": StateArrays, "Params": Params}
     body = "".join(f"    s.{n} = a.{n}[q]\n" for n, _, _ in fields)
     load_state = _generated_func("load_state", f"def load_state(a: StateArrays, q: int):\n    s = LawState()\n{body}"
@@ -94,9 +105,14 @@ def law_types(law, dim: int, precision: str) -> SimpleNamespace:
         w = Weights()
         for k in wshapes:
             setattr(w, k, arrays[k])
+        for v, (src, how, vt) in views.items():       # copies, laid out as the view says (no gradient)
+            a = arrays[src]
+            m = a.numpy()
+            m = m.T if how == "cols" else (m[None] if how == "whole" else m)
+            setattr(w, v, wp.array(np.ascontiguousarray(m), dtype=vt, device=a.device))
         return w
 
-    return SimpleNamespace(scalar=T.scalar, vec=T.vec, mat=T.mat, ivec=T.ivec, dim=dim, precision=precision,
+    return SimpleNamespace(scalar=T.scalar, vec=T.vec, mat=T.mat, ivec=T.ivec, dim=dim, precision=precision, views=views,
                            LawState=LawState, Params=Params, Weights=Weights, StateArrays=StateArrays,
                            load_state=load_state, store_state=store_state, load_params=load_params,
                            fields=fields, weight_shapes=wshapes, state_arrays=state_arrays, weights=weights)

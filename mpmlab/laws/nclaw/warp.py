@@ -1,24 +1,40 @@
 """Warp NCLaw (Ma et al. 2023, App. C Alg. 4), built per (law instance, dim, precision).
 
-The two networks are evaluated inside the kernels (the law update is fused into G2P) as one
-``@wp.func`` each. How (``FORM``; measured in ``benchmarks/nclaw_warp.py``):
+The two networks are evaluated inside the fused G2P + law kernel, per particle, as one ``@wp.func``
+each, on fixed-size Warp vectors of the hidden width (``wp.types.vector(64)``):
 
-* ``"adjoint"`` (the default): loops over the hidden units are dynamic (compact code) and the MLP has
-  a hand-written adjoint (``wp.func_grad``: recompute the activations, back-propagate layer by layer,
-  accumulate the weight gradients with ``wp.atomic_add``). Warp's own adjoint of a dynamic loop that
-  accumulates into a scalar is wrong in Warp 1.19 (0.7 % on mlp_elastic's dtau/dF), so the automatic
-  one is not used for these loops.
-* ``"unrolled"``: every loop ``range(wp.static(n))`` with Warp's automatic adjoint (mlp_elastic's
-  form); about 5,500 multiply-adds per network are unrolled, forward and adjoint. Kept for the
-  measurement only: its gradients are wrong (the writes h[i] = ... into local vectors lose their
-  adjoint; measured vs jax.grad: dW2, dW3 zero, dW1 and dF 11-12 % off).
+* a layer is a sum of weight columns, ``a += W[:, j] * x_j`` over j, reading the law's column copies
+  of W (``Law.weight_views``: one 64-vector per input unit, members of the ``Weights`` struct); the
+  compiler turns each such 64-wide multiply-add into SIMD code (no reduction, so no reassociation is
+  needed: the sums run in the same order as a scalar loop, j ascending);
+* GELU is exact in fp64 (``wp.erf``, libm). In fp32 it is evaluated on the whole 64-vector with the
+  rational erf of XLA's/Eigen's fp32 ``erf`` (x P(x^2) / Q(x^2) on [-4, 4], clamped outside; max
+  error 6.5e-8 in exact arithmetic, 4.4e-7 in fp32 vs 4.5e-8 for libm's ``erff``), which vectorises;
+  libm's scalar ``erff`` cost ~12 ns a call, 1.5 ms of a 2 ms network at 1,000 particles;
+* the MLP has a hand-written adjoint (``wp.func_grad``): recompute the activations, back-propagate
+  with the row copies (``g += W[i, :] * g_i``, again SIMD), the derivative of the GELU actually
+  evaluated (fp32: of the rational erf), and accumulate the weight gradients with ``wp.atomic_add``
+  into the sources' gradient arrays. Warp's own adjoint of a dynamic loop that accumulates into a
+  scalar is wrong in Warp 1.19 (0.7 % on mlp_elastic's dtau/dF), so the automatic one is not used.
+* one SVD per network evaluation: the singular values fed to the network are those of the SVD that
+  also gives R = U V^T, with the derivative ds_i = (U^T dF V)_ii (``sv``);
+* the kernels that call these functions are compiled at -O3 with -ffp-contract=fast on the CPU
+  (``module_options``, read by ``kernels.law_module_options``): Warp emits each multiply and add as
+  its own statement, so the default contraction fuses none of the MLP's multiply-adds (paired, 1000
+  steps: 0.905x of the time with Warp's default flags).
 
-Measured (2-core CPU, 1 Warp thread, NCLaw's 1,000-particle cube, 3D MLS fp32,
-``benchmarks/nclaw_warp.py``): cold build + first step 17.7 s for both forms (fixed_corotated: 15.3 s;
-the nclaw G2P kernel alone ~11.5 s), forward 13.9 ms/step ("adjoint") vs 14.6 ms ("unrolled") vs
-1.6 ms for fixed_corotated; JAX: 8.6 ms/step (fixed_corotated 2.7 ms). Vector/matrix types of size 64
-would need the weights as matrix-typed arrays (the generated ``Weights`` struct holds scalar arrays),
-and a tile kernel cannot be fused into the per-particle G2P kernel; neither was tried.
+Measured (2-core shared CPU, 1 Warp thread, NCLaw's 1,000-particle cube, 3D MLS fp32;
+``benchmarks/nclaw_warp.py``, ``benchmarks/README.md`` "NCLaw on Warp"): one network for 1,000
+particles takes 6.5-8 ms in the former scalar form (2D scalar arrays, libm erff), 1.7-1.9 ms as
+64-vectors with libm erff, 0.47 ms as 64-vectors with the vectorised erf, against 0.69 ms batched in
+torch (1 thread, not counting the kernel split that it needs). A torch (or tile) evaluation between
+kernels splits the fused G2P kernel in three (the plastic network sits between G2P and the elastic
+one) and puts torch ops on the Warp tape path, so the in-kernel form is kept. A 1000-step forward:
+2.8-3.3 s (nclaw) vs 1.1-1.25 s (fixed_corotated), 2.49-2.67x; it was 16.9 vs 1.8 ms/step
+before (``benchmarks/nclaw.md``). The GPU side is argued, not measured, in the README section.
+
+``make`` also returns ``mlp_e`` (the elastic MLP alone), ``features`` and ``vin`` for profiling
+kernels (``benchmarks/README.md``).
 """
 
 import math
@@ -30,22 +46,19 @@ import warp as wp
 from ...backends.warp.law_structs import law_types
 from ...backends.warp.linalg import warp_linalg
 
-#: how the networks are evaluated (module doc); read when a (law, dim, precision) is first built
-FORM = "adjoint"
-FORMS = ("adjoint", "unrolled")
-
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
-
-
-def make(law, dim: int, precision: str) -> SimpleNamespace:
-    return _make(law, dim, precision, FORM)
+# fp32 erf(u) = u P(u^2) / Q(u^2) on |u| <= 4 (XLA's ErfImpl32 / Eigen's generic_fast_erf_float)
+_P0, _P1, _P2, _P3, _P4, _P5, _P6 = (-2.72614225801306e-10, 2.77068142495902e-08, -2.10102402082508e-06,
+                                     -5.69250639462346e-05, -7.34990630326855e-04, -2.95459980854025e-03,
+                                     -1.60960333262415e-02)
+_Q0, _Q1, _Q2, _Q3, _Q4 = (-1.45660718464996e-05, -2.13374055278905e-04, -1.68282697438203e-03,
+                           -7.37332916720468e-03, -1.42647390514189e-02)
+_ERF_CLAMP = 4.0
 
 
 @lru_cache(maxsize=None)
-def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
-    if form not in FORMS:
-        raise ValueError(f"nclaw warp FORM = {form!r}; use one of {FORMS}.")
+def make(law, dim: int, precision: str) -> SimpleNamespace:
     T = law_types(law, dim, precision)
     La = warp_linalg(dim, precision)
     scalar, vec, mat, LawState, Params, Weights = T.scalar, T.vec, T.mat, T.LawState, T.Params, T.Weights
@@ -56,6 +69,7 @@ def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
     no_rot = bool(law.no_rotation)
     shift = 0.0 if law.no_undeformed else 1.0
     alpha = float(law.alpha)
+    fast_erf = precision != "fp64"
     vin = wp.types.vector(nin, scalar)
     vh = wp.types.vector(width, scalar)
     vout = wp.types.vector(nout, scalar)
@@ -69,190 +83,173 @@ def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
         return scalar(0.5) * (scalar(1.0) + wp.erf(x * scalar(_SQRT1_2))) + x * scalar(_INV_SQRT_2PI) * wp.exp(
             scalar(-0.5) * x * x)
 
-    def network(elastic: bool):
-        """The MLP of one network, z -> W3 gelu(W2 gelu(W1 z + b1) + b2) + b3, reading its arrays from the
-        ``Weights`` struct. The struct itself is the argument (not its member arrays): inside a custom
-        adjoint ``wp.adjoint[w].e_W1`` is then the weights' gradient array, while the adjoint of a member
-        array passed on its own is an empty local in Warp 1.19 (measured: gradients silently lost)."""
-        if form == "adjoint":
-            @wp.func
-            def mlp(z: vin, w: Weights):
-                if wp.static(elastic):
-                    W1 = w.e_W1
-                    W2 = w.e_W2
-                    W3 = w.e_W3
-                else:
-                    W1 = w.p_W1
-                    W2 = w.p_W2
-                    W3 = w.p_W3
-                if wp.static(biases):
-                    if wp.static(elastic):
-                        b1 = w.e_b1
-                        b2 = w.e_b2
-                        b3 = w.e_b3
-                    else:
-                        b1 = w.p_b1
-                        b2 = w.p_b2
-                        b3 = w.p_b3
-                h1 = vh()
-                for i in range(width):
-                    a = scalar(0.0)
-                    if wp.static(biases):
-                        a = b1[i]
-                    for j in range(nin):
-                        a = a + W1[i, j] * z[j]
-                    h1[i] = gelu(a)
-                h2 = vh()
-                for i in range(width):
-                    a = scalar(0.0)
-                    if wp.static(biases):
-                        a = b2[i]
-                    for j in range(width):
-                        a = a + W2[i, j] * h1[j]
-                    h2[i] = gelu(a)
-                out = vout()
-                for o in range(nout):
-                    a = scalar(0.0)
-                    if wp.static(biases):
-                        a = b3[o]
-                    for j in range(width):
-                        a = a + W3[o, j] * h2[j]
-                    out[o] = a
-                return out
+    @wp.func
+    def horner(u2: vh, c0: float, c1: float, c2: float, c3: float, c4: float, c5: float, c6: float):
+        """c0 t^6 + ... + c6 at t = u2, component-wise (unused leading coefficients 0)."""
+        p = vh(scalar(c0))
+        p = wp.cw_mul(p, u2) + vh(scalar(c1))
+        p = wp.cw_mul(p, u2) + vh(scalar(c2))
+        p = wp.cw_mul(p, u2) + vh(scalar(c3))
+        p = wp.cw_mul(p, u2) + vh(scalar(c4))
+        p = wp.cw_mul(p, u2) + vh(scalar(c5))
+        return wp.cw_mul(p, u2) + vh(scalar(c6))
 
-            @wp.func_grad(mlp)
-            def adj_mlp(z: vin, w: Weights, adj_ret: vout):
-                if wp.static(elastic):
-                    W1 = w.e_W1
-                    W2 = w.e_W2
-                    W3 = w.e_W3
-                    G1 = wp.adjoint[w].e_W1
-                    G2 = wp.adjoint[w].e_W2
-                    G3 = wp.adjoint[w].e_W3
-                else:
-                    W1 = w.p_W1
-                    W2 = w.p_W2
-                    W3 = w.p_W3
-                    G1 = wp.adjoint[w].p_W1
-                    G2 = wp.adjoint[w].p_W2
-                    G3 = wp.adjoint[w].p_W3
-                if wp.static(biases):
-                    if wp.static(elastic):
-                        b1 = w.e_b1
-                        b2 = w.e_b2
-                        b3 = w.e_b3
-                        B1 = wp.adjoint[w].e_b1
-                        B2 = wp.adjoint[w].e_b2
-                        B3 = wp.adjoint[w].e_b3
-                    else:
-                        b1 = w.p_b1
-                        b2 = w.p_b2
-                        b3 = w.p_b3
-                        B1 = wp.adjoint[w].p_b1
-                        B2 = wp.adjoint[w].p_b2
-                        B3 = wp.adjoint[w].p_b3
-                # recompute the activations
-                a1 = vh()
-                h1 = vh()
-                for i in range(width):
-                    a = scalar(0.0)
-                    if wp.static(biases):
-                        a = b1[i]
-                    for j in range(nin):
-                        a = a + W1[i, j] * z[j]
-                    a1[i] = a
-                    h1[i] = gelu(a)
-                a2 = vh()
-                h2 = vh()
-                for i in range(width):
-                    a = scalar(0.0)
-                    if wp.static(biases):
-                        a = b2[i]
-                    for j in range(width):
-                        a = a + W2[i, j] * h1[j]
-                    a2[i] = a
-                    h2[i] = gelu(a)
-                # layer 3: out = W3 h2 + b3
-                g2 = vh()
-                for j in range(width):
-                    g = scalar(0.0)
-                    for o in range(nout):
-                        g = g + W3[o, j] * adj_ret[o]
-                        wp.atomic_add(G3, o, j, adj_ret[o] * h2[j])
-                    g2[j] = g * gelu_prime(a2[j])
-                if wp.static(biases):
-                    for o in range(nout):
-                        wp.atomic_add(B3, o, adj_ret[o])
-                # layer 2: a2 = W2 h1 + b2
-                g1 = vh()
-                for j in range(width):
-                    g = scalar(0.0)
-                    for i in range(width):
-                        g = g + W2[i, j] * g2[i]
-                    g1[j] = g * gelu_prime(a1[j])
-                for i in range(width):
-                    gi = g2[i]
-                    for j in range(width):
-                        wp.atomic_add(G2, i, j, gi * h1[j])
-                    if wp.static(biases):
-                        wp.atomic_add(B2, i, gi)
-                # layer 1: a1 = W1 z + b1
-                gz = vin()
-                for i in range(width):
-                    gi = g1[i]
-                    for j in range(nin):
-                        gz[j] = gz[j] + W1[i, j] * gi
-                        wp.atomic_add(G1, i, j, gi * z[j])
-                    if wp.static(biases):
-                        wp.atomic_add(B1, i, gi)
-                wp.adjoint[z] += gz
+    @wp.func
+    def erf_u(a: vh):
+        """u = a / sqrt 2 clamped to [-4, 4], u^2, P(u^2), Q(u^2)."""
+        u = scalar(_SQRT1_2) * a
+        u = wp.min(wp.max(u, vh(scalar(-_ERF_CLAMP))), vh(scalar(_ERF_CLAMP)))
+        u2 = wp.cw_mul(u, u)
+        return u, u2, horner(u2, _P0, _P1, _P2, _P3, _P4, _P5, _P6), horner(u2, 0.0, 0.0, _Q0, _Q1, _Q2, _Q3, _Q4)
+
+    @wp.func
+    def act(a: vh):
+        """GELU of every hidden unit: exact (libm erf) in fp64, the vectorised rational erf in fp32."""
+        if wp.static(fast_erf):
+            u, u2, P, Q = erf_u(a)
+            return scalar(0.5) * wp.cw_mul(a, vh(scalar(1.0)) + wp.cw_div(wp.cw_mul(u, P), Q))
         else:
-            # every loop unrolled, Warp's automatic adjoint (timing comparison only: the in-place writes
-            # h[i] = ... into local vectors lose their adjoint in Warp 1.19, so its gradients are wrong)
-            @wp.func
-            def mlp(z: vin, w: Weights):
+            h = vh()
+            for i in range(width):
+                h[i] = gelu(a[i])
+            return h
+
+    @wp.func
+    def act_prime(a: vh):
+        """The derivative of ``act`` (fp32: of the rational erf as evaluated; 0 where it is clamped)."""
+        if wp.static(fast_erf):
+            u, u2, P, Q = erf_u(a)
+            dP = horner(u2, 0.0, 6.0 * _P0, 5.0 * _P1, 4.0 * _P2, 3.0 * _P3, 2.0 * _P4, _P5)
+            dQ = horner(u2, 0.0, 0.0, 0.0, 4.0 * _Q0, 3.0 * _Q1, 2.0 * _Q2, _Q3)
+            E = wp.cw_div(wp.cw_mul(u, P), Q)
+            dE = wp.cw_div(P, Q) + scalar(2.0) * wp.cw_mul(u2, wp.cw_div(wp.cw_mul(dP, Q) - wp.cw_mul(P, dQ),
+                                                                           wp.cw_mul(Q, Q)))
+            for i in range(width):
+                if wp.abs(a[i]) * scalar(_SQRT1_2) >= scalar(_ERF_CLAMP):
+                    dE[i] = scalar(0.0)
+            return scalar(0.5) * (vh(scalar(1.0)) + E) + scalar(0.5 * _SQRT1_2) * wp.cw_mul(a, dE)
+        else:
+            d = vh()
+            for i in range(width):
+                d[i] = gelu_prime(a[i])
+            return d
+
+    @wp.func
+    def hidden(z: vin, W1c: wp.array(dtype=vh), W2c: wp.array(dtype=vh), b1: vh, b2: vh):
+        """a1 = W1 z + b1, h1 = gelu(a1), a2 = W2 h1 + b2 (column sums, j ascending)."""
+        a1 = b1
+        for j in range(nin):
+            a1 += W1c[j] * z[j]
+        h1 = act(a1)
+        a2 = b2
+        for j in range(width):
+            a2 += W2c[j] * h1[j]
+        return a1, h1, a2
+
+    def backprop(vg, n_out: int, vx, n_x: int):
+        """The adjoint of a layer a = W x (+ b), given g = d/da: returns W^T g, summed over the rows
+        W[i, :] (``vx`` vectors, SIMD), and accumulates G += g x^T into the weights' gradient."""
+
+        @wp.func
+        def back(g: vg, Wr: wp.array(dtype=vx), x: vx, G: wp.array2d(dtype=scalar)):
+            gx = vx()
+            for i in range(n_out):
+                gi = g[i]
+                gx += Wr[i] * gi
+                for j in range(n_x):
+                    wp.atomic_add(G, i, j, gi * x[j])
+            return gx
+
+        return back
+
+    back_h = backprop(vout, nout, vh, width)       # layer 3
+    back_hh = backprop(vh, width, vh, width)       # layer 2
+    back_z = backprop(vh, width, vin, nin)         # layer 1
+
+    def network(elastic: bool):
+        """The MLP of one network, z -> W3 gelu(W2 gelu(W1 z + b1) + b2) + b3, reading the column/row
+        copies from the ``Weights`` struct. The struct itself is the argument (not its member arrays):
+        inside the custom adjoint ``wp.adjoint[w].e_W1`` is then the weights' gradient array, while the
+        adjoint of a member array passed on its own is an empty local in Warp 1.19 (measured: gradients
+        silently lost)."""
+
+        @wp.func
+        def biases_of(w: Weights):
+            b1 = vh()
+            b2 = vh()
+            b3 = vout()
+            if wp.static(biases):
                 if wp.static(elastic):
-                    W1 = w.e_W1
-                    W2 = w.e_W2
-                    W3 = w.e_W3
+                    b1 = w.e_b1v[0]
+                    b2 = w.e_b2v[0]
+                    b3 = w.e_b3v[0]
                 else:
-                    W1 = w.p_W1
-                    W2 = w.p_W2
-                    W3 = w.p_W3
-                if wp.static(biases):
-                    if wp.static(elastic):
-                        b1 = w.e_b1
-                        b2 = w.e_b2
-                        b3 = w.e_b3
-                    else:
-                        b1 = w.p_b1
-                        b2 = w.p_b2
-                        b3 = w.p_b3
-                h1 = vh()
-                for i in range(wp.static(width)):
-                    a = scalar(0.0)
-                    if wp.static(biases):
-                        a = b1[i]
-                    for j in range(wp.static(nin)):
-                        a = a + W1[i, j] * z[j]
-                    h1[i] = gelu(a)
-                h2 = vh()
-                for i in range(wp.static(width)):
-                    a = scalar(0.0)
-                    if wp.static(biases):
-                        a = b2[i]
-                    for j in range(wp.static(width)):
-                        a = a + W2[i, j] * h1[j]
-                    h2[i] = gelu(a)
-                out = vout()
-                for o in range(wp.static(nout)):
-                    a = scalar(0.0)
-                    if wp.static(biases):
-                        a = b3[o]
-                    for j in range(wp.static(width)):
-                        a = a + W3[o, j] * h2[j]
-                    out[o] = a
-                return out
+                    b1 = w.p_b1v[0]
+                    b2 = w.p_b2v[0]
+                    b3 = w.p_b3v[0]
+            return b1, b2, b3
+
+        @wp.func
+        def mlp(z: vin, w: Weights):
+            if wp.static(elastic):
+                W1c = w.e_W1c
+                W2c = w.e_W2c
+                W3c = w.e_W3c
+            else:
+                W1c = w.p_W1c
+                W2c = w.p_W2c
+                W3c = w.p_W3c
+            b1, b2, b3 = biases_of(w)
+            a1, h1, a2 = hidden(z, W1c, W2c, b1, b2)
+            h2 = act(a2)
+            out = b3
+            for j in range(width):
+                out += W3c[j] * h2[j]
+            return out
+
+        @wp.func_grad(mlp)
+        def adj_mlp(z: vin, w: Weights, adj_ret: vout):
+            if wp.static(elastic):
+                W1c = w.e_W1c
+                W2c = w.e_W2c
+                W1r = w.e_W1r
+                W2r = w.e_W2r
+                W3r = w.e_W3r
+                G1 = wp.adjoint[w].e_W1
+                G2 = wp.adjoint[w].e_W2
+                G3 = wp.adjoint[w].e_W3
+            else:
+                W1c = w.p_W1c
+                W2c = w.p_W2c
+                W1r = w.p_W1r
+                W2r = w.p_W2r
+                W3r = w.p_W3r
+                G1 = wp.adjoint[w].p_W1
+                G2 = wp.adjoint[w].p_W2
+                G3 = wp.adjoint[w].p_W3
+            if wp.static(biases):
+                if wp.static(elastic):
+                    B1 = wp.adjoint[w].e_b1
+                    B2 = wp.adjoint[w].e_b2
+                    B3 = wp.adjoint[w].e_b3
+                else:
+                    B1 = wp.adjoint[w].p_b1
+                    B2 = wp.adjoint[w].p_b2
+                    B3 = wp.adjoint[w].p_b3
+            b1, b2, b3 = biases_of(w)
+            a1, h1, a2 = hidden(z, W1c, W2c, b1, b2)       # recompute the activations
+            h2 = act(a2)
+            # layer 3: out = W3 h2 + b3; layer 2: a2 = W2 h1 + b2; layer 1: a1 = W1 z + b1
+            g2 = wp.cw_mul(back_h(adj_ret, W3r, h2, G3), act_prime(a2))
+            g1 = wp.cw_mul(back_hh(g2, W2r, h1, G2), act_prime(a1))
+            gz = back_z(g1, W1r, z, G1)
+            if wp.static(biases):
+                for o in range(nout):
+                    wp.atomic_add(B3, o, adj_ret[o])
+                for i in range(width):
+                    wp.atomic_add(B2, i, g2[i])
+                    wp.atomic_add(B1, i, g1[i])
+            wp.adjoint[z] += gz
 
         # the network input and T1 are built with constructors, not component assignment: Warp 1.19's
         # automatic adjoint drops in-place writes into local vectors/matrices (measured: zero gradients)
@@ -260,44 +257,56 @@ def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
         def response(F: mat, w: Weights):
             """Y = R T, T = sym(T1), T1 = NN(sigma - 1, vec(F^T F - I), det F - 1) (Alg. 4 lines 1-5);
             ``no_rotation``: T1 = NN(vec(F - I)) as is."""
-            T1 = as_matrix(mlp(features(F), w))
             if wp.static(no_rot):
-                return T1
+                return as_matrix(mlp(plain_features(F), w))
             else:
                 U, sc, V = La.svd_const(F)
-                R = La.polar(F, U, sc, V)                      # U V^T with a derivative finite at F = I
+                T1 = as_matrix(mlp(features(F, U, sc, V), w))
+                R = La.polar(F, U, sc, V)                  # U V^T with a derivative finite at F = I
                 return R @ (scalar(0.5) * (T1 + wp.transpose(T1)))
 
         return response, mlp
 
     @wp.func
-    def features(F: mat):
-        """z = [sigma - 1, vec(F^T F - I), det F - 1] (no_undeformed: unshifted); no_rotation: vec(F - I)."""
+    def sv(F: mat, U: mat, s: vec, V: mat):
+        """The singular values s of U, s, V = svd_const(F), with the derivative ds_i = (U^T dF V)_ii
+        (``La.singular_values``' without its second SVD); nothing flows back to U, s, V."""
+        return s
+
+    @wp.func_grad(sv)
+    def adj_sv(F: mat, U: mat, s: vec, V: mat, adj_ret: vec):
+        wp.adjoint[F] += U @ La.diag(adj_ret) @ wp.transpose(V)
+
+    @wp.func
+    def plain_features(F: mat):
+        """no_rotation: z = vec(F - I) (no_undeformed: vec F)."""
         h = scalar(shift)
-        if wp.static(no_rot):
-            if wp.static(dim == 3):
-                return vin(F[0, 0] - h, F[0, 1], F[0, 2], F[1, 0], F[1, 1] - h, F[1, 2], F[2, 0], F[2, 1], F[2, 2] - h)
-            else:
-                return vin(F[0, 0] - h, F[0, 1], F[1, 0], F[1, 1] - h)
+        if wp.static(dim == 3):
+            return vin(F[0, 0] - h, F[0, 1], F[0, 2], F[1, 0], F[1, 1] - h, F[1, 2], F[2, 0], F[2, 1], F[2, 2] - h)
         else:
-            s = La.singular_values(F)            # d s_i = (U^T dF V)_ii: finite at repeated values
-            C = wp.transpose(F) @ F
-            J = wp.determinant(F)
-            # F^T F = I exactly means sigma = 1 exactly, which the iterative svd3 misses by ~1e-17: take
-            # the exact value there (s - s_const is 0 with the derivative d s), so tau(I) = 0 bit for bit
-            rest = int(1)
-            for i in range(dim):
-                for j in range(dim):
-                    if C[i, j] != wp.where(i == j, scalar(1.0), scalar(0.0)):
-                        rest = 0
-            if rest == 1:
-                U0, s0, V0 = La.svd_const(F)
-                s = vec(scalar(1.0)) + (s - s0)
-            if wp.static(dim == 3):
-                return vin(s[0] - h, s[1] - h, s[2] - h, C[0, 0] - h, C[0, 1], C[0, 2], C[1, 0], C[1, 1] - h, C[1, 2],
-                           C[2, 0], C[2, 1], C[2, 2] - h, J - h)
-            else:
-                return vin(s[0] - h, s[1] - h, C[0, 0] - h, C[0, 1], C[1, 0], C[1, 1] - h, J - h)
+            return vin(F[0, 0] - h, F[0, 1], F[1, 0], F[1, 1] - h)
+
+    @wp.func
+    def features(F: mat, U: mat, sc: vec, V: mat):
+        """z = [sigma - 1, vec(F^T F - I), det F - 1] (no_undeformed: unshifted), sigma = sc of F's SVD."""
+        h = scalar(shift)
+        s = sv(F, U, sc, V)                  # d s_i = (U^T dF V)_ii: finite at repeated values
+        C = wp.transpose(F) @ F
+        J = wp.determinant(F)
+        # F^T F = I exactly means sigma = 1 exactly, which the iterative svd3 misses by ~1e-17: take the
+        # exact value there (s - sc is 0 with the derivative d s), so tau(I) = 0 bit for bit
+        rest = int(1)
+        for i in range(dim):
+            for j in range(dim):
+                if C[i, j] != wp.where(i == j, scalar(1.0), scalar(0.0)):
+                    rest = 0
+        if rest == 1:
+            s = vec(scalar(1.0)) + (s - sc)
+        if wp.static(dim == 3):
+            return vin(s[0] - h, s[1] - h, s[2] - h, C[0, 0] - h, C[0, 1], C[0, 2], C[1, 0], C[1, 1] - h, C[1, 2],
+                       C[2, 0], C[2, 1], C[2, 2] - h, J - h)
+        else:
+            return vin(s[0] - h, s[1] - h, C[0, 0] - h, C[0, 1], C[1, 0], C[1, 1] - h, J - h)
 
     @wp.func
     def as_matrix(o: vout):
@@ -321,4 +330,10 @@ def _make(law, dim: int, precision: str, form: str) -> SimpleNamespace:
         out.F = Ft + scalar(alpha) * plastic(Ft, w)        # Alg. 4 line 9; App. C.3 Eq. 34
         return out
 
-    return SimpleNamespace(kirchhoff=kirchhoff, update=update, elastic=elastic, plastic=plastic)
+    # the kernels that call these functions (the fused G2P + law kernel, the law's own kernels): -O3 and
+    # FMA contraction across statements on the CPU (Warp emits each multiply and add as its own
+    # statement, so -ffp-contract=on fuses none of the MLP's 64-wide multiply-adds); see the module doc
+    cpu_flags = (wp.config.cpu_compiler_flags or "-march=native") + " -ffp-contract=fast"
+    return SimpleNamespace(kirchhoff=kirchhoff, update=update, elastic=elastic, plastic=plastic, mlp_e=mlp_e,
+                           features=features, vin=vin,
+                           module_options={"optimization_level": 3, "cpu_compiler_flags": cpu_flags})
