@@ -78,18 +78,16 @@ class Lagrangian(AbstractObservation):
 
 
 @dataclass(frozen=True)
-class ParticleState(AbstractObservation):
-    """A matrix state of tracked particles, flattened row-major to D^2 numbers: ``quantity="C"`` (the
-    APIC/MLS affine matrix) or ``"F"`` (the deformation gradient every material group's law carries).
-    What a strain gauge reads; NCLaw's kinematics-only teacher forcing (``mpmlab.inverse.teacher``)
-    carries C and F across a position reset with it. Scene-order (differentiable-path) states only."""
+class ParticleState(Lagrangian):
+    """A matrix state of tracked particles (``particles``, ``seed`` as :class:`Lagrangian`), flattened
+    row-major to D^2 numbers: ``quantity="C"`` (the APIC/MLS affine matrix) or ``"F"`` (the deformation
+    gradient every material group's law carries). What a strain gauge reads; NCLaw's kinematics-only
+    teacher forcing (``mpmlab.inverse.teacher``) carries C and F across a position reset with it.
+    Scene-order (differentiable-path) states only."""
 
     name: ClassVar[str] = "particle_state"
     implementations: ClassVar[dict] = _impl("particle_state")
-    gradients: ClassVar[tuple] = ("jax", "warp")
     quantity: str = "F"
-    particles: Any = None
-    seed: int = 0
 
     def indices(self, n_particles: int) -> np.ndarray:
         if self.quantity not in ("C", "F"):

@@ -189,5 +189,19 @@ def plot_energy(path: Path, time_s: np.ndarray, metrics: dict, title: str, overw
     return write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", metadata={"Title": title}), overwrite)
 
 
+def save_figure(fig, path: Path, title: str = "") -> Path:
+    """A matplotlib figure as a PNG, written atomically (the title also as PNG metadata), then closed."""
+    import matplotlib.pyplot as plt
+
+    from ..io.files import write_atomically
+
+    try:
+        return write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110,
+                                                              metadata={"Title": title} if title else None),
+                                overwrite=True)
+    finally:
+        plt.close(fig)
+
+
 def fmt_rate(x: float | None) -> str:
     return "n/a" if x is None or not math.isfinite(x) else f"{x:.3g}"

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +27,7 @@ from omegaconf import MISSING
 from ..config import TaskConfig, register_task_schema
 from ..config import build_scene, check_run_options, make_transfer_from_config
 from ..core.errors import ConfigError
-from .common import RECORDING, SUMMARY, write_config, write_json
+from .common import RECORDING, SUMMARY, save_figure, write_config, write_json
 
 log = logging.getLogger("mpmlab")
 FIT_PLOT = "fit.png"
@@ -367,7 +366,4 @@ def plot_fit(path: Path, history, report, profiles, title: str) -> None:
         ax.set_ylabel(pr["coordinate"]); ax.set_xlabel(name); ax.legend(fontsize=7); ax.set_title(f"{name} profile")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path, title)

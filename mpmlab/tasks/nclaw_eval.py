@@ -27,7 +27,7 @@ import numpy as np
 
 from ..config import TaskConfig, register_task_schema
 from ..core.errors import ConfigError, SimulationDiverged
-from .common import SUMMARY, write_config, write_json, write_text
+from .common import SUMMARY, save_figure, write_config, write_json, write_text
 
 log = logging.getLogger("mpmlab")
 
@@ -245,8 +245,6 @@ def _markdown(s: dict) -> str:
 
 
 def _plot(path: Path, curves: dict, title: str) -> None:
-    import os
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -258,7 +256,4 @@ def _plot(path: Path, curves: dict, title: str) -> None:
     ax.set_xlabel("step"); ax.set_ylabel("position MSE per coordinate [m²]"); ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path, title)

@@ -23,14 +23,14 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict
 
 import numpy as np
 
 from ..config import TaskConfig, register_task_schema
 from ..config import build_scene, check_run_options, make_transfer_from_config
 from ..core.errors import ConfigError
-from .common import RECORDING, SUMMARY, write_config, write_json
+from .common import RECORDING, SUMMARY, save_figure, write_config, write_json
 
 log = logging.getLogger("mpmlab")
 WEIGHTS = "nclaw_weights.safetensors"
@@ -127,7 +127,6 @@ def run(cfg, ctx) -> dict:
     from ..inverse.parameters import FitParameter
     from ..inverse.teacher import TeacherForcedFit, TeacherForcing
     from ..simulator import build_stepper
-    from .inverse import _write_law_weights
 
     t_task = time.perf_counter()
     out = Path(ctx.output_dir)
@@ -356,7 +355,4 @@ def plot_training(path: Path, history, title: str) -> None:
     axs[2].set_xlabel("epoch"); axs[2].set_title("gradient norm (before clipping)"); axs[2].legend(fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path, title)
