@@ -30,6 +30,8 @@ MD = Path(__file__).resolve().parent / "nclaw.md"
 RES = RESULTS / "nclaw"
 RAW = OUT / "nclaw"
 MATERIALS = ("jelly", "sand", "plasticine", "water")
+#: a training whose checkpoint has not changed for this long is killed and resumed (``watched``)
+STALL_S = 900.0
 #: Tab. 1 labeled and sys-id reconstruction
 PAPER_BASELINES = {"jelly": (8.0e-9, 1.7e-8), "sand": (7.1e-2, 2.7e-7), "plasticine": (5.5e-6, 5.8e-10),
                    "water": (1.6e-7, 1.7e-8)}
@@ -57,6 +59,34 @@ def dataset(material: str) -> Path:
     return path
 
 
+def watched(args: list[str], progress: Path, budget_s: float, stall_s: float) -> int:
+    """``mpmlab args`` with a watchdog: killed when ``progress`` (its checkpoint) has not changed for
+    ``stall_s`` seconds (a JAX CPU computation was once seen never to return: every thread idle in a
+    futex, 2026-12-02), then started again: it resumes from the checkpoint. Returns the last exit code."""
+    deadline = time.time() + budget_s
+    while True:
+        left = deadline - time.time()
+        run_args = [a for a in args if not a.startswith("task.stop_after_s=")] + [f"task.stop_after_s={max(left - 120, 60):.0f}"]
+        log("$ mpmlab " + " ".join(run_args))
+        proc = subprocess.Popen([sys.executable, "-m", "mpmlab", *run_args], cwd=ROOT)
+        seen = time.time()
+        last = progress.stat().st_mtime if progress.exists() else None
+        while proc.poll() is None:
+            time.sleep(15)
+            now = progress.stat().st_mtime if progress.exists() else None
+            if now != last:
+                last, seen = now, time.time()
+            if time.time() - seen > stall_s or time.time() > deadline + 300:
+                log(f"no checkpoint for {time.time() - seen:.0f} s: killing the run (it resumes)")
+                proc.kill()
+                proc.wait()
+                break
+        else:
+            return proc.returncode
+        if time.time() > deadline - 120:
+            return 124
+
+
 def train(material: str, backend: str, fraction: float, epochs: int, budget_s: float, precision: str,
           method: str = "teacher") -> dict | None:
     tag = "" if method == "teacher" else f"_{method}"
@@ -69,11 +99,12 @@ def train(material: str, backend: str, fraction: float, epochs: int, budget_s: f
     if budget_s <= 60:
         return json.loads(summary.read_text()) if summary.exists() else None
     data = dataset(material)
-    rc = mpmlab(["task=nclaw_train", f"task.method={method}", f"scene=nclaw_{material}",
-                 f"material={material if method == 'sysid' else 'nclaw'}", f"backend={backend}",
-                 "transfer=mls", f"precision={precision}", f"task.dataset={data}", f"task.epochs={epochs}",
-                 f"task.segment_fraction={fraction}", f"task.stop_after_s={max(budget_s - 120, 60):.0f}",
-                 "output.overwrite=true", f"hydra.run.dir={run}"])
+    args = ["task=nclaw_train", f"task.method={method}", f"scene=nclaw_{material}",
+            f"material={material if method == 'sysid' else 'nclaw'}", f"backend={backend}",
+            "transfer=mls", f"precision={precision}", f"task.dataset={data}", f"task.epochs={epochs}",
+            f"task.segment_fraction={fraction}", "output.overwrite=true", f"hydra.run.dir={run}"]
+    ckpt = run / ("train_checkpoint.pkl" if backend == "jax" else "train_checkpoint.pt")
+    rc = mpmlab(args) if method == "labeled" else watched(args, ckpt, budget_s, STALL_S)
     if rc != 0:
         log(f"training {material}/{backend} ended with exit code {rc}")
     return json.loads(summary.read_text()) if summary.exists() else None

@@ -190,13 +190,21 @@ def run(cfg, ctx) -> dict:
 
     rec = _recorder(out, cfg, scene.name) if cfg.output.recording else None
 
+    def record(h):
+        scalars = {"period": h["period"], "segments": h["segments"]}
+        scalars.update({f"lr/{k}": v for k, v in h["lr"].items()})
+        scalars.update({f"grad_norm/{k}": v for k, v in h["grad_norms"].items()})
+        rec.log(h["epoch"], h["loss"], scalars)
+
     def on_epoch(epoch, loss, values):
-        h = fit.history[-1]
-        if rec is not None:
-            scalars = {"period": h["period"], "segments": h["segments"]}
-            scalars.update({f"lr/{k}": v for k, v in h["lr"].items()})
-            scalars.update({f"grad_norm/{k}": v for k, v in h["grad_norms"].items()})
-            rec.log(epoch, loss, scalars)
+        if rec is None:
+            return
+        if not recorded[0]:              # a resumed run: the epochs before it, from the checkpoint, first
+            for h in fit.history[:-1]:
+                record(h)
+            recorded[0] = True
+        record(fit.history[-1])
+    recorded = [False]
 
     t_run, first = time.perf_counter(), [None]
 
