@@ -172,6 +172,10 @@ class TeacherForcedFit(Fit):
             init.update(carry)
         return init
 
+    def _controls(self, raw, init) -> dict:
+        """The rollout controls of a segment: the trained values from ``raw``, the start state ``init``."""
+        return {**self.controls_of(raw), **init}
+
     # ---- the loss of one segment -------------------------------------------------------------------------
     def _segment_objective(self, length: int):
         """``(raw, init, target_x, target_v, scale) -> (loss, invalid)`` for segments of ``length`` steps."""
@@ -180,8 +184,7 @@ class TeacherForcedFit(Fit):
         vw = self.velocity_weight
 
         def loss(raw, init, tx, tv, scale):
-            c = dict(self.controls_of(raw))
-            c.update(init)
+            c = self._controls(raw, init)
             px, bad = self.adapter.observe(self.stepper, c, self.observation, steps, self.segment)
             r = px - tx
             val = (r * r).sum() / n
@@ -208,8 +211,7 @@ class TeacherForcedFit(Fit):
         rollout of the segment, observed by ``ParticleState`` at its last step."""
         from ..observations import ParticleState
 
-        c = dict(self.controls_of(raw))
-        c.update(init)
+        c = self._controls(raw, init)
         st, D, N = self.stepper, self.stepper.dim, self.stepper.particles.count
         carry = {}
         quantities = (["C"] if st.transfer.needs_affine else []) + ["F"]
@@ -268,8 +270,7 @@ class TeacherForcedFit(Fit):
                                                "is finite: an overflow in the sum; lower the loss scale")
         s, L, init = self._bad_segment
         self._bad_segment = None
-        c = dict(self.controls_of(raw))
-        c.update(init)
+        c = self._controls(raw, init)
         tx = self._backend_data()["x"][s + 1:s + L + 1]
         n = float(self.stepper.particles.count * self.stepper.dim)
         try:
