@@ -236,3 +236,28 @@ def test_a_nan_gradient_is_located_in_its_segment(backend, truth, monkeypatch):
     with pytest.raises(GradientError) as err:
         fit._locate(raw)
     assert err.value.step == 12 and "segment starting at step 10" in str(err.value)
+
+
+def test_jax_tracking_loss_of_fixed_pieces_equals_one_program_per_length(truth):
+    """The JAX tracking loss runs any rollout length from four compiled pieces (chunks of ``segment``
+    steps and single steps, forward and adjoint). Value and gradient equal the one-program-per-length
+    loss (``core.autodiff.tracking_loss``) in fp64, for lengths that are and are not multiples of the
+    chunk, with the velocity term on."""
+    from mpmlab.core.autodiff import tracking_loss
+
+    fit = make_fit("jax", truth, steps=20, epochs=1, period=10.0, velocity_weight=0.3, segment=3)
+    ops, raw = fit.ops, weights(fit, trained_like())
+    obs, wts = (fit.observation, fit._obs_v), (1.0, 0.3)
+    pieces = fit.adapter.tracking_value_and_grad(fit.stepper, fit._controls, obs, wts, 3)
+    whole = tracking_loss(fit.adapter, fit.stepper, fit._controls, obs, wts, 3)
+    d = fit._backend_data()
+    for s, L in ((0, 7), (13, 2)):
+        init = fit._initial(s)
+        tg = (d["x"][s + 1:s + L + 1], d["v"][s + 1:s + L + 1])
+        a, why_a, ga = pieces(raw, init, tg, ops.asarray(2.5))
+        b, why_b, gb = whole(raw, init, tg, ops.asarray(2.5))
+        assert why_a is None and why_b is None and a > 0
+        assert abs(a - b) <= 1e-12 * abs(b), (L, a, b)
+        for n in NAMES:
+            x, y = ops.numpy(ga[n]), ops.numpy(gb[n])
+            assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y)), (L, n)

@@ -109,6 +109,16 @@ class AutodiffAdapter(Protocol):
     def value(self, loss: Callable[[Tree], tuple[Array, Any]], raw: Tree) -> float:
         """``loss(raw)[0]`` as a float, without a gradient."""
 
+    def tracking_value_and_grad(self, stepper, controls: Callable[[Tree, Tree], Tree], observations: Sequence,
+                                weights: Sequence[float], segment: int | None = None, grad: bool = True
+                                ) -> Callable[..., tuple[float, str | None, Any]]:
+        """A tracking loss over rollouts of any length: ``vg(raw, init, targets, scale) -> (value, why, grad)``
+        with ``value = scale * sum_t sum_i weights[i] * mean((observations[i] after step t - targets[i][t-1])^2)``
+        for t = 1..L, where L = ``len(targets[0])`` may change from call to call and the rollout starts from
+        ``controls(raw, init)``. ``why`` and ``grad`` as in ``value_and_grad`` (``grad=False``: the value alone,
+        ``grad`` None). :func:`tracking_loss` builds it from ``observe`` and ``value_and_grad``; a backend
+        whose compiled programs depend on L (JAX) supplies one that compiles a fixed set of pieces."""
+
     def check_gradient(self, grad: Any) -> bool:
         """True when every entry of ``grad`` is finite."""
 
@@ -152,6 +162,38 @@ class AutodiffAdapter(Protocol):
     def before_build(self, task_config: Mapping[str, Any]) -> None:
         """Called by ``task=inverse`` before the stepper is built, with the task's config. The JAX adapter
         uses it to turn off XLA CPU's YNNPACK fusions unless ``task.jax_ynn_fusions`` is set."""
+
+
+def tracking_loss(adapter, stepper, controls, observations, weights, segment=None, grad=True):
+    """``AutodiffAdapter.tracking_value_and_grad`` from the adapter's ``observe`` and ``value_and_grad``:
+    one loss per rollout length, built when that length is first asked for (right for a backend that
+    compiles nothing per length, such as Warp)."""
+    pairs = [(o, float(w)) for o, w in zip(observations, weights) if w]
+    by_length: dict[int, Callable] = {}
+
+    def build(length: int):
+        steps = np.arange(1, length + 1)
+
+        def loss(raw, init, targets, scale):
+            c = controls(raw, init)
+            val, bad = 0.0, False
+            for (obs, w), tgt in zip(pairs, targets):
+                y, b = adapter.observe(stepper, c, obs, steps, segment)
+                r = y - tgt
+                val = val + w * (r * r).sum() / (r[0].numel() if hasattr(r, "numel") else r[0].size)
+                bad = bad | b
+            return val * scale, bad
+        if grad:
+            return adapter.value_and_grad(loss)
+        return lambda raw, *data: (adapter.value(loss, raw, *data), None, None)
+
+    def vg(raw, init, targets, scale):
+        targets = [t for t, w in zip(targets, weights) if w]
+        L = int(targets[0].shape[0])
+        if L not in by_length:
+            by_length[L] = build(L)
+        return by_length[L](raw, init, targets, scale)
+    return vg
 
 
 def _resolve(target, where: str):

@@ -177,34 +177,14 @@ class TeacherForcedFit(Fit):
         return {**self.controls_of(raw), **init}
 
     # ---- the loss of one segment -------------------------------------------------------------------------
-    def _segment_objective(self, length: int):
-        """``(raw, init, target_x, target_v, scale) -> (loss, invalid)`` for segments of ``length`` steps."""
-        steps = np.arange(1, length + 1)
-        n = float(self.stepper.particles.count * self.stepper.dim)
-        vw = self.velocity_weight
-
-        def loss(raw, init, tx, tv, scale):
-            c = self._controls(raw, init)
-            px, bad = self.adapter.observe(self.stepper, c, self.observation, steps, self.segment)
-            r = px - tx
-            val = (r * r).sum() / n
-            if vw:
-                pv, bad_v = self.adapter.observe(self.stepper, c, self._obs_v, steps, self.segment)
-                rv = pv - tv
-                val = val + vw * (rv * rv).sum() / n
-                bad = bad | bad_v
-            return val * scale, bad
-        return loss
-
-    def _value_and_grad(self, length: int, grad: bool = True):
-        key = (length, grad)
-        if key not in self._vg:
-            if grad:
-                self._vg[key] = self.adapter.value_and_grad(self._segment_objective(length))
-            else:
-                loss = self._segment_objective(length)
-                self._vg[key] = lambda raw, *data: (self.adapter.value(loss, raw, *data), None, True)
-        return self._vg[key]
+    def _value_and_grad(self, grad: bool = True):
+        """``(raw, init, (target_x, target_v), scale) -> (loss, why, grad)`` for segments of any length:
+        Σ_t MSE(x_t) (+ velocity_weight Σ_t MSE(v_t)), times ``scale`` (the adapter's tracking loss)."""
+        if grad not in self._vg:
+            self._vg[grad] = self.adapter.tracking_value_and_grad(
+                self.stepper, self._controls, (self.observation, self._obs_v), (1.0, self.velocity_weight),
+                self.segment, grad)
+        return self._vg[grad]
 
     def _carry_after(self, raw, init, length):
         """C and the law state F after a segment (kinematics-only reset), detached: one more forward
@@ -246,12 +226,12 @@ class TeacherForcedFit(Fit):
                     continue
             tv = d["v"][s + 1:s + L + 1]
             try:
-                val, why, g = self._value_and_grad(L, grad)(raw, init, d["x"][s + 1:s + L + 1], tv,
-                                                            self.ops.asarray(scale))
+                val, why, g = self._value_and_grad(grad)(raw, init, (d["x"][s + 1:s + L + 1], tv),
+                                                         self.ops.asarray(scale))
             except GradientError as e:        # raised inside a backend's backward pass: the trajectory's step
                 raise GradientError(s + e.step, e.particle, e.field,
                                     f"in the teacher-forced segment starting at step {s}; " + (e.hint or "")) from None
-            if why is not None or g is None:
+            if why is not None or (grad and g is None):
                 return val, why, None, {}
             if grad and self._bad_segment is None and not self.adapter.check_gradient(g):
                 self._bad_segment = (s, L, init)

@@ -83,6 +83,10 @@ class JaxAdapter:
     def value(self, loss, raw, *data):
         return float(loss(raw, *data)[0])
 
+    def tracking_value_and_grad(self, stepper, controls, observations, weights, segment=None, grad=True):
+        """A fixed set of compiled pieces for every rollout length (``differentiable.tracking_value_and_grad``)."""
+        return JD.tracking_value_and_grad(stepper, controls, observations, weights, segment, grad, DIVERGED)
+
     def check_gradient(self, grad):
         return JD.check_gradient(grad)
 

@@ -153,6 +153,75 @@ def observe(stepper, c, observation, steps, segment: int | None = None, health: 
     return cache[key][1](c)
 
 
+# ---- tracking losses over rollouts of any length --------------------------------------------------
+def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment: int | None = None,
+                            grad: bool = True, diverged: str = "diverged"):
+    """``AutodiffAdapter.tracking_value_and_grad`` from a fixed set of compiled pieces.
+
+    ``jax.jit`` of a whole L-step loss compiles once per L; a teacher-forced training (NCLaw Sec. 4)
+    asks for ~70 lengths, each a 30-70 s compile of a 3D step and its adjoint. Here an L-step rollout
+    is ``L // k`` chunks of ``k = segment`` steps and ``L % k`` single steps, run from Python: the
+    forward keeps each chunk's start state, the backward replays the chunks in reverse with
+    ``jax.vjp`` (each chunk rematerialised, its steps ``jax.checkpoint``-ed: the memory and the
+    recomputation of ``advance``). Four programs (k steps and 1 step, forward and adjoint) plus the
+    controls' parametrisation serve every length."""
+    impls = [(o.implementation("jax", "observation")(o, stepper), float(w))
+             for o, w in zip(observations, weights) if w]
+    k = max(1, int(segment or DEFAULT_SEGMENT))
+    step = jax.checkpoint(stepper.step_fn)
+
+    def chunk(state, params, targets, scale):
+        """``len(targets[0])`` steps from ``state``: (state after them, their scaled loss, invalid)."""
+        def body(carry, tgt):
+            s, val, bad = carry
+            s = step(s, params)
+            for (impl, w), t in zip(impls, tgt):
+                r = impl.fn(s) - t
+                val = val + w * jnp.sum(r * r) / r.size
+            return (s, val, bad | _invalid(stepper, s)), None
+        zero = jnp.zeros((), stepper.dtype)
+        (state, val, bad), _ = jax.lax.scan(body, (state, zero, jnp.asarray(False)), targets)
+        return state, val * scale, bad
+
+    def chunk_adjoint(state, params, targets, scale, ct_state, acc):
+        f = lambda s, p: (lambda o: ((o[0], o[1]), o[2]))(chunk(s, p, targets, scale))
+        (_, val), pull, _ = jax.vjp(f, state, params, has_aux=True)
+        ct_in, ct_p = pull((ct_state, jnp.ones_like(val)))
+        return ct_in, jax.tree.map(jnp.add, acc, ct_p)
+
+    prep = jax.jit(lambda raw, init: split_controls(stepper, controls_fn(raw, init)))
+    prep_adjoint = jax.jit(lambda raw, init, ct: jax.vjp(lambda r: split_controls(stepper, controls_fn(r, init)), raw)[1](ct)[0])
+    forward, adjoint = jax.jit(chunk), jax.jit(chunk_adjoint)
+
+    def pieces(L):
+        """(start, length) of the chunks of an L-step rollout."""
+        out = [(i * k, k) for i in range(L // k)]
+        return out + [(j, 1) for j in range((L // k) * k, L)]
+
+    def vg(raw, init, targets, scale):
+        targets = [t for t, w in zip(targets, weights) if w]
+        L = int(targets[0].shape[0])
+        state, params = prep(raw, init)
+        starts, total, bad = [], jnp.zeros((), stepper.dtype), jnp.asarray(False)
+        for a, m in pieces(L):
+            starts.append(state)
+            state, val, b = forward(state, params, tuple(t[a:a + m] for t in targets), scale)
+            total, bad = total + val, bad | b
+        value = float(total)
+        if bool(bad):
+            return value, diverged, None
+        if not grad:
+            return value, None, None
+        if not np.isfinite(value):
+            return value, None, None
+        ct = jax.tree.map(jnp.zeros_like, state)
+        acc = jax.tree.map(jnp.zeros_like, params)
+        for (a, m), s0 in zip(reversed(pieces(L)), reversed(starts)):
+            ct, acc = adjoint(s0, params, tuple(t[a:a + m] for t in targets), scale, ct, acc)
+        return value, None, prep_adjoint(raw, init, (ct, acc))
+    return vg
+
+
 # ---- NaN gradients: find where they arose -----------------------------------------------------------
 def _first_bad(tree, stepper) -> tuple[int, str] | None:
     """(particle in scene order, field) of the first non-finite entry of a state cotangent."""

@@ -141,6 +141,12 @@ class WarpAdapter:
         with torch.no_grad():
             return float(loss(raw, *data)[0])
 
+    def tracking_value_and_grad(self, stepper, controls, observations, weights, segment=None, grad=True):
+        """Warp compiles nothing per rollout length: one loss per length, from ``observe``."""
+        from ...core.autodiff import tracking_loss
+
+        return tracking_loss(self, stepper, controls, observations, weights, segment, grad)
+
     def check_gradient(self, grad):
         return all(bool(torch.isfinite(g).all()) for g in grad if g is not None)
 
