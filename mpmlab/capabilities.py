@@ -61,7 +61,9 @@ def markdown(builtin_only: bool = False) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for law_name in _laws(builtin_only):
         law = registry.laws.get(law_name)
-        params = ", ".join(f"{p.name} [{p.unit}]" for p in getattr(law, "params", ())) or "none (shared weights)"
+        # a law whose parameters follow its configuration (phase_change) says so in ``capability_params``
+        params = (getattr(law, "capability_params", None)
+                  or ", ".join(f"{p.name} [{p.unit}]" for p in getattr(law, "params", ())) or "none (shared weights)")
         cells = ["✓" if ok[(law_name, t, b)] else "–" for b in backends for t in transfers]
         # a law's functions are the same on the fast and the differentiable path of each backend
         grads = ", ".join(b for b in backends if b in getattr(law, "implementations", {})) or "–"

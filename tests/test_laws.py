@@ -48,7 +48,8 @@ def test_rotation_equivariance_and_symmetry(name, dim):
 
 @pytest.mark.parametrize("name", LAWS)
 def test_parameters_declare_units_and_ranges(name):
-    law = registry.laws.get(name)
+    cls = registry.laws.get(name)
+    law = type(cls.from_config(dict(cls.test_options), name))   # as configured (phase_change: a pair's class)
     # a law declares its parameters, or carries its constants in shared weights (a neural law)
     assert law.params or law.from_config(law.test_options, name).weight_shapes(2), \
         "a law must declare its parameters (or shared weights)"
@@ -57,7 +58,7 @@ def test_parameters_declare_units_and_ranges(name):
         assert p.low < p.high
     assert law.state, "a law must declare its state fields"
     if registry.laws.provenance(name) == "mpmlab":      # the built-ins share the standard fields
-        assert set(law.state_fields) <= {"F", "J", "sigma", "eps_p"}
+        assert set(law.state_fields) <= {"F", "J", "sigma", "eps_p", "clock"}
     assert law.wave_speed(testing.resolve_params(law, "defaults"), 1000.0) > 0
     assert set(law.test_params) <= set(law.param_names()), f"{name}.test_params names unknown parameters"
     testing.resolve_params(law)  # its test_params are in range

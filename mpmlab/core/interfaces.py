@@ -187,6 +187,9 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
     #: released): the conformance kit then does not require tau = tau^T (angular momentum is then not
     #: conserved exactly by the stress).
     symmetric_stress: ClassVar[bool] = True
+    #: state fields that count time (advanced by dt in every update, whatever the motion): the
+    #: conformance kit's rest-state check expects them to move by exactly dt (``phase_change``'s clock)
+    clock_fields: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -259,6 +262,12 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
             out[spec.name] = spec.check(value, where)
         cls.check_consistency(out, where)
         return out
+
+    def particle_params(self, params: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Per-particle parameter values that depend on where the particles start, e.g. a switch time
+        by height (``phase_change``): ``params`` ``[n, P]`` in declared order for one material group,
+        ``x`` ``[n, D]`` its initial positions; returns the ``[n, P]`` rows. Unchanged by default."""
+        return params
 
     @classmethod
     def default_from_density(cls, name: str, density: float | None) -> float | None:

@@ -116,7 +116,7 @@ def get(kind: str, name: str) -> Any:
 
 def _register_builtins() -> None:
     for name in ("fixed_corotated", "hencky_drucker_prager", "hencky_von_mises", "weakly_compressible",
-                 "newtonian_fluid", "drucker_prager_jaumann", "nclaw"):
+                 "newtonian_fluid", "drucker_prager_jaumann", "nclaw", "phase_change"):
         laws.register(name, f"mpmlab.laws.{name}:Law")
     for name in ("pic", "flip", "apic", "mls", "tpic"):
         transfers.register(name, f"mpmlab.transfers.{name}:Transfer")

@@ -178,9 +178,9 @@ class Scene:
         instances = {}
         for b, body in enumerate(self.bodies):
             where = f"scene '{self.name}', body {body.name or b}"
-            law = registry.laws.get(body.material)
+            inst = self._law(body, where)
+            law = type(inst)          # a configured instance's class declares its parameters (phase_change)
             prm = law.resolve_params(body.params, where, density=body.density)
-            inst = law.from_config(body.options, where)
             if not body.density > 0:
                 raise ConfigError(f"{where}: density = {body.density} must be positive.")
             x, vol = sample(body.shape, self.dim, self.dx, body.particles_per_cell, body.sampling,
@@ -229,7 +229,8 @@ class Scene:
             n = sum(len(xs[b]) for b in idx)
             weights = {k: np.asarray(a, dtype=float) for k, a in inst.initial_weights(self.dim).items()}
             inst.check_weights(weights, self.dim, instances[inst])
-            groups.append(MaterialGroup(inst, start, start + n, np.concatenate([params[b] for b in idx]), weights))
+            rows = inst.particle_params(np.concatenate([params[b] for b in idx]), np.concatenate([xs[b] for b in idx]))
+            groups.append(MaterialGroup(inst, start, start + n, rows, weights))
             blocks.extend(idx); mat_id.append(np.full(n, g)); start += n
         cat = lambda arrs: np.concatenate([arrs[b] for b in blocks])
         return ParticleSet(cat(xs), cat(vs), cat(ms), cat(vols), cat(bids), np.concatenate(mat_id), groups)
@@ -237,15 +238,19 @@ class Scene:
     def particles(self) -> ParticleSet:
         return self._particles
 
+    @staticmethod
+    def _law(body: Body, where: str):
+        """The body's law instance (its class may depend on the options: ``phase_change``)."""
+        return registry.laws.get(body.material).from_config(body.options, where)
+
     # ---- time step --------------------------------------------------------------------------
     def wave_speed(self) -> float:
         """Largest elastic wave speed over all bodies [m/s]."""
         c = 0.0
         for b, body in enumerate(self.bodies):
             where = f"scene '{self.name}', body {body.name or b}"
-            law = registry.laws.get(body.material)
-            prm = law.resolve_params(body.params, where, density=body.density)
-            inst = law.from_config(body.options, where)
+            inst = self._law(body, where)
+            prm = type(inst).resolve_params(body.params, where, density=body.density)
             # a law with shared weights sees them (its stiffness may live there: a neural law)
             weights = (next(g.weights for g in self.particles().groups if g.law == inst)
                        if inst.weight_shapes(self.dim) else {})
@@ -277,7 +282,8 @@ class Scene:
     def effective_cfl(self) -> float:
         """The ``dt: auto`` safety factor: ``cfl``, capped at half the measured C* of any law in the scene
         that declares one (``stable_cfl``; benchmarks/stress.md)."""
-        caps = [getattr(registry.laws.get(b.material), "stable_cfl", None) for b in self.bodies]
+        caps = [getattr(type(self._law(b, f"scene '{self.name}', body {b.name or i}")), "stable_cfl", None)
+                for i, b in enumerate(self.bodies)]
         caps = [0.5 * c for c in caps if c is not None]
         return min([float(self.cfl)] + caps)
 

@@ -20,10 +20,13 @@ positions with :meth:`EvalCase.mse` (:func:`position_mse`)::
 | incline | (d) WATER only, gravity (0, -1, 0.866), 128^3, 1500 steps (qualitative) | ``nclaw_incline`` |
 | contact | Fig. 3b, four JELL-O toys, 32^3 | ``nclaw_contact`` (JELL-O only) |
 | pool | Fig. 4a, a JELL-O body into WATER | ``jelly_pool_drop`` (JELL-O only; the water stays the true law) |
+| melting | Fig. 4b, PLASTICINE turning into SAND bottom-up | ``nclaw_melting`` (PLASTICINE, with SAND's weights as partner) |
 
 Meshes: spot and blub are Keenan Crane's (CC0), the armadillo, bunny, duck and dragon are stand-ins
 (``mpmlab/assets/README.md``), so the geometry, incline and contact numbers are not the paper's. The
-melting scene (PLASTICINE turning into SAND, Fig. 4b) needs a per-particle law switch and is not here.
+melting scene runs the ``phase_change`` law (a per-particle switch time by initial height): the truth
+switches between the two true laws, the learned run between the PLASTICINE and the SAND networks, so
+it needs both trainings' weights (``learned(weights, {"sand": file})``).
 """
 from __future__ import annotations
 
@@ -55,20 +58,35 @@ class EvalCase:
     material: str
     frame_every: int = METRIC_EVERY
     tags: tuple[str, ...] = field(default=())
+    #: the ground truth's material config (default: ``material``); the learned run's
+    truth_material: str = ""
+    learned_material: str = "nclaw"
+    #: where each material's trained weights go in the learned run: ``((material, override key), ...)``;
+    #: default ``((material, "+material.options.weights_file"),)``. A case that mixes materials (melting)
+    #: names several: the others are its ``partners``
+    weight_keys: tuple[tuple[str, str], ...] = field(default=())
 
     def _common(self) -> list[str]:
         return [f"scene={self.scene}", *self.overrides, f"steps={self.steps}", f"frame_every={self.frame_every}"]
 
+    @property
+    def partners(self) -> tuple[str, ...]:
+        """The other materials whose trained weights the learned run needs besides ``material``'s."""
+        return tuple(m for m, _ in self.weight_keys if m != self.material)
+
     def truth(self) -> list[str]:
         """Hydra overrides of the ground-truth run (the material's true law)."""
-        return [f"material={self.material}", *self._common()]
+        return [f"material={self.truth_material or self.material}", *self._common()]
 
-    def learned(self, weights_file: str | None = None) -> list[str]:
+    def learned(self, weights_file: str | None = None, partner_weights: dict | None = None) -> list[str]:
         """Hydra overrides of the learned run: ``material=nclaw`` (with ``weights_file``, a trained
-        network; without it the untrained initialisation, NCLaw's "ours-init")."""
-        out = ["material=nclaw", *self._common()]
-        if weights_file is not None:
-            out.append(f"+material.options.weights_file={weights_file}")
+        network; without it the untrained initialisation, NCLaw's "ours-init"); ``partner_weights``:
+        ``{material: file}`` for the ``partners`` of a case that mixes materials."""
+        out = [f"material={self.learned_material}", *self._common()]
+        files = {**(partner_weights or {}), self.material: weights_file}
+        for material, key in self.weight_keys or ((self.material, "+material.options.weights_file"),):
+            if files.get(material):
+                out.append(f"{key}={files[material]}")
         return out
 
     @property
@@ -132,6 +150,15 @@ def eval_cases(material: str) -> list[EvalCase]:
             "incline", "nclaw_incline", (), 1500,
             "(d) inclined plane: gravity (0, -1, 0.866), rho 5e3, 128^3 grid (qualitative, not in Tab. 2; "
             "a stand-in for the dragon)", material, tags=("qualitative",)))
+    if material == "plasticine":
+        cases.append(EvalCase(
+            "melting", "nclaw_melting", (), 2000,
+            "Fig. 4b: an ice cream of PLASTICINE turning into SAND bottom-up between 0.25 and 0.75 s (steps 500-1500), "
+            "64^3 grid, the phase_change law of the two true laws / of the PLASTICINE and SAND nets (a stand-in shape)",
+            material, tags=("qualitative",), truth_material="plasticine_to_sand",
+            learned_material="nclaw_plasticine_to_sand",
+            weight_keys=(("plasticine", "material.options.before.options.weights_file"),
+                         ("sand", "material.options.after.options.weights_file"))))
     if material == "jelly":
         cases.append(EvalCase(
             "contact", "nclaw_contact", (), 1000,

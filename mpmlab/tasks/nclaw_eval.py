@@ -73,6 +73,8 @@ class NclawEvalConfig(TaskConfig):
     law_params: Dict[str, float] = field(default_factory=dict)
     #: a label for the evaluated weights in the table (default: ours, or ours-init without weights)
     label: str = ""
+    #: trained weights of other materials, for the cases that mix materials (melting: {sand: FILE})
+    partner_weights: Dict[str, str] = field(default_factory=dict)
 
 
 register_task_schema("nclaw_eval", NclawEvalConfig)
@@ -147,6 +149,11 @@ def run(cfg, ctx) -> dict:
                           "each other; give one.")
     label = str(tc.label or ("sys-id" if law_params else "ours" if weights else "ours-init"))
     cases = resolve_cases(material, tc.cases)
+    partners = {str(k): str(v) for k, v in (_plain(tc.partner_weights) or {}).items()}
+    for k, v in partners.items():
+        if not Path(v).is_file():
+            raise ConfigError(f"task.partner_weights.{k} = '{v}' does not exist; give the nclaw_weights.safetensors of "
+                              f"the {k} training.")
     if (out / SUMMARY).exists() and not ctx.overwrite:
         raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
     write_config(out, cfg, True)
@@ -161,6 +168,15 @@ def run(cfg, ctx) -> dict:
     for case in bar:
         bar.set_postfix_str(case.name)
         every = case.frame_every
+        missing = [m for m in case.partners if weights and m not in partners]
+        if missing or (law_params and case.partners):
+            why = ("sys-id refits one material's law; this case mixes materials" if law_params else
+                   f"it needs the trained weights of {', '.join(missing)} too (task.partner_weights.{missing[0]}=FILE)")
+            results[case.name] = {"scene": case.scene, "steps": case.steps, "particles": None, "frame_every": every,
+                                  "description": case.description, "truth_wall_s": None, "tags": list(case.tags),
+                                  "status": "skipped", "mse": None, "message": why}
+            log.warning("nclaw_eval %s: skipped: %s", case.name, why)
+            continue
         cache = truth_dir / f"{case.name}_{cfg.backend.name}_{cfg.precision.name}.npz"
         if cache.exists():
             with np.load(cache) as z:
@@ -174,7 +190,7 @@ def run(cfg, ctx) -> dict:
                                  "description": case.description, "truth_wall_s": t_truth, "tags": list(case.tags)}
         try:
             learned = (case.truth() + [f"material.params.{k}={float(v)!r}" for k, v in law_params.items()]
-                       if law_params else case.learned(weights or None))
+                       if law_params else case.learned(weights or None, partners))
             xl, t_learned, _ = rollout(learned + common, case.steps, every)
         except SimulationDiverged as exc:
             entry.update(status="diverged", mse=None, message=str(exc).splitlines()[0])
@@ -239,8 +255,9 @@ def _markdown(s: dict) -> str:
         lines.append(f"| {k} | {_fmt(r['mse'])} | {_fmt(r['paper'])} | {ratio} |")
     lines += ["", "| case | particles | steps | status | truth s | learned s |", "|---|---|---|---|---|---|"]
     for k, r in s["cases"].items():
-        lines.append(f"| {k} | {r['particles']} | {r['steps']} | {r['status']} | {r['truth_wall_s']:.1f} | "
-                     f"{r.get('learned_wall_s', float('nan')):.1f} |")
+        tt, tl = r.get("truth_wall_s"), r.get("learned_wall_s")
+        lines.append(f"| {k} | {r['particles'] if r['particles'] is not None else '–'} | {r['steps']} | {r['status']} | "
+                     f"{'–' if tt is None else f'{tt:.1f}'} | {'–' if tl is None else f'{tl:.1f}'} |")
     return "\n".join(lines) + "\n"
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._common import fail, law_instance, law_name, rel_err, resolve_params
+from ._common import fail, law_class, law_instance, law_name, rel_err, resolve_params
 from .evaluate import evaluate, ref_kirchhoff, ref_update
 from .states import KINDS, hard_states, rest_state, rotate_state, rotation, rotation_rules, velocity_gradients
 
@@ -67,7 +67,8 @@ def check_rest_state(law, dim: int, backends=("reference",), *, params=None, dt:
                      tol: float = 1e-12) -> dict:
     """The declared initial state (``Law.state`` inits) is a rest state on each backend: |tau| <= ``tol``
     (absolute, in Pa), and one ``update`` with grad_v = 0 keeps it (each field within ``tol`` of its
-    initial value, relative to max(1, |value|)) and its stress (|tau| <= ``tol``).
+    initial value, relative to max(1, |value|); a field the law names in ``clock_fields`` advanced by
+    exactly dt) and its stress (|tau| <= ``tol``).
 
     Returns ``{backend: {"tau": max|tau|, "tau_after": ..., "state": max field change}}``."""
     law = law_instance(law)
@@ -84,8 +85,10 @@ def check_rest_state(law, dim: int, backends=("reference",), *, params=None, dt:
                  f"{tol:.0e} Pa")
         new = evaluate(law, dim, b, "update", [st], prm, np.zeros((1, dim, dim)), dt)[0]
         ds = 0.0
+        clocks = tuple(getattr(law_class(law), "clock_fields", ()))
         for f in law.state_fields:
-            d = float(np.max(np.abs(np.asarray(new[f], float) - st[f])) / max(1.0, float(np.max(np.abs(st[f])))))
+            want = st[f] + dt if f in clocks else st[f]       # a clock field counts time: + dt per update
+            d = float(np.max(np.abs(np.asarray(new[f], float) - want)) / max(1.0, float(np.max(np.abs(want)))))
             if not d <= tol:
                 fail(f"{where}: update with grad_v = 0 moves field '{f}' off its initial value by {d:.3e} "
                      f"(relative) > tolerance {tol:.0e}")
