@@ -111,8 +111,8 @@ def train(material: str, backend: str, fraction: float, epochs: int, budget_s: f
 
 
 def evaluate(material: str, backend: str, weights: Path | None, label: str, cases: list[str], precision: str,
-             law_params: dict | None = None):
-    run = RES / "eval" / f"{material}_{backend}_{label}"
+             law_params: dict | None = None, tag: str = "", partners: dict | None = None):
+    run = RES / "eval" / f"{material}_{backend}_{label}{tag}"
     summary = run / "summary.json"
     if summary.exists():
         return json.loads(summary.read_text())
@@ -121,10 +121,35 @@ def evaluate(material: str, backend: str, weights: Path | None, label: str, case
             "task.cases=[" + ",".join(cases) + "]", f"hydra.run.dir={run}"]
     if weights is not None:
         args.append(f"task.weights={weights}")
+    for k, v in (partners or {}).items():
+        args.append(f"+task.partner_weights.{k}={v}")
     for k, v in (law_params or {}).items():
         args.append(f"+task.law_params.{k}={v!r}")
     rc = mpmlab(args)
     return json.loads(summary.read_text()) if rc == 0 and summary.exists() else None
+
+
+#: the qualitative cases of each material (NCLaw Figs. 3-4: no number in the paper), evaluated with --extras
+EXTRAS = {"jelly": ("contact", "pool"), "plasticine": ("melting",), "water": ("incline",)}
+
+
+def extras(material: str, backend: str, weights: Path, precision: str) -> None:
+    """The material's qualitative cases (``EXTRAS``) once its training (and each partner's: SAND's for
+    the melting) has finished; their metric and wall times go to the report's "Figs. 3-4" table."""
+    from mpmlab.nclaw.scenes import eval_cases
+
+    cases = [c for c in eval_cases(material) if c.name in EXTRAS.get(material, ())]
+    partners = {}
+    for c in cases:
+        for p in c.partners:
+            s = RES / "train" / f"{p}_{backend}" / "summary.json"
+            if not (s.exists() and json.loads(s.read_text()).get("status") == "ok"):
+                log(f"{material}/{backend}: case {c.name} waits for the {p} training (rerun when it has finished)")
+                return
+            partners[p] = RES / "train" / f"{p}_{backend}" / "nclaw_weights.safetensors"
+    if cases:
+        evaluate(material, backend, weights, "ours", [c.name for c in cases], precision, tag="_extras",
+                 partners=partners)
 
 
 def fmt(v):
@@ -166,6 +191,13 @@ def report() -> None:
             o = tab.get("ours", {})
             rows2.append([material, backend] + [f"{fmt(o.get(k, {}).get('mse'))} ({fmt(o.get(k, {}).get('paper'))})"
                                                 for k in ("time", "velocity", "geometry")])
+    rows3 = []
+    for p in sorted((RES / "eval").glob("*_extras/summary.json")) if (RES / "eval").exists() else []:
+        e = json.loads(p.read_text())
+        for name, r in e["cases"].items():
+            tt, tl = r.get("truth_wall_s"), r.get("learned_wall_s")
+            rows3.append([e["material"], e["backend"], name, r.get("particles") or "–", r["steps"], fmt(r.get("mse")),
+                          "–" if tt is None else f"{tt:.0f}", "–" if tl is None else f"{tl:.0f}", r["status"]])
     body = ["Schedule: the release's (300 epochs; Adam lr 1.0 elastic / 0.1 plastic, cosine to 0, grad-norm clip "
             "0.1 per net; teacher-forcing period 25 -> 200 steps, reset x, v, C, F), MLS, fp32, 1k particles "
             "(NCLaw App. D). `segment_fraction` < 1 back-propagates that random share of the segments per epoch "
@@ -179,6 +211,11 @@ def report() -> None:
                        "labeled (paper)", "sys-id (paper)"], rows1), "",
             "### Tab. 2: generalisation, ours (paper) [m²]", "",
             *md_table(["material", "backend", "(a) time", "(b) velocity (3 seeds)", "(c) geometry"], rows2), "",
+            "### Figs. 3-4: the qualitative cases (no number in the paper)", "",
+            "The same metric on NCLaw's contact, pool, melting and incline scenes (stand-in meshes), with the "
+            "wall times of the ground truth and of the learned law (seconds, this machine).", "",
+            *md_table(["material", "backend", "case", "particles", "steps", "MSE [m²]", "truth s", "learned s",
+                       "status"], rows3), "",
             f"Machine: {json.dumps(machine_info(load=True))}", ""]
     write_readme_section(MD, "nclaw-train", "Training and evaluation (Tabs. 1-2)", "\n".join(body))
     log(f"wrote {MD}")
@@ -194,6 +231,8 @@ def main():
     ap.add_argument("--budget-min", type=float, default=85.0, help="wall-clock budget of this invocation [min]")
     ap.add_argument("--cases", default="reconstruction,time,velocity_seed1,velocity_seed7,velocity_seed8,geometry")
     ap.add_argument("--baselines", action="store_true", help="also the labeled and sys-id baselines (NCLaw Tab. 1)")
+    ap.add_argument("--no-extras", dest="extras", action="store_false",
+                    help="skip the qualitative cases (contact, pool, melting, incline: NCLaw Figs. 3-4)")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/nclaw.md from the results")
     ap.add_argument("--results", default=None, help="results folder (default benchmarks/results/nclaw); with it "
                                                     "the Markdown goes to <results>/nclaw.md")
@@ -221,6 +260,8 @@ def main():
             cases = csv(a.cases)
             evaluate(m, backend, weights, "ours", cases, a.precision)
             evaluate(m, backend, None, "ours-init", ["reconstruction"], a.precision)
+            if a.extras:
+                extras(m, backend, weights, a.precision)
             if a.baselines:
                 lab = train(m, backend, 1.0, a.epochs, deadline - time.time(), a.precision, "labeled")
                 if lab is not None and lab.get("status") == "ok":

@@ -103,7 +103,8 @@ def nclaw_group(stepper):
 
 def load_truth(path: str, stepper, steps: int) -> dict[str, np.ndarray]:
     """x, v, C, F [steps + 1, N, ...] of a ground-truth dataset (``mpmlab.nclaw.data.load_dataset``: every
-    step, all four fields), checked against the scene: particle count, dt, length, first positions."""
+    step, all four fields; J = det F too when a law of the scene carries J), checked against the scene:
+    particle count, dt, length, first positions."""
     from ..nclaw.data import load_dataset
 
     ds = load_dataset(path)
@@ -118,7 +119,10 @@ def load_truth(path: str, stepper, steps: int) -> dict[str, np.ndarray]:
     if not np.allclose(ds.x[0], x0, atol=1e-5 * max(1.0, float(np.abs(x0).max()))):
         raise ConfigError(f"dataset '{path}' (scene '{ds.scene}'): its first frame's positions are not the particles of "
                           f"scene '{name}' (another sampling or body); rerun experiment=nclaw_datasets with this scene.")
-    return {"x": ds.x, "v": ds.v, "C": ds.C, "F": ds.F, "J": np.linalg.det(ds.F)}
+    out = {"x": ds.x, "v": ds.v, "C": ds.C, "F": ds.F}
+    if any("J" in g.law.state_fields for g in stepper.groups):      # a J-state law (WATER's sys-id) resets J
+        out["J"] = np.linalg.det(ds.F)
+    return out
 
 
 def run(cfg, ctx) -> dict:
