@@ -45,6 +45,12 @@ def scene_for(kind, dim):
                                                "hi": [0.16, 1.0] + [1.0] * (dim - 2)},
                                        velocity=[0.0, 0.5] + [0.0] * (dim - 2), t_end=0.05)]
         bodies = [block(dim, [0.1, 0.3] + zlo, [0.4, 0.4] + zhi)]
+    elif kind == "particle_rigid_motion":   # one end of a bar pulled and twisted (ROM paper Sec. 5.2's torsion)
+        w = 4.0 if dim == 2 else [0.0, 3.0, 1.0]
+        bcs = [walls, ParticleVelocity(region={"kind": "box", "lo": [0.1, 0.0] + [0.0] * (dim - 2),
+                                               "hi": [0.16, 1.0] + [1.0] * (dim - 2)},
+                                       velocity=[0.2, 0.3] + [0.0] * (dim - 2), angular_velocity=w, t_end=0.05)]
+        bodies = [block(dim, [0.1, 0.3] + zlo, [0.4, 0.4] + zhi)]
     elif kind == "particle_load":
         bcs = [ParticleLoad(region={"kind": "box", "lo": [0.3, 0.0] + [0.0] * (dim - 2), "hi": [0.36, 1.0] + [1.0] * (dim - 2)},
                             force=[20.0, 5.0] + [0.0] * (dim - 2), t_start=0.01, t_end=0.04)]
@@ -62,11 +68,11 @@ def scene_for(kind, dim):
 
 
 KINDS = ("walls", "friction_walls", "friction_walls_per_node", "plane", "box_obstacle", "particle_velocity",
-         "particle_load", "body_force")
+         "particle_rigid_motion", "particle_load", "body_force")
 
 
 def test_every_registered_boundary_is_covered():
-    covered = {k.replace("_per_node", "") for k in KINDS}
+    covered = {k.replace("_per_node", "").replace("particle_rigid_motion", "particle_velocity") for k in KINDS}
     assert set(registry.boundaries.names()) <= covered
 
 
@@ -125,6 +131,53 @@ def test_prescribed_particle_velocity(backend):
     # they move with the prescribed velocity
     k = np.nonzero(inside)[0][-1]
     assert np.allclose(traj.x[k, idx] - traj.x[0, idx], np.asarray(b.velocity) * traj.time[k], atol=1e-12)
+
+
+def _rotation(w, dim):
+    from scipy.spatial.transform import Rotation
+
+    if dim == 2:
+        return np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    return Rotation.from_rotvec(np.asarray(w, float)).as_matrix()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("dim", (2, 3))
+def test_prescribed_rigid_motion(backend, dim):
+    """particle_velocity with an angular velocity: the region's particles follow x(t) = c0 + v0 t +
+    R(omega t) (X - c0) exactly (fp64, 1e-12 m) and carry the rigid velocity v0 + omega x (x - c(t))
+    while the window lasts; afterwards they are free again."""
+    scene = scene_for("particle_rigid_motion", dim)
+    b = scene.boundaries[1]
+    X = scene.particles().x
+    idx = b.select(X)
+    c0 = X[idx].mean(axis=0)
+    v0, w = np.asarray(b.velocity), np.asarray(b.angular_velocity, float)
+    traj = mpmlab.simulate(scene, 120, 10, backend, "apic", "fp64")
+    # (the step ending at t_end itself may fall either side: the stepper's time is a sum of steps)
+    inside = np.nonzero((traj.time > 0) & (traj.time < b.t_end - 1e-9))[0]
+    assert len(inside) >= 4
+    for k in inside:
+        t = traj.time[k]
+        c = c0 + v0 * t
+        x_exact = c + (X[idx] - c0) @ _rotation(w * t, dim).T
+        r = traj.x[k, idx] - c
+        v_exact = v0 + (w * np.stack([-r[:, 1], r[:, 0]], 1) if dim == 2 else np.cross(w, r))
+        np.testing.assert_allclose(traj.x[k, idx], x_exact, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(traj.v[k, idx], v_exact, rtol=0, atol=1e-11)
+    after = traj.time > b.t_end + 1e-9
+    assert not np.allclose(traj.v[after][-1, idx], v0 + 0.0 * traj.v[after][-1, idx], atol=1e-3)
+
+
+def test_rigid_motion_refuses_a_bad_angular_velocity():
+    from mpmlab.core.errors import ConfigError
+
+    scene = scene_for("particle_rigid_motion", 3)
+    bad = ParticleVelocity(region=dict(scene.boundaries[1].region), velocity=[0.0, 0.0, 0.0], angular_velocity=2.0)
+    with pytest.raises(ConfigError, match="3-vector"):
+        bad.validate(scene)
+    with pytest.raises(ConfigError, match="a load takes a force only"):
+        ParticleLoad(region=dict(scene.boundaries[1].region), force=[1.0, 0.0, 0.0], angular_velocity=[0, 0, 1.0]).validate(scene)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

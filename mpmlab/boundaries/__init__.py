@@ -156,7 +156,13 @@ class BoxObstacle(AbstractBoundary):
 
 @dataclass(frozen=True)
 class ParticleVelocity(AbstractBoundary):
-    """Prescribed velocity on the particles inside ``region`` at t = 0, during [t_start, t_end)."""
+    """Prescribed motion of the particles inside ``region`` at t = 0, during [t_start, t_end): a
+    translation at ``velocity`` or, with ``angular_velocity`` (rad/s: a scalar in 2D, a 3-vector in 3D),
+    a rigid motion v = v0 + omega x (x - c(t)) about a centre c(t) = c0 + v0 (t - t_start) moving with
+    the translation (``center`` c0; default: the centroid of the region's particles at t = 0). A step
+    from t to t + dt moves the particles exactly rigidly, x <- c(t + dt) + R(omega dt) (x - c(t)), and
+    gives them the rigid velocity at their new position (ROM paper Sec. 5.2: the pulled and twisted end
+    of the torsion cuboid)."""
 
     name: ClassVar[str] = "particle_velocity"
     implementations: ClassVar[dict] = _impl("particle_velocity")
@@ -166,10 +172,23 @@ class ParticleVelocity(AbstractBoundary):
     velocity: Sequence[float] = (0.0, 0.0, 0.0)
     t_start: float = 0.0
     t_end: float = float("inf")
+    angular_velocity: Any = None
+    center: Sequence[float] | None = None
 
     def select(self, x0: np.ndarray) -> np.ndarray:
         spec = dict(self.region)
         return np.nonzero(make_shape(spec.pop("kind"), **spec).contains(x0))[0]
+
+    @property
+    def rotating(self) -> bool:
+        """True when an angular velocity is given and nonzero (else a pure translation, as before)."""
+        return self.angular_velocity is not None and bool(np.any(np.asarray(self.angular_velocity, float) != 0.0))
+
+    def rotation_center(self, x0: np.ndarray) -> np.ndarray:
+        """c0: ``center``, or the centroid of the region's particles at t = 0."""
+        if self.center is not None:
+            return np.asarray(self.center, float)
+        return np.asarray(x0, float)[self.select(x0)].mean(axis=0)
 
     def _check(self, scene, vector, what: str) -> None:
         if "kind" not in self.region:
@@ -183,6 +202,14 @@ class ParticleVelocity(AbstractBoundary):
 
     def validate(self, scene) -> None:
         self._check(scene, self.velocity, "velocity")
+        if self.angular_velocity is not None:
+            w = np.asarray(self.angular_velocity, float)
+            want = () if scene.dim == 2 else (3,)
+            if w.shape != want or not np.all(np.isfinite(w)):
+                raise ConfigError(f"boundary '{self.name}': angular_velocity = {self.angular_velocity!r} must be "
+                                  f"{'a number [rad/s] in 2D' if scene.dim == 2 else 'a 3-vector [rad/s] in 3D'}.")
+        if self.center is not None and (len(self.center) != scene.dim or not np.all(np.isfinite(self.center))):
+            raise ConfigError(f"boundary '{self.name}': center = {self.center!r} needs {scene.dim} finite components.")
 
 
 @dataclass(frozen=True)
@@ -198,6 +225,9 @@ class ParticleLoad(ParticleVelocity):
 
     def validate(self, scene) -> None:
         self._check(scene, self.force, "force")
+        if self.angular_velocity is not None or self.center is not None:
+            raise ConfigError(f"boundary '{self.name}': angular_velocity and center belong to particle_velocity; "
+                              f"a load takes a force only.")
 
 
 def make_boundary(spec: Mapping[str, Any]) -> AbstractBoundary:

@@ -101,15 +101,48 @@ def box_obstacle(b, scene, dtype):
     return SimpleNamespace(params={}, apply=apply)
 
 
+def _rotation(w_dt, dim):
+    """R(omega dt): a 2D rotation by the angle ``w_dt``, or Rodrigues' formula for the 3-vector ``w_dt``
+    (sin t / t and (1 - cos t) / t^2 as sincs: smooth at t = 0)."""
+    if dim == 2:
+        c, s = jnp.cos(w_dt), jnp.sin(w_dt)
+        return jnp.array([[c, -s], [s, c]])
+    th = jnp.sqrt(jnp.sum(w_dt * w_dt) + jnp.finfo(w_dt.dtype).tiny)
+    K = jnp.array([[0.0, -w_dt[2], w_dt[1]], [w_dt[2], 0.0, -w_dt[0]], [-w_dt[1], w_dt[0], 0.0]], w_dt.dtype)
+    return jnp.eye(3, dtype=w_dt.dtype) + jnp.sinc(th / jnp.pi) * K + 0.5 * jnp.sinc(th / (2 * jnp.pi)) ** 2 * (K @ K)
+
+
+def _cross(w, r, dim):
+    """omega x r per row (2D: omega a scalar)."""
+    if dim == 2:
+        return w * jnp.stack([-r[:, 1], r[:, 0]], axis=1)
+    return jnp.cross(w[None, :], r)
+
+
 def particle_velocity(b, scene, dtype):
-    idx = jnp.asarray(b.select(scene.particles().x))
-    target = jnp.asarray(b.velocity, dtype)
+    """``apply_particles(x, v_p, v_pic, t_end, dt, params) -> (v_p, v_pic)``: the particle velocity and
+    the velocity that moves the particles over the step that ends at ``t_end`` (x: positions at its start)."""
+    x0 = scene.particles().x
+    idx = jnp.asarray(b.select(x0))
+    params = {"velocity": jnp.asarray(b.velocity, dtype)}
+    dim = scene.dim
+    if b.rotating:
+        params["angular_velocity"] = jnp.asarray(b.angular_velocity, dtype)
+        c0 = jnp.asarray(b.rotation_center(x0), dtype)
 
-    def apply_particles(v, t, params):
-        on = (t > b.t_start) & (t <= b.t_end)
-        return v.at[idx].set(jnp.where(on, params["velocity"], v[idx]))
+    def apply_particles(x, v_p, v_pic, t_end, dt, params):
+        on = (t_end > b.t_start) & (t_end <= b.t_end)
+        v0 = params["velocity"]
+        if not b.rotating:
+            return v_p.at[idx].set(jnp.where(on, v0, v_p[idx])), v_pic.at[idx].set(jnp.where(on, v0, v_pic[idx]))
+        w = params["angular_velocity"]
+        c_end = c0 + v0 * (t_end - b.t_start)            # the centre moves with the translation
+        x_end = c_end + (x[idx] - (c_end - v0 * dt)) @ _rotation(w * dt, dim).T   # exactly rigid over the step
+        move = (x_end - x[idx]) / dt
+        rigid = v0 + _cross(w, x_end - c_end, dim)         # the rigid velocity at the new position
+        return (v_p.at[idx].set(jnp.where(on, rigid, v_p[idx])), v_pic.at[idx].set(jnp.where(on, move, v_pic[idx])))
 
-    return SimpleNamespace(params={"velocity": target}, apply_particles=apply_particles)
+    return SimpleNamespace(params=params, apply_particles=apply_particles)
 
 
 def particle_load(b, scene, dtype):

@@ -297,9 +297,8 @@ class JaxStepper(BaseStepper):
         if T.carries_C:
             new["C"] = res.C
         for bc, bp in zip(self._particle_bcs, bc_params[nb:nb + len(self._particle_bcs)]):
-            v_p = bc.apply_particles(v_p, state["t"] + dt, bp)
-            # a prescribed particle velocity also moves the particle with it
-            v_pic = bc.apply_particles(v_pic, state["t"] + dt, bp)
+            # a prescribed particle velocity also moves the particle with it (v_pic)
+            v_p, v_pic = bc.apply_particles(x, v_p, v_pic, state["t"] + dt, dt, bp)
         new["x"] = x + dt * v_pic                                              # JAX-MPM Eq. 17
         new["v"] = v_p
 

@@ -301,7 +301,66 @@ def box_obstacle(b, scene, stepper):
     return bc
 
 
+@lru_cache(maxsize=None)
+def _rigid_kernels(dim: int, precision: str):
+    """particle_velocity with an angular velocity (``mpmlab.boundaries.ParticleVelocity``): the step ending
+    at t_end moves a particle exactly rigidly, x <- c_end + R(omega dt) (x - c_end + v0 dt), with c_end =
+    c0 + v0 (t_end - t_start), and gives it the rigid velocity v0 + omega x (x - c_end). omega is one
+    scalar in 2D, one vector in 3D (a [1] array: a differentiable control)."""
+    T = warp_types(dim, precision)
+    scalar, vec = T.scalar, T.vec
+    W = scalar if dim == 2 else vec
+
+    @wp.func
+    def motion(xp: vec, v0: vec, w: W, c0: vec, tau: scalar, dt: scalar):
+        c_end = c0 + v0 * tau
+        r = xp - c_end + v0 * dt
+        if wp.static(dim == 2):
+            a = w * dt
+            ca = wp.cos(a)
+            sa = wp.sin(a)
+            r1 = vec(ca * r[0] - sa * r[1], sa * r[0] + ca * r[1])
+            return c_end + r1, v0 + w * vec(-r1[1], r1[0])
+        else:
+            a = w * dt
+            th2 = wp.dot(a, a)
+            s1 = scalar(1.0) - th2 / scalar(6.0)           # sin t / t and (1 - cos t) / t^2, series near 0
+            s2 = scalar(0.5) - th2 / scalar(24.0)
+            if th2 > scalar(1.0e-6):
+                th = wp.sqrt(th2)
+                s1 = wp.sin(th) / th
+                s2 = (scalar(1.0) - wp.cos(th)) / th2
+            ar = wp.cross(a, r)
+            r1 = r + s1 * ar + s2 * wp.cross(a, ar)
+            return c_end + r1, v0 + wp.cross(w, r1)
+
+    @wp.kernel(module="unique")
+    def fast(v: wp.array(dtype=vec), x_in: wp.array(dtype=vec), x: wp.array(dtype=vec), idx: wp.array(dtype=int),
+             v0: wp.array(dtype=vec), w: wp.array(dtype=W), c0: vec, tau: scalar, dt: scalar):
+        p = idx[wp.tid()]
+        xe, ve = motion(x_in[p], v0[0], w[0], c0, tau, dt)
+        x[p] = xe
+        v[p] = ve
+
+    @wp.kernel(module="unique")
+    def tape(x_in: wp.array(dtype=vec), x: wp.array(dtype=vec), v: wp.array(dtype=vec), selected: wp.array(dtype=int),
+             v0: wp.array(dtype=vec), w: wp.array(dtype=W), c0: vec, tau: scalar, dt: scalar,
+             x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec)):
+        p = wp.tid()
+        if selected[p] != 0:
+            xe, ve = motion(x_in[p], v0[0], w[0], c0, tau, dt)
+            x_out[p] = xe
+            v_out[p] = ve
+        else:
+            v_out[p] = v[p]
+            x_out[p] = x[p]
+
+    return SimpleNamespace(fast=fast, tape=tape, W=W)
+
+
 def particle_velocity(b, scene, stepper):
+    if b.rotating:
+        return _rigid_particle_velocity(b, scene, stepper)
     idx = b.select(scene.particles().x)
     bc = SimpleNamespace(kind="particle_velocity")
     K = _node_kernels(stepper.dim, stepper.precision)
@@ -329,6 +388,47 @@ def particle_velocity(b, scene, stepper):
 
         return SimpleNamespace(stage="particle_velocity", params={"velocity": np.asarray(b.velocity, float)},
                                param_kinds={"velocity": "vec"}, particles=particles)
+
+    bc.apply_particles = apply_particles
+    bc.tape = tape
+    return bc
+
+
+def _rigid_particle_velocity(b, scene, stepper):
+    x0 = scene.particles().x
+    idx = b.select(x0)
+    T = stepper.T
+    R = _rigid_kernels(stepper.dim, stepper.precision)
+    dev = stepper.device
+    c0 = T.vec(*b.rotation_center(x0))
+    w_host = np.asarray(b.angular_velocity, float).reshape(-1)
+    bc = SimpleNamespace(kind="particle_velocity")
+    ia = wp.array(idx.astype(np.int32), dtype=int, device=dev)
+    bc.params = {"velocity": wp.array([b.velocity], dtype=T.vec, device=dev),
+                 "angular_velocity": wp.array(w_host if stepper.dim == 2 else [w_host], dtype=R.W, device=dev)}
+
+    def apply_particles(v, x_in, x, t):
+        if b.t_start < t <= b.t_end:
+            wp.launch(R.fast, dim=len(idx), inputs=[v, x_in, x, ia, bc.params["velocity"], bc.params["angular_velocity"],
+                                                    c0, T.scalar(t - b.t_start), stepper.dt_s], device=dev)
+
+    def tape():
+        N = len(x0)
+        sel = np.zeros(N, np.int32)
+        sel[idx] = 1
+        selected = wp.array(sel, dtype=int, device=dev)
+
+        def particles(x_in, x, v, p, t_end, dt, x_out, v_out):
+            if not b.t_start < t_end <= b.t_end:
+                return False
+            wp.launch(R.tape, dim=N, inputs=[x_in, x, v, selected, p["velocity"], p["angular_velocity"], c0,
+                                             T.scalar(t_end - b.t_start), dt, x_out, v_out], device=dev)
+            return True
+
+        return SimpleNamespace(stage="particle_velocity",
+                               params={"velocity": np.asarray(b.velocity, float), "angular_velocity": w_host},
+                               param_kinds={"velocity": "vec", "angular_velocity": "scalar" if stepper.dim == 2 else "vec"},
+                               particles=particles)
 
     bc.apply_particles = apply_particles
     bc.tape = tape
