@@ -5,7 +5,8 @@ App. B; ``/work/shared/notes/nclaw-rom.md`` Sec. 2.1, 2.2, 2.8 for what the pape
 
 This module holds the one spec both frameworks share (``RomSpec``: shapes, layer counts, Xavier
 init), the weight file (``save``/``load``) and the JAX functions (``g_apply``, ``g_jacobians``,
-``g_velocity``, ``encode``). ``mpmlab.rom.networks_torch`` has the torch counterparts; both read the
+``g_velocity``, ``encode``; each under ``jax.jit``: one compile per shape, not one per primitive as
+eager dispatch would). ``mpmlab.rom.networks_torch`` has the torch counterparts; both read the
 same dicts. Weights are plain dicts name -> array (JAX pytrees), as the NCLaw law stores its weights
 (``mpmlab.laws.nclaw``); equinox is not used (not a dependency).
 
@@ -61,6 +62,8 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..core.errors import ConfigError
@@ -263,14 +266,14 @@ def load(path, expect_dim: int | None = None, expect_latent: int | None = None,
     Refuses in one line (``ConfigError``): an unreadable file, another kind, a dimension / latent size /
     encoder size other than ``expect_*``, inconsistent metadata, arrays whose names or shapes do not fit
     the metadata, and a bad normaliser (``check``)."""
-    from safetensors import safe_open
+    from safetensors import SafetensorError, safe_open
 
     where = f"rom weights file '{path}'"
     try:
         with safe_open(str(path), framework="numpy") as f:
             meta = dict(f.metadata() or {})
             arrays = {k: np.asarray(f.get_tensor(k), dtype=np.float64) for k in f.keys()}
-    except (OSError, ValueError, RuntimeError) as e:  # safetensors raises SafetensorError (a ValueError/RuntimeError)
+    except (OSError, ValueError, RuntimeError, SafetensorError) as e:  # SafetensorError is a bare Exception (0.8)
         first = str(e).splitlines()[0] if str(e) else ""
         raise ConfigError(f"{where}: cannot read it ({type(e).__name__}: {first}).") from None
     if meta.get("kind") != KIND:
@@ -312,8 +315,6 @@ def load(path, expect_dim: int | None = None, expect_latent: int | None = None,
 
 def to_jax(tree, dtype=None):
     """A dict (or ``RomWeights``' params / norm) of arrays as JAX arrays of ``dtype`` (default: as is)."""
-    import jax.numpy as jnp
-
     return {k: jnp.asarray(_as_numpy(a), dtype=dtype) for k, a in tree.items()}
 
 
@@ -325,8 +326,6 @@ def _n_layers(params, prefix):
 
 
 def _elu(x):
-    import jax
-
     return jax.nn.elu(x)
 
 
@@ -340,8 +339,6 @@ def g_mlp(params, inp):
 
 
 def _inputs(params, norm, X, z):
-    import jax.numpy as jnp
-
     X, z = jnp.asarray(X), jnp.asarray(z)
     lead = jnp.broadcast_shapes(X.shape[:-1], z.shape[:-1])
     X = jnp.broadcast_to(X, lead + X.shape[-1:])
@@ -350,6 +347,7 @@ def _inputs(params, norm, X, z):
     return X, jnp.concatenate([z, Xn], axis=-1)
 
 
+@jax.jit
 def g_apply(params, norm, X, z):
     """x = g(X; x_hat): reference positions X ``[..., d]`` and latents z ``[..., d_hat]`` (leading axes
     broadcast: one latent ``[d_hat]`` for ``[N, d]`` points, or ``[B, 1, d_hat]`` with ``[N, d]``) ->
@@ -358,13 +356,11 @@ def g_apply(params, norm, X, z):
     return X + g_mlp(params, inp) * norm["u_std"] + norm["u_mean"]
 
 
+@jax.jit
 def g_jacobians(params, norm, X, z):
     """(x, F, dx/dx_hat): positions ``[..., d]``, F = dx/dX ``[..., d, d]`` and dx/dx_hat
     ``[..., d, d_hat]``, exact, by forward mode (``jax.jacfwd`` over the MLP's d_hat + d inputs,
     ``vmap`` over points) and the chain through normaliser and standardiser (module doc)."""
-    import jax
-    import jax.numpy as jnp
-
     X, inp = _inputs(params, norm, X, z)
     lead, m, d = inp.shape[:-1], inp.shape[-1], X.shape[-1]
     jac = jax.vmap(jax.jacfwd(lambda v: (g_mlp(params, v),) * 2, has_aux=True))
@@ -376,12 +372,10 @@ def g_jacobians(params, norm, X, z):
     return x, F, s * J[..., : m - d]
 
 
+@jax.jit
 def g_velocity(params, norm, X, z, zdot):
     """(x, v): positions and the velocity v = (dx/dx_hat) zdot of a latent velocity zdot (Eq. 24's
     velocity term, Eqs. 21/23), by one ``jax.jvp``; shapes as in ``g_apply``."""
-    import jax
-    import jax.numpy as jnp
-
     X, inp = _inputs(params, norm, X, z)
     tangent = jnp.concatenate([jnp.broadcast_to(zdot, inp.shape[:-1] + zdot.shape[-1:]),
                                jnp.zeros_like(X)], axis=-1)
@@ -400,12 +394,10 @@ def _check_snapshot(params, dim, n):
     return n_conv
 
 
+@jax.jit
 def encode(params, norm, x):
     """x_hat = e(x): a snapshot's positions ``[d, N]`` (or a batch ``[B, d, N]``) -> ``[d_hat]`` (or
     ``[B, d_hat]``), module doc; convs by ``jax.lax.conv_general_dilated`` in torch's NCH / OIH layout."""
-    import jax
-    import jax.numpy as jnp
-
     x = jnp.asarray(x)
     single = x.ndim == 2
     h = x[None] if single else x
