@@ -27,8 +27,9 @@ displacement u with x = X + u (notes 2.1): mpmlab predicts the standardised disp
 
 **Encoder e** (Sec. 4.1, Tab. 1; notes 2.1): one snapshot's positions x as ``[d, N]`` (channels = the
 d components, length = the particle index; a trajectory frame ``[N, d]`` must be transposed), min-max
-normalised with the same X_min / X_max as g's input (App. B says only "the input"; an mpmlab choice,
-recorded as ``encoder_input = "minmax"`` in the file), then ``n_conv`` times
+normalised with the same X_min / X_max as g's input (App. B min-max normalises "the reference
+positions" and says nothing of the encoder's input: an mpmlab choice, recorded as ``encoder_input =
+"minmax"`` in the file), then ``n_conv`` times
 ``Conv1d(d, d, kernel 6, stride 2) + ELU`` (``e_conv{i}_W [d, d, 6]``, ``e_conv{i}_b [d]``), flatten
 (``[d * L]``, channel-major like torch), ``Linear(d L, 32) + ELU`` (``e_fc0_*``) and
 ``Linear(32, d_hat) + ELU`` (``e_fc1_*``). The final ELU on the latent is the release's (notes 2.1);
@@ -40,15 +41,16 @@ its output still has d L_out >= 32 (the release's rule, notes 2.1), L_out = (L -
 -> 9 (L = 23). An N whose first layer would already give d L_out < 32 gets no conv layer (not a case
 in the paper). The encoder depends on N and on the particle order; it is used offline only.
 
-**Jacobians** (Sec. 3, Eqs. 21-24 use dg/dX and dg/dx_hat): forward mode (``jax.jacfwd`` over the
-d_hat + d inputs of the MLP, ``vmap`` over points), then the chain through the normaliser and the
+**Jacobians** (F = dg/dX in Algs. 3-4 and Eq. 24; dg/dx_hat in Eqs. 21, 23, 24): forward mode
+(``jax.jacfwd`` over the d_hat + d inputs of the MLP, ``vmap`` over points), then the chain through the normaliser and the
 standardiser, F = dx/dX = I + diag(u_std) (du~/dX~) diag(1 / (X_max - X_min)) and
 dx/dx_hat = diag(u_std) (du~/dx_hat): the columns [:d_hat] and [d_hat:] of the MLP's Jacobian (the
 release's ``NetGrad`` split, notes 2.1).
 
 **Initialisation** (App. B): Xavier-uniform weights (torch's ``xavier_uniform_``: U(-a, a),
 a = sqrt(6 / (fan_in + fan_out)), fan = channels x kernel for a conv) from ``numpy.random.default_rng
-(seed)``, drawn in layer order, g first; zero biases.
+(seed)``, drawn in layer order, g first; zero biases (neither the paper nor the notes say how the
+biases start; torch's own ``Linear`` default would draw them uniformly: an mpmlab choice).
 
 **File** (``save``/``load``): one safetensors file with the g weights, optionally the encoder's, and
 the normaliser ``X_min``, ``X_max``, ``u_mean``, ``u_std`` (each ``[d]``) as arrays; metadata: ``kind``
