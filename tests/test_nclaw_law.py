@@ -218,6 +218,9 @@ def test_weights_file_round_trip_and_refusals(tmp_path):
     refused(Law(weights_file=str(bare)), 2, "2D", "e_W1")
     refused(Law(weights_file=str(bare), no_undeformed=True), 3, "e_b1")
     refused(Law(weights_file=str(tmp_path / "missing.safetensors")), 3, "cannot read")
+    junk = tmp_path / "junk.safetensors"
+    junk.write_bytes(b"junk")                   # safetensors' SafetensorError is a bare Exception
+    refused(Law(weights_file=str(junk)), 3, "cannot read")
 
 
 def test_dt_auto_uses_the_networks_rest_tangent(tmp_path):

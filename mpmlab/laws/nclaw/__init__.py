@@ -161,7 +161,7 @@ class Law(AbstractConstitutiveLaw):
         return out
 
     def _load(self, dim):
-        from safetensors import safe_open
+        from safetensors import SafetensorError, safe_open
 
         path = self.weights_file
         where = f"law '{self.name}' weights_file '{path}'"
@@ -169,7 +169,7 @@ class Law(AbstractConstitutiveLaw):
             with safe_open(path, framework="numpy") as f:
                 meta = dict(f.metadata() or {})
                 arrays = {k: np.asarray(f.get_tensor(k), dtype=np.float64) for k in f.keys()}
-        except (OSError, ValueError, RuntimeError) as e:  # safetensors raises SafetensorError (a ValueError/RuntimeError)
+        except (OSError, ValueError, RuntimeError, SafetensorError) as e:  # SafetensorError: a bare Exception (0.8)
             raise ConfigError(f"{where}: cannot read it ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}).") from None
         want = self.weights_metadata(dim)
         if meta.get("law", self.name) != self.name:
