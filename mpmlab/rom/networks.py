@@ -203,13 +203,16 @@ def identity_norm(dim: int) -> dict[str, np.ndarray]:
 def fit_norm(X, x) -> dict[str, np.ndarray]:
     """The normaliser of App. B from training data: X_min / X_max of the reference positions X
     ``[N, d]`` and the per-component mean and standard deviation of the displacements u = x - X over
-    every snapshot and point (x ``[..., N, d]``). A component with no spread gets range / std 1."""
+    every snapshot and point (x ``[..., N, d]``). A flat axis of X gets range 1; a displacement component
+    with no spread gets the largest component's std (not 1: the std is in metres, and a unit scale would
+    turn the network's residual output in that component into metres of error), or 1 if none moves."""
     X = np.asarray(X, dtype=np.float64)
     u = (np.asarray(x, dtype=np.float64) - X).reshape(-1, X.shape[-1])
     lo, hi = X.min(0), X.max(0)
     std = u.std(0)
+    fallback = float(std.max()) if np.any(std > 0) else 1.0
     return {"X_min": lo, "X_max": np.where(hi > lo, hi, lo + 1.0), "u_mean": u.mean(0),
-            "u_std": np.where(std > 0, std, 1.0)}
+            "u_std": np.where(std > 0, std, fallback)}
 
 
 def _as_numpy(a):
