@@ -27,14 +27,14 @@ def bending(R=3, T=6, dt=0.05):
 
 def test_loss_falls_reconstructs_and_resumes_the_same(tmp_path):
     data = bending()
-    opt = TrainOptions(latent=2, batch=2, schedule=((1e-3, 40),), points=64)
+    opt = TrainOptions(latent=2, batch=2, schedule=((1e-3, 30),), points=64)
     ck = tmp_path / "ckpt.pkl"
-    _, first = fit(data, opt, ck, stop_after_epochs=15, progress=False)
-    assert len(first) == 15 and ck.exists()
+    _, first = fit(data, opt, ck, stop_after_epochs=10, progress=False)
+    assert len(first) == 10 and ck.exists()
     w, resumed = fit(data, opt, ck, progress=False)
     _, straight = fit(data, opt, None, progress=False)
     assert [h["loss"] for h in resumed] == [h["loss"] for h in straight]      # resume = uninterrupted
-    assert straight[-1]["loss"] < straight[0]["loss"] / 5
+    assert straight[-1]["loss"] < straight[0]["loss"] / 3
     err = reconstruction_error(w, data)
     assert err["E"] < 0.02 and err["origin"] == "centroid"
     assert {"u", "F", "v", "lr", "seconds"} <= set(straight[-1])
