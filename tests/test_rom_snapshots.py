@@ -302,3 +302,24 @@ def test_reader_refusals_are_one_line(tiny_study, tmp_path):
     with pytest.raises(ConfigError) as e:
         S.study("bending")
     one_line(e)
+
+
+def test_cli_sweep_of_a_study_reads_back(tmp_path):
+    """`mpmlab -m experiment=rom_snapshots_tower` with two of the study's test runs swept from the
+    command line (it replaces the experiment's 20): per-job trajectory.h5 files that load_snapshots
+    matches back to those runs by their recorded parameters."""
+    import os
+    import subprocess
+    import sys
+
+    s = S.study("tower")
+    pick = s.test[:2]
+    value = ",".join("{" + ",".join(f"{k}:{s.runs[i].params[k]!r}" for k in s.param_names) + "}" for i in pick)
+    proc = subprocess.run([sys.executable, "-m", "mpmlab", "-m", "experiment=rom_snapshots_tower", "scene.resolution=tiny",
+                           "backend=warp", "output.plots=false", f"scene.vars={value}", f"hydra.sweep.dir={tmp_path}"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300, env=dict(os.environ))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    snap = S.load_snapshots(tmp_path, s, runs=pick)
+    assert snap.x.shape == (2, 3, 208, 3) and snap.F.shape == (2, 3, 208, 3, 3)
+    np.testing.assert_allclose(snap.params, s.param_array(pick))
+    np.testing.assert_allclose(snap.time, [0, 1 / 24, 2 / 24], rtol=1e-6)
