@@ -323,3 +323,17 @@ def test_cli_sweep_of_a_study_reads_back(tmp_path):
     assert snap.x.shape == (2, 3, 208, 3) and snap.F.shape == (2, 3, 208, 3, 3)
     np.testing.assert_allclose(snap.params, s.param_array(pick))
     np.testing.assert_allclose(snap.time, [0, 1 / 24, 2 / 24], rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", list(S.STUDIES))
+def test_a_study_run_composes_with_its_parameters(name):
+    """A run's overrides make the scene with that run's parameters (read back as load_snapshots does)."""
+    s = S.study(name)
+    run = s.runs[-1]
+    cfg = compose([*run.overrides, "scene.resolution=tiny"] if s.scene != "cylinder_wall_gravity" else run.overrides)
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    assert plain["scene"]["name"] == s.scene and s.param_of(plain) == pytest.approx(
+        {k: run.params[k] for k in s.param_names})
+    assert list(cfg.output.fields) == ["F"] and cfg.output.recording is False
+    scene = build_scene(cfg)
+    assert scene.particles().count > 0

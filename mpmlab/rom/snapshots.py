@@ -49,7 +49,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -382,7 +382,7 @@ def _config_of(attrs: dict, path: Path) -> dict:
     if not text:
         raise ConfigError(f"'{path}' records no config (config_yaml), so its run's parameters are unknown; "
                           f"write it with `mpmlab` (task=simulate).")
-    return OmegaConf.to_container(OmegaConf.create(text), resolve=False)
+    return OmegaConf.to_container(OmegaConf.create(text), resolve=True)
 
 
 def _match(s: Study, params: dict, path: Path) -> int:
@@ -427,12 +427,11 @@ def load_snapshots(root: str | os.PathLike | Sequence[str | os.PathLike], s: Stu
     found: dict[int, tuple[Path, dict, dict]] = {}
     for path in files:
         attrs = read_attrs(path)
-        cfg = _config_of(attrs, path)
-        if cfg.get("scene", {}).get("name") != s.scene and attrs.get("scene") != s.scene:
+        if attrs.get("scene") not in (None, s.scene):
             continue
-        from omegaconf import OmegaConf
-
-        resolved = OmegaConf.to_container(OmegaConf.create(attrs["config_yaml"]), resolve=True)
+        resolved = _config_of(attrs, path)
+        if resolved.get("scene", {}).get("name") != s.scene:
+            continue
         i = _match(s, s.param_of(resolved), path)
         if i in found:
             raise ConfigError(f"study '{s.name}': run {s.runs[i].name} has two files, '{found[i][0]}' and '{path}'; "
