@@ -170,6 +170,10 @@ class BoundaryConfig:
     region: Optional[ShapeConfig] = None
     velocity: Optional[List[float]] = None
     force: Optional[List[float]] = None
+    #: particle_velocity's rigid motion v0 + omega x (x - c(t)): omega [rad/s] (a number in 2D, a 3-vector
+    #: in 3D) and the centre c0 at t_start (default: the region's centroid)
+    angular_velocity: Optional[Any] = None
+    center: Optional[List[float]] = None
     t_start: Optional[float] = None
     t_end: Optional[float] = None
     extra: Dict[str, Any] = field(default_factory=dict)
@@ -277,11 +281,27 @@ def _product(*args: Any) -> float:
     return out
 
 
+def _int_product(*args: Any) -> int:
+    out = 1
+    for a in args:
+        if isinstance(a, bool) or float(a) != int(float(a)):
+            raise ConfigError(f"mpmlab.imul: {a!r} is not an integer; it multiplies integers (a step count).")
+        out *= int(float(a))
+    return out
+
+
 def register_resolvers() -> None:
     """``${mpmlab.mul:a,b,...}`` and ``${mpmlab.add:a,b,...}`` for scene geometry derived from
-    ``scene.vars`` (e.g. a column height = L0 x aspect ratio)."""
+    ``scene.vars`` (e.g. a column height = L0 x aspect ratio); ``${mpmlab.sin:a}`` and
+    ``${mpmlab.cos:a}`` (radians) for directions given by angles (the ROM poke's f(theta, phi));
+    ``${mpmlab.imul:a,b,...}``, the product of integers, for a step count (snapshots x substeps)."""
+    import math
+
     OmegaConf.register_new_resolver("mpmlab.mul", _product, replace=True)
     OmegaConf.register_new_resolver("mpmlab.add", lambda *a: float(sum(float(x) for x in a)), replace=True)
+    OmegaConf.register_new_resolver("mpmlab.imul", _int_product, replace=True)
+    OmegaConf.register_new_resolver("mpmlab.sin", lambda a: math.sin(float(a)), replace=True)
+    OmegaConf.register_new_resolver("mpmlab.cos", lambda a: math.cos(float(a)), replace=True)
 
 
 def register_configs() -> None:
