@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mpmlab.core.errors import ConfigError
-from mpmlab.rom.train import PAPER_SCHEDULE, Snapshots, TrainOptions, fit, reconstruction_error
+from mpmlab.rom.train import PAPER_SCHEDULE, TrainingSet, TrainOptions, fit, reconstruction_error
 
 
 def bending(R=3, T=6, dt=0.05):
@@ -22,7 +22,7 @@ def bending(R=3, T=6, dt=0.05):
             x[r, t] = X + np.stack([0 * X[:, 0], s * X[:, 0] ** 2, 0 * X[:, 0]], 1)
             v[r, t, :, 1] = sd * X[:, 0] ** 2
             F[r, t, :, 1, 0] = 2 * s * X[:, 0]
-    return Snapshots(X, x, v, F, dt)
+    return TrainingSet(X, x, v, F, dt)
 
 
 def test_loss_falls_reconstructs_and_resumes_the_same(tmp_path):
@@ -52,8 +52,8 @@ def test_schedule_is_the_papers_and_scales():
 def test_refusals_are_one_line():
     data = bending(R=1, T=2)
     cases = [
-        (Snapshots(data.X, data.x, data.v, None, data.dt), TrainOptions(), "needs F"),
-        (Snapshots(data.X, data.x, None, data.F, data.dt), TrainOptions(), "needs v"),
+        (TrainingSet(data.X, data.x, data.v, None, data.dt), TrainOptions(), "needs F"),
+        (TrainingSet(data.X, data.x, None, data.F, data.dt), TrainOptions(), "needs v"),
         (data, TrainOptions(points=10_000), "points = 10000"),
     ]
     for d, opt, msg in cases:
@@ -61,6 +61,50 @@ def test_refusals_are_one_line():
             fit(d, opt, None, progress=False)
         assert "\n" not in str(e.value)
     with pytest.raises(ConfigError, match="must be"):
-        Snapshots(data.X, data.x, data.v[:, :1], data.F, data.dt)
+        TrainingSet(data.X, data.x, data.v[:, :1], data.F, data.dt)
     with pytest.raises(ConfigError, match="positive"):
-        Snapshots(data.X, data.x, data.v, data.F, 0.0)
+        TrainingSet(data.X, data.x, data.v, data.F, 0.0)
+
+
+def _task(out, *overrides, overwrite=False):
+    from mpmlab.config import compose
+    from mpmlab.tasks import RunContext, run_task
+
+    cfg = compose(["task=rom_train", "output.plots=false", *overrides])
+    return run_task(cfg, RunContext(output_dir=out, overwrite=overwrite, progress=False, job={}))
+
+
+def test_rom_train_task_on_tiny_torsion_snapshots_resumes(tmp_path):
+    """task=rom_train on two training runs and two test runs of the torsion study at `tiny` (Warp FOM):
+    a stopped run resumes to the planned epochs; weights, checkpoint, recording and summary are written,
+    with the reconstruction error on train and test."""
+    import json
+
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.snapshots import run_study, study
+
+    s = study("torsion")
+    data = tmp_path / "data"
+    run_study(s, data, runs=list(s.train[:2]) + list(s.test[:2]), overrides=["scene.resolution=tiny", "backend=warp"])
+    out = tmp_path / "train"
+    out.mkdir()
+    common = ["task.study=torsion", f"task.data={data}", "task.max_runs=2", "task.latent=2",
+              "task.schedule_scale=0.01", "task.batch=2"]
+    first = _task(out, *common, "task.stop_after_epochs=3")
+    assert first["status"] == "stopped" and first["epochs"] == 3
+    done = _task(out, *common)
+    assert done["status"] == "ok" and done["epochs"] == done["epochs_planned"] == 9
+    assert [h["loss"] for h in done["history"][:3]] == [h["loss"] for h in first["history"]]
+    assert set(done["reconstruction_error"]) == {"train", "test"}
+    for f in ("rom_weights.safetensors", "train_checkpoint.pkl", "recording.rrd", "summary.json"):
+        assert (out / f).exists(), f
+    w = N.load(out / "rom_weights.safetensors", expect_dim=3, expect_latent=2)
+    assert w.spec.n_points == done["points"]
+    assert json.loads((out / "summary.json").read_text())["runs"]["train"] == list(s.train[:2])
+
+
+def test_rom_train_task_refuses_a_test_only_study(tmp_path):
+    with pytest.raises(ConfigError, match="no training runs"):
+        _task(tmp_path, "task.study=torsion_fine", f"task.data={tmp_path}")
+    with pytest.raises(ConfigError, match="needs task.study"):
+        _task(tmp_path)

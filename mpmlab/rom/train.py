@@ -39,7 +39,7 @@ PAPER_SCHEDULE = ((1e-3, 500), (1e-4, 200), (1e-5, 100), (1e-6, 50))
 
 
 @dataclass
-class Snapshots:
+class TrainingSet:
     """Training snapshots of one study: ``X`` ``[N, d]`` reference positions (every run starts there),
     ``x``, ``v`` ``[R, T, N, d]`` and ``F`` ``[R, T, N, d, d]`` for R runs of T snapshots each, ``dt``
     the time between snapshots [s]."""
@@ -66,6 +66,20 @@ class Snapshots:
     @property
     def shape(self):
         return self.x.shape
+
+    @classmethod
+    def from_snapshots(cls, snap) -> "TrainingSet":
+        """From ``mpmlab.rom.snapshots.load_snapshots``' result: every run must start from one reference
+        configuration X (its first snapshot), and the snapshots be evenly spaced in time."""
+        x0 = np.asarray(snap.x[:, 0], float)
+        if not np.allclose(x0, x0[:1], rtol=0, atol=1e-9 * max(1.0, float(np.abs(x0).max()))):
+            raise ConfigError("rom_train: the runs start from different configurations; g(X; x_hat) needs one "
+                              "reference X for every snapshot (the same scene and sampling).")
+        t = np.asarray(snap.time, float)
+        if len(t) < 2 or not np.allclose(np.diff(t), t[1] - t[0], rtol=1e-6):
+            raise ConfigError(f"rom_train: the snapshots' times {t[:4].tolist()}... are not evenly spaced (or fewer "
+                              f"than two): the velocity term needs one interval.")
+        return cls(x0[0], snap.x, snap.v, snap.F, float(t[1] - t[0]))
 
 
 @dataclass
@@ -102,7 +116,7 @@ class TrainOptions:
         return sum(n for _, n in self.epochs())
 
 
-def check_options(opt: TrainOptions, data: Snapshots) -> None:
+def check_options(opt: TrainOptions, data: TrainingSet) -> None:
     if opt.lambda_F > 0 and data.F is None:
         raise ConfigError(f"rom_train: lambda_F = {opt.lambda_F} needs F in the snapshots (store output.fields [F]); "
                           f"or set lambda_F 0.")
@@ -157,7 +171,7 @@ def _atomic_pickle(path: Path, obj) -> None:
         raise
 
 
-def fit(data: Snapshots, opt: TrainOptions, checkpoint: str | Path | None = None, *, stop_after_s: float | None = None,
+def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = None, *, stop_after_s: float | None = None,
         stop_after_epochs: int | None = None, on_epoch: Callable | None = None, progress: bool | None = None):
     """Train e and g on ``data`` (module doc); returns ``(weights: RomWeights, history: list of dicts)``.
 
@@ -254,7 +268,7 @@ def fit(data: Snapshots, opt: TrainOptions, checkpoint: str | Path | None = None
     return weights, history
 
 
-def reconstruction_error(weights: N.RomWeights, data: Snapshots, origin: str = "centroid") -> dict:
+def reconstruction_error(weights: N.RomWeights, data: TrainingSet, origin: str = "centroid") -> dict:
     """How well e and g reproduce snapshots (no time stepping): E = sqrt(sum |g(X; e(x)) - x|^2 /
     sum |x - c|^2) with c the initial centroid (``origin="centroid"``; the paper states no origin, the
     release uses 5 m per axis: the value depends on it), and the displacement-relative error
