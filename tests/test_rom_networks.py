@@ -164,19 +164,8 @@ def test_broadcast_one_latent_per_snapshot():
 
 
 def linear_g(spec, A, B, c=10.0):
-    """Weights with u~ = B x_hat + A X~ exactly while every pre-activation stays > 0 (ELU = identity
-    there): W0 copies the inputs into the first channels (+ c), the hidden layers are identities, the
-    output layer reads [B | A] and removes the offset."""
-    d, m, w = spec.dim, spec.latent + spec.dim, spec.width
-    p = {k: np.zeros(s) for k, s in spec.g_shapes().items()}
-    p["g_W0"][:m, :m] = np.eye(m)
-    p["g_b0"][:] = c
-    for i in range(1, spec.depth):
-        p[f"g_W{i}"] = np.eye(w)
-    last = spec.depth
-    p[f"g_W{last}"][:, :m] = np.concatenate([B, A], axis=1)
-    p[f"g_b{last}"] = -p[f"g_W{last}"] @ np.full(w, c)
-    return p
+    """u~ = B x_hat + A X~ exactly (``networks.linear_params``)."""
+    return rn.linear_params(spec, A, B, c)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -194,6 +194,26 @@ def init_params(spec: RomSpec, seed: int = 0) -> dict[str, np.ndarray]:
     return out
 
 
+def linear_params(spec: RomSpec, A, B, offset: float = 10.0) -> dict[str, np.ndarray]:
+    """Weights of g with u~ = B x_hat + A X~ exactly, while |B x_hat + A X~| stays below ``offset``
+    per channel (every pre-activation > 0: ELU is the identity there): W0 copies the inputs into the
+    first channels plus ``offset``, the hidden layers are identities, the output layer reads [B | A] and
+    removes the offset. ``B = I`` (d_hat = d) with ``identity_norm`` is g(X; x_hat) = X + x_hat, the
+    rigid-translation manifold the reduced stepper is checked on. Needs width >= d_hat + d."""
+    d, m, w = spec.dim, spec.latent + spec.dim, spec.width
+    if w < m:
+        raise ConfigError(f"rom networks: linear_params needs width >= latent + dim = {m}; the spec has {w}.")
+    p = {k: np.zeros(s) for k, s in spec.g_shapes().items()}
+    p["g_W0"][:m, :m] = np.eye(m)
+    p["g_b0"][:] = offset
+    for i in range(1, spec.depth):
+        p[f"g_W{i}"] = np.eye(w)
+    last = spec.depth
+    p[f"g_W{last}"][:, :m] = np.concatenate([np.asarray(B, float), np.asarray(A, float)], axis=1)
+    p[f"g_b{last}"] = -p[f"g_W{last}"] @ np.full(w, offset)
+    return p
+
+
 def identity_norm(dim: int) -> dict[str, np.ndarray]:
     """X~ = X and u = u~ (X_min = u_mean = 0, X_max = u_std = 1)."""
     z, o = np.zeros(dim), np.ones(dim)
