@@ -97,7 +97,6 @@ class TrainOptions:
     #: use every k-th snapshot of each run
     frame_stride: int = 1
     seed: int = 0
-    history: list = field(default_factory=list)
 
     def epochs(self) -> list[tuple[float, int]]:
         """(lr, epochs) with the epoch counts scaled by ``schedule_scale`` (at least 1 each)."""
