@@ -204,7 +204,9 @@ def test_eval_cases_names_and_steps():
     common = ["reconstruction", "time", "velocity_seed1", "velocity_seed7", "velocity_seed8", "geometry"]
     got = {m: {c.name: c for c in eval_cases(m)} for m in ("jelly", "sand", "plasticine", "water")}
     assert list(got["jelly"]) == common + ["contact", "pool"]
-    assert list(got["sand"]) == list(got["plasticine"]) == common
+    assert list(got["sand"]) == common
+    assert list(got["plasticine"]) == common + ["melting"]
+    assert got["plasticine"]["melting"].scene == "nclaw_melting" and got["plasticine"]["melting"].steps == 2000
     assert list(got["water"]) == common + ["incline"]
     for m, cases in got.items():
         assert cases["reconstruction"].steps == 1000 and cases["reconstruction"].scene == f"nclaw_{m}"
