@@ -124,8 +124,10 @@ def test_train_task_refuses_bad_datasets(dataset, truth, tmp_path):
 
 
 def test_train_diverging_gives_fit_diverged(dataset, tmp_path):
-    """A learning rate that blows the law up: FitDiverged, exit code 3, one line."""
+    """A learning rate that blows the law up: FitDiverged, exit code 3, one line (on_divergence=stop; the
+    default backoff's step back is tested in tests/test_inverse.py)."""
     p = mpmlab_cli(TRAIN + ["backend=warp", f"task.dataset={dataset}", "task.epochs=3", "task.nets.elastic.lr=1.0e4",
+                            "task.on_divergence=stop",
                             "scene.steps=20", "task.teacher.start=20", "task.teacher.end=20", "output.recording=false",
                             "output.plots=false", f"hydra.run.dir={tmp_path / 'x'}"], tmp_path, expect=3)
     assert "diverged" in p.stderr.strip().splitlines()[-1]

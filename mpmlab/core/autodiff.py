@@ -107,7 +107,7 @@ class AutodiffAdapter(Protocol):
         is the trainable tree that ``optimizer_init`` returned."""
 
     def value(self, loss: Callable[[Tree], tuple[Array, Any]], raw: Tree) -> float:
-        """``loss(raw)[0]`` as a float, without a gradient."""
+        """``loss(raw)[0]`` as a float, without a gradient; NaN when the rollout diverged."""
 
     def tracking_value_and_grad(self, stepper, controls: Callable[[Tree, Tree], Tree], observations: Sequence,
                                 weights: Sequence[float], segment: int | None = None, grad: bool = True
@@ -140,8 +140,10 @@ class AutodiffAdapter(Protocol):
         """``(raw, state)``: the trainable tree (made trainable where the backend needs it) and the
         optimiser's state."""
 
-    def optimizer_step(self, state: Any, raw: Tree, grad: Any) -> tuple[Tree, Any]:
-        """One optimiser (and schedule) step: the new ``(raw, state)``."""
+    def optimizer_step(self, state: Any, raw: Tree, grad: Any, scale: float = 1.0) -> tuple[Tree, Any]:
+        """One optimiser (and schedule) step: the new ``(raw, state)``. ``scale`` multiplies the update
+        (``raw + scale * (step(raw) - raw)``; the optimiser's moments are those of the unscaled step), which
+        for Adam without weight decay is the step at ``scale`` times the learning rate."""
 
     def save_checkpoint(self, path, epoch: int, history: list, raw: Tree, state: Any) -> None:
         """Write ``epoch``, ``history``, ``raw`` and the optimiser state to ``path`` atomically."""

@@ -13,6 +13,13 @@ of a jitted loss through ``stepper.observe`` and an optax GradientTransformation
 lr scheduler). A non-finite loss stops the fit with ``FitDiverged``; a non-finite gradient is located
 (``GradientError``: step and particle). Checkpoints (every ``checkpoint_every`` epochs, atomic) let an
 interrupted fit resume where it stopped.
+
+``on_divergence="backoff"`` (``max_backoffs`` times at most) turns a diverged epoch into a logged step
+back instead: the parameters and optimiser state of the epoch before it are restored (from
+``<checkpoint>.prev``, written before every optimiser step, so a resumed fit can step back too), and
+every later update is scaled by a further 1/2 (for Adam without weight decay, exactly a halved
+learning rate). Each history entry carries its ``lr_scale``; the epoch re-run after a step back carries
+``backoff: {diverged_at, why}``. The default, ``stop``, raises ``FitDiverged``.
 """
 from __future__ import annotations
 
@@ -156,11 +163,18 @@ class Fit:
     def run(self, epochs: int, optimizer_cfg, schedule_cfg=None, checkpoint: Path | None = None,
             checkpoint_every: int = 10, resume: bool = True, progress: bool | None = None,
             on_epoch: Callable[[int, float, dict], None] | None = None, tolerance: float = 0.0,
-            on_checkpoint: Callable[[Any], None] | None = None, stop: Callable[[], bool] | None = None) -> dict:
+            on_checkpoint: Callable[[Any], None] | None = None, stop: Callable[[], bool] | None = None,
+            on_divergence: str = "stop", max_backoffs: int = 4) -> dict:
         """Optimise for ``epochs`` epochs (total, counting those done before a resume); returns the
         final trainable values. ``on_epoch(epoch, loss, values)`` runs after every epoch,
         ``on_checkpoint(raw)`` after every checkpoint written (gradient optimisers); ``stop()`` returning
-        True ends the fit after the current epoch, checkpointed (a time budget: rerun to continue)."""
+        True ends the fit after the current epoch, checkpointed (a time budget: rerun to continue).
+        ``on_divergence``: ``stop`` (raise ``FitDiverged``) or ``backoff`` (gradient optimisers: step back one
+        epoch and halve the updates, at most ``max_backoffs`` times; see the module docstring)."""
+        if on_divergence not in ("stop", "backoff"):
+            raise ConfigError(f"on_divergence must be 'stop' or 'backoff', not {on_divergence!r}.")
+        if on_divergence == "backoff" and (not isinstance(max_backoffs, int) or max_backoffs < 1):
+            raise ConfigError(f"max_backoffs must be a positive integer, not {max_backoffs!r}.")
         if self.reference is None:
             self.make_reference()
         from .lm import LevenbergMarquardt
@@ -169,7 +183,8 @@ class Fit:
             return self._run_lm(epochs, optimizer_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
                                 tolerance)
         return self._run_gradient(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume, progress,
-                                  on_epoch, tolerance, on_checkpoint, stop)
+                                  on_epoch, tolerance, on_checkpoint, stop,
+                                  max_backoffs if on_divergence == "backoff" else 0)
 
     def _bar(self, epochs, progress):
         """The progress bar, once the checkpoint (if any) is loaded; a resume is said in the run's log."""
@@ -206,29 +221,60 @@ class Fit:
                            f"softplus, or check the data.")
 
     def _run_gradient(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol,
-                      on_checkpoint=None, stop=None):
+                      on_checkpoint=None, stop=None, max_backoffs=0):
         """One rollout, one gradient and one optimiser step per epoch (optimiser and schedule as the
         adapter's ``optimizer_init`` takes them: optax on JAX, torch.optim factories on Warp)."""
+        import tempfile
+
         ad = self.adapter
         vg = self.epoch_objective()
         raw, state = ad.optimizer_init(opt_cfg, sched_cfg, self.init_raw())
         if checkpoint is not None and resume and checkpoint.exists():
             self.epoch, self.history, raw, state = ad.load_checkpoint(checkpoint, raw, state)
+        self.lr_scale = float(self.history[-1].get("lr_scale", 1.0)) if self.history else 1.0
+        scratch = None
+        if max_backoffs:
+            if checkpoint is None:
+                scratch = tempfile.TemporaryDirectory(prefix="mpmlab-fit-")
+                prev = Path(scratch.name) / "prev"
+            else:
+                prev = checkpoint.with_name(checkpoint.name + ".prev")
+                if not (resume and checkpoint.exists()):
+                    prev.unlink(missing_ok=True)        # a fresh fit: no epoch to step back to
         bar = self._bar(epochs, progress)
         t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)
+        backoff = None
         try:
             while self.epoch < epochs:
                 val, why, g = vg(raw)
-                if why is not None:
-                    raise self._diverged(self.epoch, val, why)
-                if not np.isfinite(val):
-                    raise self._diverged(self.epoch, val)
+                if why is not None or not np.isfinite(val):
+                    err = self._diverged(self.epoch, val, why or "")
+                    used = sum(1 for h in self.history if "backoff" in h)
+                    if not max_backoffs or used >= max_backoffs or not prev.exists():
+                        if max_backoffs:
+                            err.args = (err.args[0] + f" [{used} step(s) back already taken of {max_backoffs}"
+                                        + ("" if prev.exists() else "; no earlier epoch to step back to") + "]",)
+                        raise err
+                    at = self.epoch
+                    self.epoch, self.history, raw, state = ad.load_checkpoint(prev, raw, state)
+                    self.lr_scale = float(self.history[-1].get("lr_scale", 1.0)) if self.history else 1.0
+                    self.lr_scale *= 0.5
+                    backoff = {"diverged_at": int(at), "why": why or f"the loss is {val}"}
+                    log.warning("fit: epoch %d diverged (%s); stepping back to epoch %d with the updates scaled by "
+                                "%g (step back %d of %d).", at, backoff["why"], self.epoch, self.lr_scale, used + 1,
+                                max_backoffs)
+                    continue
                 if not ad.check_gradient(g):
                     self._locate(raw)
                 gn = ad.grad_norm(g)
                 self._record(self.epoch, val, raw, gn, time.perf_counter() - t0)
                 self.history[-1].update(self.epoch_extras(raw, g))
-                raw, state = ad.optimizer_step(state, raw, g)
+                self.history[-1]["lr_scale"] = self.lr_scale
+                if backoff is not None:
+                    self.history[-1]["backoff"], backoff = backoff, None
+                if max_backoffs:                # the state this epoch started from, to step back to
+                    ad.save_checkpoint(prev, self.epoch, self.history[:-1], raw, state)
+                raw, state = ad.optimizer_step(state, raw, g, scale=self.lr_scale)
                 self._epoch_done(bar, val, on_epoch)
                 stopping = stop is not None and self.epoch < epochs and stop()
                 if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs or stopping):
@@ -240,6 +286,8 @@ class Fit:
                     break
         finally:
             bar.close()
+            if scratch is not None:
+                scratch.cleanup()
         self.final_loss = self.final_value(raw)
         return raw
 

@@ -287,14 +287,15 @@ class TeacherForcedFit(Fit):
         return {**self.last_epoch, "grad_norms": self.grad_norms(grad), "lr": self.learning_rates(self.epoch)}
 
     def learning_rates(self, epoch: int) -> dict[str, float]:
-        """Each group's learning rate at ``epoch`` (the cosine schedule of ``grouped_optimizer``)."""
+        """Each group's learning rate at ``epoch`` (the cosine schedule of ``grouped_optimizer``, times the
+        fit's ``lr_scale`` after a step back)."""
         sched = getattr(self, "lr_config", None) or {}
         out = {}
         for label, g in sched.get("groups", {}).items():
             lr = float(g["lr"])
             if sched.get("schedule", "cosine") == "cosine":
                 lr *= 0.5 * (1.0 + math.cos(math.pi * min(epoch, self.epochs) / max(self.epochs, 1)))
-            out[label] = lr
+            out[label] = lr * getattr(self, "lr_scale", 1.0)      # Fit's step-back factor (on_divergence)
         return out
 
     def final_value(self, raw) -> float:

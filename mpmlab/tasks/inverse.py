@@ -92,6 +92,10 @@ class InverseTaskConfig(TaskConfig):
     #: steps per recomputed segment of the backward pass (memory O(steps / segment + segment))
     segment: int = 100
     checkpoint_every: int = 10
+    #: a diverged epoch (gradient optimisers): stop (FitDiverged, exit 3) | backoff (step back one epoch and
+    #: halve the updates, logged in the history, at most max_backoffs times)
+    on_divergence: str = "stop"
+    max_backoffs: int = 4
     #: continue from fit_checkpoint.* in the run directory if present
     resume: bool = True
     #: stop early once the loss is at or below this
@@ -220,7 +224,8 @@ def run(cfg, ctx) -> dict:
     try:
         raw = fit.run(int(tc.epochs), optimizer, sched, checkpoint=ckpt, checkpoint_every=int(tc.checkpoint_every),
                       resume=bool(tc.resume), progress=ctx.progress,
-                      on_epoch=rec.log if rec is not None else None, tolerance=float(tc.loss_tolerance))
+                      on_epoch=rec.log if rec is not None else None, tolerance=float(tc.loss_tolerance),
+                      on_divergence=str(tc.on_divergence), max_backoffs=int(tc.max_backoffs))
     finally:
         if rec is not None:
             rec.close()

@@ -73,6 +73,10 @@ class NclawTrainConfig(TaskConfig):
     #: steps per recomputed segment of a backward pass (memory; not the teacher-forcing segments)
     segment: int = 100
     checkpoint_every: int = 1
+    #: a diverged epoch: stop (FitDiverged, exit 3) | backoff (step back one epoch and halve the learning
+    #: rates, logged in the history, at most max_backoffs times; the release instead zeroes NaN gradients)
+    on_divergence: str = "backoff"
+    max_backoffs: int = 4
     #: continue from train_checkpoint.* in the run directory if present
     resume: bool = True
     #: stop this run (checkpointed; the same command continues) after this many epochs / seconds (0: no limit)
@@ -222,7 +226,7 @@ def run(cfg, ctx) -> dict:
         raw = fit.run(int(tc.epochs), optimizer, sched, checkpoint=ckpt, checkpoint_every=int(tc.checkpoint_every),
                       resume=bool(tc.resume), progress=ctx.progress, on_epoch=on_epoch,
                       on_checkpoint=(None if method == "sysid" else lambda raw: _write_law_weights_as(out, fit, raw)),
-                      stop=stop)
+                      stop=stop, on_divergence=str(tc.on_divergence), max_backoffs=int(tc.max_backoffs))
     finally:
         if rec is not None:
             rec.close()
@@ -240,6 +244,7 @@ def run(cfg, ctx) -> dict:
         "teacher": {"start": forcing.start, "end": forcing.end, "reset": list(forcing.reset)},
         "segment_fraction": float(tc.segment_fraction), "velocity_weight": float(tc.velocity_weight),
         "initial_loss": float(hist[0]["loss"]) if hist else None,
+        "backoffs": [dict(h["backoff"], resumed_at=h["epoch"], lr_scale=h["lr_scale"]) for h in hist if "backoff" in h],
         "final_loss": float(fit.final_loss),
         "final_loss_note": "the full teacher-forced loss (every segment) at the last epoch's period",
         "seconds_per_epoch": float(np.median(times[1:])) if len(times) > 1 else (float(times[0]) if len(times) else None),

@@ -81,7 +81,9 @@ class JaxAdapter:
         return value_and_grad
 
     def value(self, loss, raw, *data):
-        return float(loss(raw, *data)[0])
+        """The loss alone; NaN for a rollout that left the domain or became non-finite."""
+        val, bad = loss(raw, *data)
+        return float("nan") if bool(bad) else float(val)
 
     def tracking_value_and_grad(self, stepper, controls, observations, weights, segment=None, grad=True):
         """A fixed set of compiled pieces for every rollout length (``differentiable.tracking_value_and_grad``)."""
@@ -117,11 +119,13 @@ class JaxAdapter:
         opt = optimizer(schedule) if callable(optimizer) else optimizer
         return raw, (opt, opt.init(raw))
 
-    def optimizer_step(self, state, raw, grad):
+    def optimizer_step(self, state, raw, grad, scale=1.0):
         import optax
 
         opt, opt_state = state
         updates, opt_state = opt.update(grad, opt_state, raw)
+        if scale != 1.0:
+            updates = jax.tree.map(lambda u: u * scale, updates)
         return optax.apply_updates(raw, updates), (opt, opt_state)
 
     def grouped_optimizer(self, names, groups, schedule, epochs):

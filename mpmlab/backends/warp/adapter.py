@@ -138,8 +138,12 @@ class WarpAdapter:
         return value_and_grad
 
     def value(self, loss, raw, *data):
-        with torch.no_grad():
-            return float(loss(raw, *data)[0])
+        """The loss alone; NaN for a rollout that diverges (as ``value_and_grad`` reports it)."""
+        try:
+            with torch.no_grad():
+                return float(loss(raw, *data)[0])
+        except SimulationDiverged:
+            return float("nan")
 
     def tracking_value_and_grad(self, stepper, controls, observations, weights, segment=None, grad=True):
         """Warp compiles nothing per rollout length: one loss per length, from ``observe``."""
@@ -191,12 +195,18 @@ class WarpAdapter:
                  if schedule == "cosine" else None)
         return optimizer, sched
 
-    def optimizer_step(self, state, raw, grad):
+    def optimizer_step(self, state, raw, grad, scale=1.0):
         opt, sched = state
-        for q, g in zip(_leaves(raw), grad or ()):       # gradients summed on the host (teacher forcing)
+        leaves = _leaves(raw)
+        for q, g in zip(leaves, grad or ()):       # gradients summed on the host (teacher forcing)
             if g is not None and q.grad is not g:
                 q.grad = g
+        before = [q.detach().clone() for q in leaves] if scale != 1.0 else None
         opt.step()
+        if before is not None:
+            with torch.no_grad():
+                for q, b in zip(leaves, before):
+                    q.copy_(b + scale * (q - b))
         if sched is not None:
             sched.step()
         return raw, state
