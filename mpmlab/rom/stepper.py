@@ -11,7 +11,17 @@ so P2G, the grid update, every boundary, G2P and the law's ``kirchhoff`` are the
 * **Quadrature** ``lagrangian`` (Alg. 3): the material points that share a grid node with a sample
   point (their B-spline stencils, base nodes within 2 cells per axis, overlap), with their own mass and
   volume; every other point gets zero mass, so the nodes the samples read carry exactly what the full
-  P2G puts there. (``eulerian``, Alg. 4, is not built yet: asking for it says so.)
+  P2G puts there. Its cost grows with the body (every point's position is needed to find the
+  neighbours), as the paper says.
+* **Quadrature** ``eulerian`` (Alg. 4, Eq. 20): 2 points per axis in each grid cell whose points reach
+  a node of the samples' stencils (10 per axis around each sample, deduplicated), V_q = V_c / 2^d, at
+  the cell's quarter points. Each point's undeformed X_q solves g(X_q; x_hat) = x_q (Newton with
+  backtracking, ``manifold.inverse_map``, from the nearest sample's linearisation); its F and v come
+  from g at X_q, its mass is rho_0 V_q / J_q and its reference volume V_q / J_q (so V^0 tau = V_q
+  sigma). Points whose X_q lies outside the reference body (the voxels of side V_p^{1/d} of the
+  material points) or whose inversion did not converge get zero mass and are counted
+  (``ReducedState.outside`` / ``unconverged``). The cost is set by |M|, not by the body. The P2G
+  and grid update still run on the scene's grid (the compact node set is not built yet).
 * **Projection** ``linear`` (Alg. 7, Eq. 23) or ``nonlinear`` (Alg. 6, Eqs. 21-22: Gauss-Newton with
   Armijo backtracking from 2 x_hat_n - x_hat_{n-1}); ``mpmlab.rom.manifold``.
 * **Samples** M: ``samples`` points drawn anew every step, uniformly without replacement from a seeded
@@ -45,6 +55,13 @@ class ReducedState(NamedTuple):
     z_prev: object   # [d_hat] x_hat_{n-1} (the nonlinear projection's extrapolation)
     t: object        # time [s]
     key: object      # PRNG key of the sample draws
+    outside: object = 0       # Eulerian quadrature, last step: points outside the reference body
+    unconverged: object = 0   # ... and points whose inverse map did not converge (both massless)
+
+
+#: Eulerian quadrature points per axis around a sample: on the half-cell lattice j (x = (j/2 + 1/4) dx),
+#: the points whose B-spline stencil reaches a node of base .. base + 2 have j - 2 base in [-3, 6]
+_EULER_REACH = np.arange(-3, 7)
 
 
 class ReducedStepper(AbstractStepper):
@@ -69,8 +86,6 @@ class ReducedStepper(AbstractStepper):
                                   f"laws whose whole state is F are supported (e.g. fixed_corotated).")
         if quadrature not in QUADRATURES:
             raise ConfigError(f"ReducedStepper: quadrature '{quadrature}'; choose {' or '.join(QUADRATURES)}.")
-        if quadrature == "eulerian":
-            raise ConfigError("ReducedStepper: the Eulerian quadrature (Alg. 4) is not built yet; use 'lagrangian'.")
         if projection not in PROJECTIONS:
             raise ConfigError(f"ReducedStepper: projection '{projection}'; choose {' or '.join(PROJECTIONS)}.")
         spec = weights.spec
@@ -107,7 +122,44 @@ class ReducedStepper(AbstractStepper):
         self._n_random = samples - len(self._forced)
         self._base0 = fom._node_x[0]
         self._fom_params = dict(fom.params)          # made here, outside any trace (it is cached on the stepper)
+        nb = len(fom._grid_bcs)
+        self._pbc_params = fom.params["boundary"][nb:nb + len(fom._particle_bcs)]
+        if quadrature == "eulerian":
+            self._setup_eulerian()
         self._step = jax.jit(self._step_impl)
+
+    def _setup_eulerian(self):
+        """The fixed parts of Alg. 4: the quadrature lattice, V_q, rho_0, one law-parameter row and the
+        reference body's voxels (module doc)."""
+        import jax.numpy as jnp
+
+        fom, d, dx = self.fom, self.dim, self.scene.dx
+        if len(fom.groups) != 1:
+            raise ConfigError(f"ReducedStepper: the Eulerian quadrature needs one material group (its points take "
+                              f"rho_0 and the law from it); this scene has {len(fom.groups)}: use 'lagrangian'.")
+        if fom._force_bcs:
+            raise ConfigError("ReducedStepper: the Eulerian quadrature does not carry particle loads "
+                              "(particle_force boundaries); use 'lagrangian'.")
+        prm = np.asarray(fom.groups[0].params)
+        rows = prm.reshape(-1, prm.shape[-1]) if prm.ndim else prm.reshape(1, 1)
+        if np.ptp(rows, axis=0).max(initial=0.0) > 0:
+            raise ConfigError("ReducedStepper: the Eulerian quadrature needs law parameters that are the same for "
+                              "every material point; use 'lagrangian'.")
+        self._law_row = jnp.asarray(rows[0], self.dtype)
+        P = fom.particles
+        self._rho0 = float(np.sum(P.mass) / np.sum(P.volume))
+        self._Vq = dx ** d / 2 ** d
+        h = float(np.mean(P.volume)) ** (1.0 / d)
+        vox = np.floor((np.asarray(P.x) - np.asarray(self._base0)) / h).astype(np.int64)
+        lo = vox.min(0) - 1
+        shape = vox.max(0) - lo + 2
+        occ = np.zeros(tuple(shape), bool)
+        occ[tuple((vox - lo).T)] = True
+        self._vox = (h, jnp.asarray(lo), tuple(int(a) for a in shape), jnp.asarray(occ.ravel()))
+        self._q_off = jnp.asarray(np.stack(np.meshgrid(*[_EULER_REACH] * d, indexing="ij"), -1).reshape(-1, d))
+        self._q_lattice = tuple(2 * int(a) for a in fom.grid_shape)
+        self._q_size = self.samples * len(_EULER_REACH) ** d
+        self._inv_tol = 1e-10 if np.dtype(self.dtype) == np.float64 else 1e-5 * dx
 
     # ---- state ------------------------------------------------------------------------------------
     def init(self):
@@ -122,7 +174,8 @@ class ReducedStepper(AbstractStepper):
         else:
             guess = jnp.zeros(self.weights.spec.latent, self.dtype)
         s = Mf.initial_state(self.params, self.norm, self.X, x0, v0, guess)
-        return ReducedState(s.z, s.zdot, s.z, jnp.asarray(0.0, self.dtype), jax.random.PRNGKey(self.seed))
+        zero = jnp.zeros((), jnp.int32)
+        return ReducedState(s.z, s.zdot, s.z, jnp.asarray(0.0, self.dtype), jax.random.PRNGKey(self.seed), zero, zero)
 
     def _sample(self, key):
         import jax
@@ -131,15 +184,12 @@ class ReducedStepper(AbstractStepper):
         pick = jax.random.choice(key, self._free.shape[0], (self._n_random,), replace=False)
         return jnp.concatenate([self._forced_j, self._free[pick]])
 
-    def _step_impl(self, s: ReducedState):
-        import jax
+    def _lagrangian_points(self, s, M):
+        """Alg. 3: every material point, with its own mass and volume where it shares a node with a sample
+        (else zero); the samples are rows M."""
         import jax.numpy as jnp
 
-        key, sub = jax.random.split(s.key)
-        M = self._sample(sub)
-        X = self.X
-        # full-space kinematics at the quadrature points (Alg. 3): x = g, F = dg/dX, v = dg/dx_hat v_hat
-        x, F, dxdz = N.g_jacobians(self.params, self.norm, X, s.z[None, :])
+        x, F, dxdz = N.g_jacobians(self.params, self.norm, self.X, s.z[None, :])
         v = jnp.einsum("pdk,k->pd", dxdz, s.zdot)
         base = jnp.floor((x - self._base0) / self.scene.dx - 0.5).astype(jnp.int32)
         near = jnp.all(jnp.abs(base[:, None, :] - base[M][None, :, :]) <= 2, axis=-1)   # [N, |M|]
@@ -147,17 +197,84 @@ class ReducedStepper(AbstractStepper):
         prm = dict(self._fom_params)
         prm["mass"] = prm["mass"] * quad
         prm["volume"] = prm["volume"] * quad
-        law = tuple({"F": F[g.start:g.stop]} for g in self.fom.groups)
-        state = {"x": x, "v": v, "law": law, "t": s.t}
-        new = self.fom.step_fn(state, prm)                      # Alg. 5: P2G over P, grid, G2P (PIC)
-        x_tr, v_tr = new["x"][M], new["v"][M]
-        XM = X[M]
+        none = jnp.zeros((), jnp.int32)
+        return x, v, F, prm, M, (none, none)
+
+    def _eulerian_points(self, s, M):
+        """Alg. 4: quadrature points on the cells around the samples, then the samples (massless rows)."""
+        import jax.numpy as jnp
+
+        d, dx, z = self.dim, self.scene.dx, s.z
+        xM, FM, dM = N.g_jacobians(self.params, self.norm, self.X[M], z[None, :])
+        base = jnp.floor((xM - self._base0) / dx - 0.5).astype(jnp.int32)
+        j = (2 * base[:, None, :] + self._q_off[None]).reshape(-1, d)                 # [|M| 10^d, d]
+        lat = jnp.asarray(self._q_lattice)
+        inside_grid = jnp.all((j >= 0) & (j < lat), axis=1)
+        sentinel = int(np.prod(self._q_lattice))
+        ids = jnp.where(inside_grid, jnp.ravel_multi_index(tuple(j.T), self._q_lattice, mode="clip"), sentinel)
+        uniq, first = jnp.unique(ids, size=self._q_size, fill_value=sentinel, return_index=True)
+        real = uniq < sentinel
+        jq = jnp.stack(jnp.unravel_index(jnp.where(real, uniq, 0), self._q_lattice), -1)
+        xq = self._base0 + (jq.astype(self.dtype) / 2 + 0.25) * dx
+        src = first // len(_EULER_REACH) ** d                                        # the sample it came from
+        guess = self.X[M][src] + jnp.linalg.solve(FM[src], (xq - xM[src])[..., None])[..., 0]
+        inv = Mf.inverse_map(self.params, self.norm, xq, z, guess, tol=self._inv_tol)
+        h, lo, shape, occ = self._vox
+        vox = jnp.floor((inv.X - self._base0) / h).astype(jnp.int32) - lo
+        in_box = jnp.all((vox >= 0) & (vox < jnp.asarray(shape)), axis=1)
+        in_body = in_box & occ[jnp.ravel_multi_index(tuple(vox.T), shape, mode="clip")]
+        ok = real & in_body & inv.converged
+        _, Fq, dq = N.g_jacobians(self.params, self.norm, inv.X, z[None, :])
+        Jq = jnp.linalg.det(Fq)
+        ok = ok & (Jq > 0)
+        V0 = jnp.where(ok, self._Vq / jnp.where(ok, Jq, 1.0), 0.0)
+        n_M = M.shape[0]
+        x = jnp.concatenate([xq, xM])
+        v = jnp.einsum("pdk,k->pd", jnp.concatenate([dq, dM]), s.zdot)
+        F = jnp.concatenate([jnp.where(ok[:, None, None], Fq, jnp.eye(d, dtype=self.dtype)), FM])
+        prm = dict(self._fom_params)
+        prm["volume"] = jnp.concatenate([V0, jnp.zeros(n_M, self.dtype)])
+        prm["mass"] = self._rho0 * prm["volume"]
+        prm["law"] = (jnp.broadcast_to(self._law_row, (x.shape[0],) + self._law_row.shape),)
+        rows = jnp.arange(self._q_size, self._q_size + n_M)
+        counts = (jnp.sum(real & ~in_body).astype(jnp.int32),
+                  jnp.sum(real & in_body & ~(inv.converged & (Jq > 0))).astype(jnp.int32))
+        return x, v, F, prm, rows, counts
+
+    def _kinematic_boundaries(self, M, x0, v, t_end):
+        """The scene's particle_velocity boundaries on the samples (they address material points by index):
+        (trial positions, velocities) at M after the step from x0."""
+        import jax.numpy as jnp
+
+        n, d = self.X.shape
+        xf = jnp.zeros((n, d), self.dtype).at[M].set(x0)
+        vp = vpic = jnp.zeros((n, d), self.dtype).at[M].set(v)
+        for bc, bp in zip(self.fom._particle_bcs, self._pbc_params):
+            vp, vpic = bc.apply_particles(xf, vp, vpic, t_end, self.dt, bp)
+        return x0 + self.dt * vpic[M], vp[M]
+
+    def _step_impl(self, s: ReducedState):
+        import jax
+
+        key, sub = jax.random.split(s.key)
+        M = self._sample(sub)
+        points = self._eulerian_points if self.quadrature == "eulerian" else self._lagrangian_points
+        x, v, F, prm, rows, counts = points(s, M)
+        state = {"x": x, "v": v, "law": ({"F": F},) if self.quadrature == "eulerian" else
+                 tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), "t": s.t}
+        if self.quadrature == "eulerian":             # Alg. 5 from the quadrature points; boundaries on M here
+            new = self.fom.step_fn(state, prm, particle_bcs=False, update_law=False)
+            x_tr, v_tr = self._kinematic_boundaries(M, x[rows], new["v"][rows], s.t + self.dt)
+        else:                                         # Alg. 5 over every material point (massless off P)
+            new = self.fom.step_fn(state, prm, update_law=False)
+            x_tr, v_tr = new["x"][rows], new["v"][rows]
+        XM = self.X[M]
         vhat = Mf.project_velocity(self.params, self.norm, XM, s.z, v_tr)            # Eqs. 21 / 23
         if self.projection == "linear":
             z = Mf.project_linear(s.z, vhat, self.dt)                                # Alg. 7
         else:
             z = Mf.project_nonlinear(self.params, self.norm, XM, x_tr, s.z, s.z_prev)  # Alg. 6, Eq. 22
-        return ReducedState(z, vhat, s.z, s.t + self.dt, key)
+        return ReducedState(z, vhat, s.z, s.t + self.dt, key, *counts)
 
     def step(self, state):
         return self._step(state)

@@ -141,7 +141,7 @@ class JaxStepper(BaseStepper):
         return self._params
 
     # ---- the step ------------------------------------------------------------------------------
-    def step_fn(self, state, params, dt=None):
+    def step_fn(self, state, params, dt=None, *, particle_bcs: bool = True, update_law: bool = True):
         """One explicit MPM step (JAX-MPM Sec. 2.2; NCLaw Alg. 3) with the scheme's transfer math, pure.
 
         Layout for speed on CPU (the math is the textbook one): each particle's 3^D stencil is one
@@ -157,6 +157,11 @@ class JaxStepper(BaseStepper):
         ``dt``: None bakes the build-time ``self.dt`` into the program as a constant (fixed-dt runs,
         gradient rollouts); a traced scalar is the adaptive ``dt: auto`` step (one compiled program
         for every dt value).
+
+        A reduced model (``mpmlab.rom.stepper``, Eulerian quadrature) steps pseudo-particles that are not
+        the scene's particles: ``particle_bcs=False`` leaves out the boundaries that address particles
+        by index (it applies them to its own points), ``update_law=False`` the law-state update (its F
+        comes from the deformation map; the returned state has no ``law``).
         """
         T, tf = self.transfer, self._tf
         D, dx = self.dim, self.scene.dx
@@ -296,11 +301,13 @@ class JaxStepper(BaseStepper):
         v_p, grad_v = res.v, res.grad_v
         if T.carries_C:
             new["C"] = res.C
-        for bc, bp in zip(self._particle_bcs, bc_params[nb:nb + len(self._particle_bcs)]):
+        for bc, bp in zip(self._particle_bcs if particle_bcs else (), bc_params[nb:nb + len(self._particle_bcs)]):
             # a prescribed particle velocity also moves the particle with it (v_pic)
             v_p, v_pic = bc.apply_particles(x, v_p, v_pic, state["t"] + dt, dt, bp)
         new["x"] = x + dt * v_pic                                              # JAX-MPM Eq. 17
         new["v"] = v_p
+        if not update_law:
+            return new
 
         # law update per material block ------------------------------------------------------------------------
         laws = []
