@@ -26,7 +26,7 @@ from typing import Any, Dict, List
 import numpy as np
 
 from ..config import TaskConfig, register_task_schema
-from ..core.errors import ConfigError, SimulationDiverged
+from ..core.errors import ConfigError, SimulationDiverged, TimeStepError
 from .common import SUMMARY, save_figure, write_config, write_json, write_text
 
 log = logging.getLogger("mpmlab")
@@ -65,6 +65,10 @@ class NclawEvalConfig(TaskConfig):
     #: case names of mpmlab.nclaw.scenes.eval_cases(material) ("all": every one), or mappings
     #: {name, scene, steps, overrides: [...]} for scenes of your own
     cases: List[Any] = field(default_factory=lambda: list(DEFAULT_CASES))
+    #: the learned law runs at the case's dt (its plastic step F <- F + alpha R T is per time step): its tangent at
+    #: F = I may be stiffer than the truth's, so its run's cfl_limit is raised to at least this (explicit
+    #: MPM's bound); a CFL number above it is recorded as status "refused" and the other cases run
+    learned_cfl_limit: float = 1.0
     #: Hydra overrides added to every run (both the truth and the learned law)
     overrides: List[str] = field(default_factory=list)
     #: a directory of ground-truth rollouts (truth/<case>.npz) to reuse; default: this run's
@@ -115,12 +119,18 @@ def resolve_cases(material: str, wanted) -> list:
     return out
 
 
-def rollout(overrides: list[str], steps: int, every: int):
-    """(positions [T, N, D] every ``every`` steps, wall time s, particles) of one composed run."""
+def rollout(overrides: list[str], steps: int, every: int, cfl_floor: float | None = None):
+    """(positions [T, N, D] every ``every`` steps, wall time s, particles) of one composed run;
+    ``cfl_floor`` raises the scene's ``cfl_limit`` to at least that."""
+    from omegaconf import open_dict
+
     from ..config import build_scene, compose, make_transfer_from_config
     from ..simulator import build_stepper
 
     cfg = compose(overrides)
+    if cfl_floor is not None:
+        with open_dict(cfg):
+            cfg.scene.cfl_limit = max(float(cfg.scene.get("cfl_limit", 0.5)), float(cfl_floor))
     scene = build_scene(cfg)
     stepper = build_stepper(scene, cfg.backend.name, make_transfer_from_config(cfg), cfg.precision.name)
     t0 = time.perf_counter()
@@ -191,7 +201,11 @@ def run(cfg, ctx) -> dict:
         try:
             learned = (case.truth() + [f"material.params.{k}={float(v)!r}" for k, v in law_params.items()]
                        if law_params else case.learned(weights or None, partners))
-            xl, t_learned, _ = rollout(learned + common, case.steps, every)
+            xl, t_learned, _ = rollout(learned + common, case.steps, every,
+                                       None if law_params else float(tc.learned_cfl_limit))
+        except TimeStepError as exc:
+            entry.update(status="refused", mse=None, message=str(exc).splitlines()[0])
+            log.warning("nclaw_eval %s: the learned law's run was refused (%s)", case.name, entry["message"])
         except SimulationDiverged as exc:
             entry.update(status="diverged", mse=None, message=str(exc).splitlines()[0])
             log.warning("nclaw_eval %s: the learned law diverged (%s)", case.name, entry["message"])
