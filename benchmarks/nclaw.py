@@ -161,6 +161,17 @@ def report() -> None:
     for run in sorted((RES / "train").glob("*")) if (RES / "train").exists() else []:
         s_path = run / "summary.json"
         if not s_path.exists():
+            h_path = run / "history.json"    # a run that stopped on divergence (kept for the record)
+            if h_path.exists():
+                h = json.loads(h_path.read_text())
+                material, backend, *rest = run.name.split("_")
+                hist = h.get("history") or []
+                times = [e["time_s"] for e in hist]
+                spe = (times[-1] - times[0]) / max(len(times) - 1, 1) if len(times) > 1 else None
+                sched.append([material, backend, f"teacher (on_divergence={h.get('on_divergence')})",
+                              f"{h['diverged_at_epoch']} / {h['epochs_planned']}", h.get('fraction'),
+                              f"{spe:.1f}" if spe else "–", f"{times[-1] / 3600:.2f}" if times else "–", 0,
+                              f"{h['status']} at epoch {h['diverged_at_epoch']}"])
             continue
         s = json.loads(s_path.read_text())
         material, backend, *rest = run.name.split("_")
@@ -171,7 +182,9 @@ def report() -> None:
         sched.append([material, backend, method, f"{s['epochs']} / {s['epochs_planned']}", s["segment_fraction"],
                       fmt(s.get("initial_loss")), fmt(s.get("final_loss")),
                       f"{s['seconds_per_epoch']:.1f}" if s.get("seconds_per_epoch") else "–",
-                      f"{(hist[-1]['time_s'] / 3600):.2f}" if hist else "–", s["status"]])
+                      f"{(hist[-1]['time_s'] / 3600):.2f}" if hist else "–",
+                      "; ".join(f"epoch {b['diverged_at']} -> {b['resumed_at']} at x{b['lr_scale']:g}"
+                                for b in s.get("backoffs") or []) or 0, s["status"]])
         if method != "teacher":            # a baseline's run: reported in the row of its material
             continue
         ev = {lab: RES / "eval" / f"{material}_{backend}_{lab}" / "summary.json"
@@ -205,7 +218,7 @@ def report() -> None:
             "`python benchmarks/nclaw.py --materials ... --budget-min N` (resumes; `--report` rewrites this).", "",
             "### Training", "",
             *md_table(["material", "backend", "method", "epochs", "segment_fraction", "initial loss", "final loss",
-                       "s / epoch", "hours", "status"], sched), "",
+                       "s / epoch", "hours", "steps back (on_divergence=backoff)", "status"], sched), "",
             "### Tab. 1: reconstruction [m²]", "",
             *md_table(["material", "backend", "ours", "paper", "ours-init", "paper init", "init / ours",
                        "labeled (paper)", "sys-id (paper)"], rows1), "",
