@@ -170,6 +170,7 @@ def report() -> None:
                 spe = (times[-1] - times[0]) / max(len(times) - 1, 1) if len(times) > 1 else None
                 sched.append([material, backend, f"teacher (on_divergence={h.get('on_divergence')})",
                               f"{h['diverged_at_epoch']} / {h['epochs_planned']}", h.get('fraction'),
+                              fmt(hist[0]["loss"] if hist else None), "–",
                               f"{spe:.1f}" if spe else "–", f"{times[-1] / 3600:.2f}" if times else "–", 0,
                               f"{h['status']} at epoch {h['diverged_at_epoch']}"])
             continue
