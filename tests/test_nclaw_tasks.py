@@ -189,3 +189,16 @@ def test_sysid_baseline(dataset, tmp_path):
                 "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], tmp_path)
     e = json.loads((ev / "summary.json").read_text())
     assert e["label"] == "sys-id" and e["cases"]["recon"]["mse"] <= 1e-6, e["cases"]
+
+
+def test_eval_rollout_raises_the_cfl_limit_for_the_learned_law():
+    """The learned law runs at the case's dt: nclaw_eval's rollout lifts the scene's cfl_limit to
+    task.learned_cfl_limit; without the lift the same run is refused."""
+    from mpmlab.tasks.nclaw_eval import rollout
+
+    ov = ["scene=nclaw_square_2d", "scene.dt=2.5e-3", "backend=jax", "transfer=pic", "precision=fp64",
+          "output.recording=false"]
+    with pytest.raises(TimeStepError, match="cfl_limit 0.5"):
+        rollout(ov, 4, 4)
+    x, _, n = rollout(ov, 4, 4, cfl_floor=1.0)
+    assert n == 64 and x.shape[1:] == (64, 2) and np.all(np.isfinite(x))
