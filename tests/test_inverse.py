@@ -83,9 +83,23 @@ def test_resume_from_checkpoint_continues_exactly(backend, tmp_path):
     assert a == pytest.approx(b, rel=1e-10)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_diverging_fit_stops_with_a_clear_error(backend):
-    """A learning rate that throws the stiffness negative makes the rollout blow up: FitDiverged."""
+class _CappedFit(Fit):
+    """The block fit with a stiffness cap: an epoch whose E exceeds ``cap`` counts as diverged (the
+    step-back mechanism, without depending on where each backend's divergence check fires)."""
+    cap = 1.0e6
+
+    def epoch_objective(self):
+        vg = super().epoch_objective()
+
+        def objective(raw):
+            if self.values(raw)["E"] > self.cap:
+                return float("nan"), "E above the cap", None
+            return vg(raw)
+        return objective
+
+
+def impact_fit(backend, cls=_CappedFit):
+    """A block thrown at a sticky floor, fitting E (truth 3e4, from 2e4)."""
     from mpmlab.boundaries import Walls
 
     body = mpmlab.Body(shape={"kind": "box", "lo": [0.3, 0.2], "hi": [0.5, 0.35]}, material="fixed_corotated",
@@ -94,7 +108,13 @@ def test_diverging_fit_stops_with_a_clear_error(backend):
                          boundaries=[Walls(default="sticky", thickness=2)], dt=1e-3, name="impact")
     st = build_stepper(scene, backend, "apic", "fp64")
     p = FitParameter(name="E", target="law", param="E", init=2e4, truth=3e4).bind(scene, st, [])
-    fit = Fit(st, scene, [p], Lagrangian(quantity="x"), ObservationSchedule(steps=(30, 60)), segment=30)
+    return cls(st, scene, [p], Lagrangian(quantity="x"), ObservationSchedule(steps=(30, 60)), segment=30)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_diverging_fit_stops_with_a_clear_error(backend):
+    """A learning rate that throws the stiffness negative makes the rollout blow up: FitDiverged."""
+    fit = impact_fit(backend, Fit)
     with pytest.raises(FitDiverged, match="fit diverged at epoch"):
         fit.run(5, *optimizer(backend, 1e12))
 
@@ -201,42 +221,15 @@ def test_benchmark_verdicts_apply_the_issue_bars(monkeypatch):
     sys.modules.pop("inverse", None)
 
 
-class _CappedFit(Fit):
-    """The block fit with a stiffness cap: an epoch whose E exceeds ``cap`` counts as diverged (the
-    step-back mechanism, without depending on where each backend's divergence check fires)."""
-    cap = 1.0e6
-
-    def epoch_objective(self):
-        vg = super().epoch_objective()
-
-        def objective(raw):
-            if self.values(raw)["E"] > self.cap:
-                return float("nan"), "E above the cap", None
-            return vg(raw)
-        return objective
-
-
-def capped_fit(backend, cls=_CappedFit):
-    from mpmlab.boundaries import Walls
-
-    body = mpmlab.Body(shape={"kind": "box", "lo": [0.3, 0.2], "hi": [0.5, 0.35]}, material="fixed_corotated",
-                       params={"E": 2e4, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=[0.0, -3.0])
-    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
-                         boundaries=[Walls(default="sticky", thickness=2)], dt=1e-3, name="impact")
-    st = build_stepper(scene, backend, "apic", "fp64")
-    p = FitParameter(name="E", target="law", param="E", init=2e4, truth=3e4).bind(scene, st, [])
-    return cls(st, scene, [p], Lagrangian(quantity="x"), ObservationSchedule(steps=(30, 60)), segment=30)
-
-
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_backoff_steps_back_and_halves_the_learning_rate(backend, tmp_path):
     """on_divergence=backoff: the first step (lr 2e7: E 2e4 -> 1.2e6) lands above the cap, so the fit steps
     back to epoch 0 and takes the step at half the rate: the same parameters, epoch for epoch, as a fit at
     lr 1e7."""
-    a = capped_fit(backend)
+    a = impact_fit(backend)
     raw_a = a.run(3, *optimizer(backend, 2e7, 1.0), on_divergence="backoff", max_backoffs=2,
                   checkpoint=tmp_path / f"a.{'pkl' if backend == 'jax' else 'pt'}", checkpoint_every=1)
-    b = capped_fit(backend, Fit)
+    b = impact_fit(backend, Fit)
     raw_b = b.run(3, *optimizer(backend, 1e7, 1.0))
     assert [h["epoch"] for h in a.history] == [0, 1, 2]
     assert a.history[0]["backoff"] == {"diverged_at": 1, "why": "E above the cap"}
@@ -246,19 +239,19 @@ def test_backoff_steps_back_and_halves_the_learning_rate(backend, tmp_path):
     assert a.report(raw_a)["E"]["recovered"] == pytest.approx(b.report(raw_b)["E"]["recovered"], rel=1e-12)
     # without backoff the same fit stops at epoch 1; with too few step-backs it says how many it took
     with pytest.raises(FitDiverged, match="fit diverged at epoch 1: E above the cap"):
-        capped_fit(backend).run(3, *optimizer(backend, 2e7, 1.0))
+        impact_fit(backend).run(3, *optimizer(backend, 2e7, 1.0))
     with pytest.raises(FitDiverged, match=r"\[1 step\(s\) back already taken of 1\]"):
-        capped_fit(backend).run(3, *optimizer(backend, 2e8, 1.0), on_divergence="backoff", max_backoffs=1)
+        impact_fit(backend).run(3, *optimizer(backend, 2e8, 1.0), on_divergence="backoff", max_backoffs=1)
 
 
 def test_backoff_after_a_resume_uses_the_saved_previous_epoch(tmp_path):
     """A fit stopped right after the step that will diverge steps back on resume (from <checkpoint>.prev)."""
     ck = tmp_path / "ck.pkl"
-    first = capped_fit("jax")
+    first = impact_fit("jax")
     first.run(1, *optimizer("jax", 2e7, 1.0), checkpoint=ck, on_divergence="backoff")
     assert ck.exists() and (tmp_path / "ck.pkl.prev").exists()
-    second = capped_fit("jax")
+    second = impact_fit("jax")
     second.run(2, *optimizer("jax", 2e7, 1.0), checkpoint=ck, on_divergence="backoff")
     assert second.history[0]["backoff"]["diverged_at"] == 1 and second.history[1]["lr_scale"] == 0.5
     with pytest.raises(ConfigError, match="on_divergence must be"):
-        capped_fit("jax").run(1, *optimizer("jax", 1.0), on_divergence="retry")
+        impact_fit("jax").run(1, *optimizer("jax", 1.0), on_divergence="retry")

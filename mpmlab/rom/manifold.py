@@ -121,7 +121,7 @@ def inverse_map(params, norm, x, z, X_guess, iterations: int = 20, tol: float = 
             def cond(c):
                 t, k = c
                 rt = res(X + t * dX)
-                return (k < halvings) & (jnp.sum(rt * rt) > (1.0 - ARMIJO * t) ** 2 * n0)
+                return (k < halvings) & (n0 > tol * tol) & (jnp.sum(rt * rt) > (1.0 - ARMIJO * t) ** 2 * n0)
 
             t, _ = jax.lax.while_loop(cond, lambda c: (c[0] * BACKTRACK, c[1] + 1), (jnp.ones((), X.dtype), 0))
             Xn = X + t * dX

@@ -46,6 +46,8 @@ from . import manifold as Mf
 from . import networks as N
 
 QUADRATURES = ("lagrangian", "eulerian")
+#: the Eulerian quadrature's inverse map: Newton iterations and backtracking halvings per iteration
+INVERSE_ITERATIONS, INVERSE_HALVINGS = 8, 10
 PROJECTIONS = ("linear", "nonlinear")
 
 
@@ -218,7 +220,10 @@ class ReducedStepper(AbstractStepper):
         xq = self._base0 + (jq.astype(self.dtype) / 2 + 0.25) * dx
         src = first // len(_EULER_REACH) ** d                                        # the sample it came from
         guess = self.X[M][src] + jnp.linalg.solve(FM[src], (xq - xM[src])[..., None])[..., 0]
-        inv = Mf.inverse_map(self.params, self.norm, xq, z, guess, tol=self._inv_tol)
+        # from the sample's linearisation Newton needs few iterations; points off the body, which would
+        # backtrack longest, are massless anyway (a vmapped while loop runs as long as its slowest point)
+        inv = Mf.inverse_map(self.params, self.norm, xq, z, guess, iterations=INVERSE_ITERATIONS, tol=self._inv_tol,
+                             halvings=INVERSE_HALVINGS)
         h, lo, shape, occ = self._vox
         vox = jnp.floor((inv.X - self._base0) / h).astype(jnp.int32) - lo
         in_box = jnp.all((vox >= 0) & (vox < jnp.asarray(shape)), axis=1)
