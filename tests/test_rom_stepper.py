@@ -59,7 +59,7 @@ def test_eulerian_quadrature_points_carry_the_body_mass():
     n = fom.particles.count
     rom = ReducedStepper(fom, translation(2), samples=n, quadrature="eulerian")
     s = rom.init()._replace(z=jnp.asarray([0.00625, -0.025]))        # no lattice point on a voxel face
-    x, v, F, prm, rows, (outside, unconverged) = rom._eulerian_points(s, jnp.arange(n))
+    x, v, law, prm, rows, (outside, unconverged) = rom._eulerian_points(s, jnp.arange(n))
     body = float(np.sum(fom.particles.mass))
     assert float(jnp.sum(prm["mass"])) == pytest.approx(body, rel=1e-12)
     assert int(unconverged) == 0 and int(outside) > 0                 # the ring of cells around the box

@@ -220,6 +220,10 @@ class Fit:
                            f"last good epoch: {last}); lower the learning rate, bound the parameter with transform: "
                            f"softplus, or check the data.")
 
+    def _last_lr_scale(self) -> float:
+        """The update scale of the last recorded epoch (1 before any step back, or with no history)."""
+        return float(self.history[-1].get("lr_scale", 1.0)) if self.history else 1.0
+
     def _run_gradient(self, epochs, opt_cfg, sched_cfg, checkpoint, every, resume, progress, on_epoch, tol,
                       on_checkpoint=None, stop=None, max_backoffs=0):
         """One rollout, one gradient and one optimiser step per epoch (optimiser and schedule as the
@@ -231,7 +235,7 @@ class Fit:
         raw, state = ad.optimizer_init(opt_cfg, sched_cfg, self.init_raw())
         if checkpoint is not None and resume and checkpoint.exists():
             self.epoch, self.history, raw, state = ad.load_checkpoint(checkpoint, raw, state)
-        self.lr_scale = float(self.history[-1].get("lr_scale", 1.0)) if self.history else 1.0
+        self.lr_scale = self._last_lr_scale()
         scratch = None
         if max_backoffs:
             if checkpoint is None:
@@ -257,8 +261,7 @@ class Fit:
                         raise err
                     at = self.epoch
                     self.epoch, self.history, raw, state = ad.load_checkpoint(prev, raw, state)
-                    self.lr_scale = float(self.history[-1].get("lr_scale", 1.0)) if self.history else 1.0
-                    self.lr_scale *= 0.5
+                    self.lr_scale = 0.5 * self._last_lr_scale()
                     backoff = {"diverged_at": int(at), "why": why or f"the loss is {val}"}
                     log.warning("fit: epoch %d diverged (%s); stepping back to epoch %d with the updates scaled by "
                                 "%g (step back %d of %d).", at, backoff["why"], self.epoch, self.lr_scale, used + 1,

@@ -188,7 +188,8 @@ class ReducedStepper(AbstractStepper):
 
     def _lagrangian_points(self, s, M):
         """Alg. 3: every material point, with its own mass and volume where it shares a node with a sample
-        (else zero); the samples are rows M."""
+        (else zero); the samples are rows M. Returns (x, v, law state per group, step params, sample rows,
+        (outside, unconverged) counts), as ``_eulerian_points`` does."""
         import jax.numpy as jnp
 
         x, F, dxdz = N.g_jacobians(self.params, self.norm, self.X, s.z[None, :])
@@ -200,7 +201,7 @@ class ReducedStepper(AbstractStepper):
         prm["mass"] = prm["mass"] * quad
         prm["volume"] = prm["volume"] * quad
         none = jnp.zeros((), jnp.int32)
-        return x, v, F, prm, M, (none, none)
+        return x, v, tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), prm, M, (none, none)
 
     def _eulerian_points(self, s, M):
         """Alg. 4: quadrature points on the cells around the samples, then the samples (massless rows)."""
@@ -228,10 +229,10 @@ class ReducedStepper(AbstractStepper):
         vox = jnp.floor((inv.X - self._base0) / h).astype(jnp.int32) - lo
         in_box = jnp.all((vox >= 0) & (vox < jnp.asarray(shape)), axis=1)
         in_body = in_box & occ[jnp.ravel_multi_index(tuple(vox.T), shape, mode="clip")]
-        ok = real & in_body & inv.converged
         _, Fq, dq = N.g_jacobians(self.params, self.norm, inv.X, z[None, :])
         Jq = jnp.linalg.det(Fq)
-        ok = ok & (Jq > 0)
+        converged = inv.converged & (Jq > 0)
+        ok = real & in_body & converged
         V0 = jnp.where(ok, self._Vq / jnp.where(ok, Jq, 1.0), 0.0)
         n_M = M.shape[0]
         x = jnp.concatenate([xq, xM])
@@ -242,9 +243,8 @@ class ReducedStepper(AbstractStepper):
         prm["mass"] = self._rho0 * prm["volume"]
         prm["law"] = (jnp.broadcast_to(self._law_row, (x.shape[0],) + self._law_row.shape),)
         rows = jnp.arange(self._q_size, self._q_size + n_M)
-        counts = (jnp.sum(real & ~in_body).astype(jnp.int32),
-                  jnp.sum(real & in_body & ~(inv.converged & (Jq > 0))).astype(jnp.int32))
-        return x, v, F, prm, rows, counts
+        counts = (jnp.sum(real & ~in_body).astype(jnp.int32), jnp.sum(real & in_body & ~converged).astype(jnp.int32))
+        return x, v, ({"F": F},), prm, rows, counts
 
     def _kinematic_boundaries(self, M, x0, v, t_end):
         """The scene's particle_velocity boundaries on the samples (they address material points by index):
@@ -264,9 +264,8 @@ class ReducedStepper(AbstractStepper):
         key, sub = jax.random.split(s.key)
         M = self._sample(sub)
         points = self._eulerian_points if self.quadrature == "eulerian" else self._lagrangian_points
-        x, v, F, prm, rows, counts = points(s, M)
-        state = {"x": x, "v": v, "law": ({"F": F},) if self.quadrature == "eulerian" else
-                 tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), "t": s.t}
+        x, v, law, prm, rows, counts = points(s, M)
+        state = {"x": x, "v": v, "law": law, "t": s.t}
         if self.quadrature == "eulerian":             # Alg. 5 from the quadrature points; boundaries on M here
             new = self.fom.step_fn(state, prm, particle_bcs=False, update_law=False)
             x_tr, v_tr = self._kinematic_boundaries(M, x[rows], new["v"][rows], s.t + self.dt)
