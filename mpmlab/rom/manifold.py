@@ -101,36 +101,58 @@ class InverseMap(NamedTuple):
     converged: jnp.ndarray  # [Q] bool: residual <= tol
 
 
-def inverse_map(params, norm, x, z, X_guess, iterations: int = 20, tol: float = 1e-10, halvings: int = 20):
+def inverse_map(params, norm, x, z, X_guess, iterations: int = 20, tol: float = 1e-10, halvings: int = 20,
+                bounds=None):
     """Alg. 4's inverse map: X_q with g(X_q; z) = x_q for each point of ``x`` [Q, d], by Newton's method
     (the matrix F = dg/dX) with backtracking on |g - x_q| from ``X_guess`` [Q, d] (e.g. x_q minus the
-    mean displacement), per point, a fixed number of iterations. ``tol``: the residual [m] below which
-    a point counts as converged (the caller also checks X_q against the reference body)."""
+    mean displacement), per point, at most ``iterations`` Newton steps of at most ``halvings`` halvings
+    each. ``tol``: the residual [m] below which a point counts as converged (the caller also checks X_q
+    against the reference body). ``bounds`` (lo, hi) [d]: a point whose iterate leaves this box stops
+    (it is outside the body: it gets no mass, so its exact X_q does not matter).
+
+    Batched over the points, not vmapped per point: each Newton step is one g_jacobians call on every
+    point and each halving one g_apply, and the loops end as soon as every point is done, converged
+    or out of bounds (a vmapped per-point loop runs every point as long as its slowest one: off-body
+    points, which backtrack longest, set the pace)."""
     z1 = z[None, :]
+    tol2 = tol * tol
 
-    def one(xq, X0):
-        def res(X):
-            return N.g_apply(params, norm, X[None], z1)[0] - xq
+    def res2(X):
+        r = N.g_apply(params, norm, X, z1) - x
+        return jnp.sum(r * r, axis=-1)
 
-        def step(X, _):
-            xg, F, _ = N.g_jacobians(params, norm, X[None], z1)
-            r = xg[0] - xq
-            dX = -jnp.linalg.solve(F[0], r)
-            n0 = jnp.sum(r * r)
+    def out_of_bounds(X):
+        if bounds is None:
+            return jnp.zeros(X.shape[0], bool)
+        lo, hi = bounds
+        return jnp.any((X < lo) | (X > hi), axis=-1)
 
-            def cond(c):
-                t, k = c
-                rt = res(X + t * dX)
-                return (k < halvings) & (n0 > tol * tol) & (jnp.sum(rt * rt) > (1.0 - ARMIJO * t) ** 2 * n0)
+    def newton(c):
+        X, n0, done, k = c
+        xg, F, _ = N.g_jacobians(params, norm, X, z1)
+        dX = -jnp.linalg.solve(F, (xg - x)[..., None])[..., 0]
+        dX = jnp.where(done[:, None], 0.0, dX)
 
-            t, _ = jax.lax.while_loop(cond, lambda c: (c[0] * BACKTRACK, c[1] + 1), (jnp.ones((), X.dtype), 0))
-            Xn = X + t * dX
-            better = jnp.all(jnp.isfinite(Xn)) & (jnp.sum(res(Xn) ** 2) < n0)
-            return jnp.where(better, Xn, X), None
+        def more(b):
+            t, rt, h = b
+            return (h < halvings) & jnp.any(~done & (rt > (1.0 - ARMIJO * t) ** 2 * n0))
 
-        X, _ = jax.lax.scan(step, X0, None, length=iterations)
-        r = jnp.sqrt(jnp.sum(res(X) ** 2))
-        return X, r
+        def halve(b):
+            t, rt, h = b
+            bad = ~done & (rt > (1.0 - ARMIJO * t) ** 2 * n0)
+            t = jnp.where(bad, t * BACKTRACK, t)
+            return t, jnp.where(bad, res2(X + t[:, None] * dX), rt), h + 1
 
-    X, r = jax.vmap(one)(x, X_guess)
+        t0 = jnp.ones_like(n0)
+        t, rt, _ = jax.lax.while_loop(more, halve, (t0, res2(X + dX), 0))
+        Xn = X + t[:, None] * dX
+        better = ~done & jnp.all(jnp.isfinite(Xn), axis=-1) & (rt < n0)
+        X = jnp.where(better[:, None], Xn, X)
+        n = jnp.where(better, rt, n0)
+        return X, n, done | (n <= tol2) | out_of_bounds(X), k + 1
+
+    n0 = res2(X_guess)
+    init = (X_guess, n0, (n0 <= tol2) | out_of_bounds(X_guess), 0)
+    X, n, _, _ = jax.lax.while_loop(lambda c: (c[3] < iterations) & jnp.any(~c[2]), newton, init)
+    r = jnp.sqrt(n)
     return InverseMap(X, r, r <= tol)

@@ -178,6 +178,8 @@ class RomWeights(NamedTuple):
     norm: dict
     spec: RomSpec
     seed: int | None = None
+    #: what the file records of its training (``save(..., training=)``): study, runs and their parameters
+    training: dict | None = None
 
 
 def init_params(spec: RomSpec, seed: int = 0) -> dict[str, np.ndarray]:
@@ -273,15 +275,22 @@ def check(spec: RomSpec, params, norm, where: str) -> None:
         raise ConfigError(f"{where}: the normaliser needs u_std > 0 in every component (u_std = {n['u_std'].tolist()}).")
 
 
-def save(path, params, norm, spec: RomSpec, seed: int | None = None) -> None:
+def save(path, params, norm, spec: RomSpec, seed: int | None = None, training: dict | None = None) -> None:
     """Write params and normaliser (numpy, JAX or torch arrays) as one safetensors file, fp64, with
-    ``spec.metadata(seed)`` (module doc). Refuses, like ``load``, what does not fit ``spec``."""
+    ``spec.metadata(seed)`` (module doc) and ``training`` (a JSON-able dict: the study, its training runs
+    and their parameters, which ``task=rom_eval`` keeps out of the test set). Refuses, like ``load``,
+    what does not fit ``spec``."""
+    import json
+
     from safetensors.numpy import save_file
 
     where = f"rom.networks.save('{path}')"
     check(spec, params, norm, where)
     arrays = {k: np.ascontiguousarray(_as_numpy(a), dtype=np.float64) for k, a in {**params, **norm}.items()}
-    save_file(arrays, str(path), metadata=spec.metadata(seed))
+    meta = spec.metadata(seed)
+    if training is not None:
+        meta["training"] = json.dumps(training)
+    save_file(arrays, str(path), metadata=meta)
 
 
 def load(path, expect_dim: int | None = None, expect_latent: int | None = None,
@@ -333,7 +342,15 @@ def load(path, expect_dim: int | None = None, expect_latent: int | None = None,
         raise ConfigError(f"{where}: metadata dim = {dim}, latent = {latent} (dim must be 2 or 3, latent >= 1).")
     norm = {k: arrays.pop(k) for k in NORM_KEYS if k in arrays}
     check(spec, arrays, norm, where)
-    return RomWeights(arrays, norm, spec, num("seed", False))
+    training = None
+    if "training" in meta:
+        import json
+
+        try:
+            training = json.loads(meta["training"])
+        except ValueError:
+            raise ConfigError(f"{where}: its metadata 'training' is not JSON.") from None
+    return RomWeights(arrays, norm, spec, num("seed", False), training)
 
 
 # ---- JAX ------------------------------------------------------------------------------------------

@@ -22,6 +22,7 @@ study                   scene                     runs (parameters)             
 ``poke``                ``rom_poke``               theta = k pi/18, k = 0..35 (5.3)             12/24 (k % 3 == 0 trains)
 ``poke_continual``      ``rom_poke``               10 pokes, random theta, one every 3 s (5.3.2)  0/1
 ``tower``               ``rom_tower``              Latin hypercubes over (r, theta, phi) (5.4)   16/4
+``beam_2d``             ``rom_beam_2d``            g = 2, 3, ..., 8 m/s^2 (mpmlab's 2D problem)   4/3 (even g trains)
 ======================  ========================  ==========================================  ===========
 
 Choices the paper leaves open, made here:
@@ -37,8 +38,9 @@ Choices the paper leaves open, made here:
   single pokes, poke i during [3 i, 3 i + 0.25) s, each released for the rest of its 3 s: 10 x 432
   snapshots = 30 s. The pokes are ten timed ``particle_velocity`` boundaries (``poke_0`` ... ``poke_9``)
   added to ``rom_poke`` with its single ``poke`` disabled.
-- Every run stores x, v and F at the snapshots (``output.fields=[F]``), no recording; the FOM's dt
-  comes from the CFL bound with substepping (:func:`substeps`; the scenes document their numbers).
+- Every run stores x, v and F at the snapshots (``output.fields=[F]``), no recording, and runs the PIC
+  transfer, as the reduced model does (``OUTPUT_OVERRIDES``); the FOM's dt comes from the CFL bound
+  with substepping (:func:`substeps`; the scenes document their numbers).
 
 Every problem the reader finds is a one-line ``ConfigError``.
 """
@@ -57,8 +59,11 @@ from ..core.errors import ConfigError
 
 #: the CFL number the snapshot scenes' fixed dt stays below (mpmlab's ``dt: auto`` factor)
 SNAPSHOT_CFL = 0.3
-#: what every snapshot run stores and skips (x and v are always stored)
-OUTPUT_OVERRIDES = ("output.fields=[F]", "output.recording=false")
+#: what every snapshot run stores and skips (x and v are always stored), and its transfer: the reduced
+#: model steps with PIC (Alg. 5), so its full-order truth does too -- the ROM's error then measures the
+#: reduction, not the transfer (on rom_beam_2d at dx 2.5 cm, MLS and PIC full-order runs differ by
+#: E = 11-24 %, more than any ROM error of the paper)
+OUTPUT_OVERRIDES = ("transfer=pic", "output.fields=[F]", "output.recording=false")
 
 
 def substeps(interval: float, dx: float, wave_speed: float, max_speed: float, cfl: float = SNAPSHOT_CFL) -> int:
@@ -255,9 +260,24 @@ def tower_study(seed: int = 0, n_train: int = 16, n_test: int = 4) -> Study:
                  param_of=lambda cfg: _vars(cfg, "r", "theta", "phi"))
 
 
+def beam_2d_study(resolution: str | None = None) -> Study:
+    """mpmlab's small 2D problem (not the paper's): ``rom_beam_2d``, a cantilever under g = 2, 3, ..., 8 m/s^2
+    (gravity along -y); even g train (4 runs), odd g test (3). Its snapshots are the scene's frames
+    (10 ms apart; 20 at ``tiny``, 40 at ``default``)."""
+    res = (f"scene.resolution={resolution}",) if resolution else ()
+    gs = [float(g) for g in range(2, 9)]
+    runs = tuple(Run(f"g{int(g)}", {"g": g}, ("scene=rom_beam_2d", f"scene.gravity=[0.0,{_num(-g)}]", *res,
+                                               *OUTPUT_OVERRIDES)) for g in gs)
+    train = tuple(i for i, g in enumerate(gs) if int(g) % 2 == 0)
+    test = tuple(i for i, g in enumerate(gs) if int(g) % 2)
+    return Study("beam_2d", "rom_beam_2d", runs, train, test, ("g",), 20 if resolution == "tiny" else 40, 0.01, 0,
+                 "mpmlab (a 2D analogue of the ROM paper's Sec. 5.1)", "density 1000 kg/m^3, E 50 kPa; even g train",
+                 param_of=lambda cfg: {"g": -float(cfg["scene"]["gravity"][1])})
+
+
 STUDIES: dict[str, Callable[..., Study]] = {
     "gravity": gravity_study, "torsion": torsion_study, "torsion_fine": torsion_fine_study, "poke": poke_study,
-    "poke_continual": poke_continual_study, "tower": tower_study,
+    "poke_continual": poke_continual_study, "tower": tower_study, "beam_2d": beam_2d_study,
 }
 
 
@@ -272,6 +292,8 @@ def sweep_value(s: Study) -> dict[str, str]:
     """The Hydra sweeper ``params`` that run every run of ``s``: one swept key (``scene.vars`` as dicts,
     which Hydra merges into the scene's, or ``scene.gravity`` as vectors), so that co-varying
     parameters (the tower's Latin hypercube) stay together."""
+    if s.name == "beam_2d":
+        return {"scene.gravity": ",".join(f"[0.0,{_num(-r.params['g'])}]" for r in s.runs)}
     if s.name == "gravity":
         return {"scene.gravity": ",".join(f"[0.0,{_num(-r.params['g'])},0.0]" for r in s.runs)}
     if s.name == "poke_continual":
@@ -295,7 +317,8 @@ def experiment_yaml(s: Study) -> str:
             (f"# Run: `mpmlab -m experiment=rom_snapshots_{s.name}` (add scene.resolution=tiny for a smoke test)."
              if s.name != "poke_continual" else
              f"# Run: `mpmlab experiment=rom_snapshots_{s.name}` (one run; scene.resolution=tiny for a smoke test).")]
-    body: dict = {"defaults": [{"override /scene": s.scene}], "output": {"fields": ["F"], "recording": False}}
+    body: dict = {"defaults": [{"override /scene": s.scene}, {"override /transfer": "pic"}],
+                  "output": {"fields": ["F"], "recording": False}}
     if s.name == "torsion_fine":
         body["scene"] = {"resolution": "fine"}
     if s.name == "poke_continual":
@@ -485,7 +508,7 @@ def write_params(snap: Snapshots, path: str | os.PathLike) -> None:
 
 
 __all__ = ["Run", "Study", "Snapshots", "STUDIES", "study", "gravity_study", "torsion_study", "torsion_fine_study",
-           "poke_study", "poke_continual_study", "tower_study", "continual_pokes", "continual_poke_boundaries", "experiment_yaml",
+           "poke_study", "poke_continual_study", "tower_study", "beam_2d_study", "continual_pokes", "continual_poke_boundaries", "experiment_yaml",
            "sweep_value", "experiment_path", "write_experiments", "run_study", "load_snapshots", "substeps", "p_wave_speed", "SNAPSHOT_CFL", "TOWER_RANGES"]
 
 

@@ -158,6 +158,8 @@ class ReducedStepper(AbstractStepper):
         occ = np.zeros(tuple(shape), bool)
         occ[tuple((vox - lo).T)] = True
         self._vox = (h, jnp.asarray(lo), tuple(int(a) for a in shape), jnp.asarray(occ.ravel()))
+        # the voxels' box: an inverse-map iterate that leaves it is outside the body (no mass), and stops
+        self._ref_box = (jnp.asarray(self._base0 + lo * h, self.dtype), jnp.asarray(self._base0 + (lo + shape) * h, self.dtype))
         self._q_off = jnp.asarray(np.stack(np.meshgrid(*[_EULER_REACH] * d, indexing="ij"), -1).reshape(-1, d))
         self._q_lattice = tuple(2 * int(a) for a in fom.grid_shape)
         self._q_size = self.samples * len(_EULER_REACH) ** d
@@ -221,11 +223,11 @@ class ReducedStepper(AbstractStepper):
         xq = self._base0 + (jq.astype(self.dtype) / 2 + 0.25) * dx
         src = first // len(_EULER_REACH) ** d                                        # the sample it came from
         guess = self.X[M][src] + jnp.linalg.solve(FM[src], (xq - xM[src])[..., None])[..., 0]
-        # from the sample's linearisation Newton needs few iterations; points off the body, which would
-        # backtrack longest, are massless anyway (a vmapped while loop runs as long as its slowest point)
-        inv = Mf.inverse_map(self.params, self.norm, xq, z, guess, iterations=INVERSE_ITERATIONS, tol=self._inv_tol,
-                             halvings=INVERSE_HALVINGS)
+        # from the sample's linearisation Newton needs few iterations; iterates that leave the reference
+        # box stop there (they are massless anyway)
         h, lo, shape, occ = self._vox
+        inv = Mf.inverse_map(self.params, self.norm, xq, z, guess, iterations=INVERSE_ITERATIONS, tol=self._inv_tol,
+                             halvings=INVERSE_HALVINGS, bounds=self._ref_box)
         vox = jnp.floor((inv.X - self._base0) / h).astype(jnp.int32) - lo
         in_box = jnp.all((vox >= 0) & (vox < jnp.asarray(shape)), axis=1)
         in_body = in_box & occ[jnp.ravel_multi_index(tuple(vox.T), shape, mode="clip")]
@@ -284,17 +286,17 @@ class ReducedStepper(AbstractStepper):
         return self._step(state)
 
     def rollout(self, state=None, steps: int = 100, every: int = 1, **kw):
-        """Run ``steps`` reduced steps; returns ``{"z": [T, d_hat], "x": [T, N, d], "time": [T]}`` (frames
+        """Run ``steps`` reduced steps; returns ``{"z", "zdot": [T, d_hat], "x": [T, N, d], "time": [T]}`` (frames
         every ``every`` steps, the first one the initial state), and the final state as ``"state"``."""
         import jax.numpy as jnp
 
         state = self.init() if state is None else state
         every = max(1, int(every))
-        zs, ts = [np.asarray(state.z)], [float(state.t)]
+        zs, vs, ts = [np.asarray(state.z)], [np.asarray(state.zdot)], [float(state.t)]
         for k in range(1, int(steps) + 1):
             state = self.step(state)
             if k % every == 0 or k == steps:
-                zs.append(np.asarray(state.z)); ts.append(float(state.t))
+                zs.append(np.asarray(state.z)); vs.append(np.asarray(state.zdot)); ts.append(float(state.t))
                 if not np.all(np.isfinite(zs[-1])):
                     from ..core.errors import SimulationDiverged
 
@@ -302,7 +304,7 @@ class ReducedStepper(AbstractStepper):
                                                                           "the time step")
         z = np.stack(zs)
         x = np.asarray(N.g_apply(self.params, self.norm, self.X[None], jnp.asarray(z)[:, None, :]))
-        return {"z": z, "x": x, "time": np.asarray(ts), "state": state}
+        return {"z": z, "zdot": np.stack(vs), "x": x, "time": np.asarray(ts), "state": state}
 
     def to_numpy(self, state, X=None) -> dict[str, np.ndarray]:
         """x, F, v at reference points ``X`` [Q, d] (default: the scene's material points) and x_hat."""

@@ -2,7 +2,7 @@
 
 A task is a function ``run(cfg, ctx) -> dict``: it reads the composed config (``DictConfig``), writes
 its outputs into ``ctx.output_dir`` (the Hydra run directory) and returns the summary that the CLI
-writes as ``summary.json``. Built-in tasks: ``simulate``, ``replay``, ``inverse``, ``bench``, ``nclaw_train``, ``nclaw_eval`` and ``rom_train`` (:data:`BUILTIN_TASKS`), each
+writes as ``summary.json``. Built-in tasks: ``simulate``, ``replay``, ``inverse``, ``bench``, ``nclaw_train``, ``nclaw_eval``, ``rom_train`` and ``rom_eval`` (:data:`BUILTIN_TASKS`), each
 one module ``mpmlab.tasks.<name>`` with a ``conf/task/<name>.yaml``; other packages add tasks with
 :func:`register_task` or through the ``mpmlab.tasks`` entry-point group (and their YAML through
 ``mpmlab.configs``).
@@ -26,7 +26,7 @@ ENTRY_POINT_GROUP = "mpmlab.tasks"
 
 #: the built-in tasks: each is one module ``mpmlab.tasks.<name>`` holding its option schema, its
 #: ``run`` and the schema's registration
-BUILTIN_TASKS = ("simulate", "replay", "inverse", "bench", "nclaw_train", "nclaw_eval", "rom_train")
+BUILTIN_TASKS = ("simulate", "replay", "inverse", "bench", "nclaw_train", "nclaw_eval", "rom_train", "rom_eval")
 _TASKS: dict[str, Any] = {name: f"mpmlab.tasks.{name}:run" for name in BUILTIN_TASKS}
 _entry_points_loaded = False
 

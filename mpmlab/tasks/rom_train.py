@@ -132,7 +132,9 @@ def run(cfg, ctx) -> dict:
     finally:
         if rec is not None:
             rec.close()
-    N.save(out / WEIGHTS, weights.params, weights.norm, weights.spec, seed=int(tc.seed))
+    training = {"study": s.name, "runs": [s.runs[i].name for i in train_runs],
+                "params": [s.runs[i].params for i in train_runs], "param_names": list(s.param_names)}
+    N.save(out / WEIGHTS, weights.params, weights.norm, weights.spec, seed=int(tc.seed), training=training)
     errors = {"train": reconstruction_error(weights, data)}
     if test_runs:
         test = TrainingSet.from_snapshots(load_snapshots(str(tc.data), s, runs=test_runs))

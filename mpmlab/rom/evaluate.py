@@ -1,0 +1,216 @@
+"""Online evaluation of the deformation-map ROM (Chen et al. 2023, Sec. 5): the reduced model of each test
+run, stepped from its initial state (Eq. 19) by ``ReducedStepper`` and compared with the run's full-order
+snapshots, for any quadrature x projection x sample-count scheme.
+
+Errors, pooled over test runs, snapshots (the initial one included) and points:
+
+* ``E`` (the paper's, below Eq. 24): sqrt(sum |x_ROM - x_FOM|^2 / sum |x_FOM - c|^2), c the initial
+  centroid of the body. The paper states no origin (its release uses 5 m per axis); the value depends
+  on it, so it is fixed here and the displacement-relative error is given beside it;
+* ``E_displacement``: sqrt(sum |x_ROM - x_FOM|^2 / sum |x_FOM - X|^2);
+* ``E_v``: sqrt(sum |v_ROM - v_FOM|^2 / sum |v_FOM|^2);
+* ``E_F``: sqrt(sum |F_ROM - F_FOM|_F^2 / sum |F_FOM - I|_F^2) (relative to the deformation, not to |F|,
+  which would hide it behind the identity).
+
+x_ROM, v_ROM, F_ROM are g(X; x_hat), dg/dx_hat v_hat and dg/dX at the truth's reference points X, so the
+truth may be a finer full-order run of the same parameters (super-resolution, Sec. 5.2.1): ``truth``.
+
+Each run's scene is rebuilt from the config its ``trajectory.h5`` records (the same scene, resolution
+and dt as the snapshots), with the PIC transfer (Alg. 5). The ROM's time step defaults to the FOM's;
+another ``dt`` must divide the snapshot interval, and is not held to the FOM's CFL limit (an unstable
+one ends in ``SimulationDiverged``). Wall times: the reduced rollout (after one compiled warm-up step)
+and ``fom_timing_steps`` steps of the full-order model of the same scene in the same process, both per
+simulated second.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.errors import ConfigError
+from . import networks as N
+
+#: the sums an error is made of (numerator key, denominator key)
+_SUMS = {"E": ("x", "x_c"), "E_displacement": ("x", "u"), "E_v": ("v", "v_ref"), "E_F": ("F", "F_I")}
+
+
+@dataclass(frozen=True)
+class Scheme:
+    """One online configuration: quadrature (lagrangian | eulerian), projection (linear | nonlinear) and
+    the number of sample points |M| (an int, or ``"all"``)."""
+
+    quadrature: str
+    projection: str
+    samples: object
+
+    @property
+    def label(self) -> str:
+        return f"{self.quadrature}+{self.projection}, M={self.samples}"
+
+
+def schemes(quadratures, projections, samples) -> list[Scheme]:
+    """Every combination, in the order given."""
+    out = []
+    for q in quadratures:
+        for p in projections:
+            for m in samples:
+                out.append(Scheme(str(q), str(p), m if m == "all" else int(m)))
+    return out
+
+
+def run_config(snap, k: int):
+    """The composed config (an OmegaConf DictConfig) run ``k`` of ``snap`` recorded in its trajectory.h5."""
+    from omegaconf import OmegaConf
+
+    text = snap.attrs[k].get("config_yaml") or ""
+    if not text:
+        raise ConfigError(f"'{snap.paths[k]}' records no config; the ROM cannot rebuild its scene.")
+    return OmegaConf.create(text)
+
+
+def build_full_order(cfg, precision: str, dt: float | None = None, backend: str = "jax"):
+    """(scene, stepper) of a recorded run's config with the PIC transfer; ``dt`` replaces the scene's
+    (and lifts its CFL limit: the reduced model's stability is measured, not assumed)."""
+    from ..build import build_scene
+    from ..simulator import build_stepper
+
+    if dt is not None:
+        cfg = cfg.copy()
+        cfg.scene.dt = float(dt)
+        cfg.scene.cfl_limit = float("inf")
+    scene = build_scene(cfg)
+    return scene, build_stepper(scene, backend, "pic", precision)
+
+
+def _sums(weights, params, norm, X, z, zdot, x, v, F, c):
+    """The error sums of one run, (per snapshot, in all): x, v, F of g at (X, z, zdot) against the truth's
+    ``[T, N, ...]``."""
+    import jax.numpy as jnp
+
+    xr, Fr, dxdz = N.g_jacobians(params, norm, jnp.asarray(X)[None], jnp.asarray(z)[:, None, :])
+    vr = jnp.einsum("tpdk,tk->tpd", dxdz, jnp.asarray(zdot))
+    xr, Fr, vr = np.asarray(xr), np.asarray(Fr), np.asarray(vr)
+    eye = np.eye(X.shape[1])
+    per_frame = {"x": np.sum((xr - x) ** 2, axis=(1, 2)).tolist(), "x_c": np.sum((x - c) ** 2, axis=(1, 2)).tolist()}
+    return per_frame, {"x": float(np.sum((xr - x) ** 2)), "x_c": float(np.sum((x - c) ** 2)),
+            "u": float(np.sum((x - X) ** 2)), "v": float(np.sum((vr - v) ** 2)), "v_ref": float(np.sum(v ** 2)),
+            "F": float(np.sum((Fr - F) ** 2)), "F_I": float(np.sum((F - eye) ** 2))}
+
+
+def errors_of(sums: dict) -> dict:
+    return {k: (math.sqrt(sums[a] / sums[b]) if sums[b] > 0 else None) for k, (a, b) in _SUMS.items()}
+
+
+def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64", dt: float | None = None,
+             seed: int = 0, truth=None, fom_timing_steps: int = 100, fom_backend: str = "jax",
+             progress: bool = False, log=None) -> dict:
+    """Every scheme on every run of ``snap`` (``mpmlab.rom.snapshots.load_snapshots``' result: the test
+    runs). ``truth``: snapshots of the same runs to compare against (default ``snap``; e.g. a 2x finer
+    FOM). Returns ``{"schemes": [...], "runs": [...], "fom": {...}}`` (module doc)."""
+    import jax.numpy as jnp
+
+    from ..core.errors import SimulationDiverged
+    from .stepper import ReducedStepper
+
+    truth = snap if truth is None else truth
+    if tuple(truth.names) != tuple(snap.names):
+        raise ConfigError(f"rom_eval: the truth's runs {list(truth.names)} are not the test runs {list(snap.names)}.")
+    R, T = snap.x.shape[:2]
+    if truth.x.shape[1] != T or not np.allclose(truth.time, snap.time, rtol=1e-6, atol=1e-9):
+        raise ConfigError(f"rom_eval: the truth keeps {truth.x.shape[1]} snapshots up to t = {truth.time[-1]:.6g} s, "
+                          f"the test runs {T} up to {snap.time[-1]:.6g} s; they must share the snapshot times.")
+    interval = float(snap.time[1] - snap.time[0]) if T > 1 else 0.0
+    rows, runs, fom_rows = [], [], []
+    dtype = jnp.float64 if precision == "fp64" else jnp.float32
+    params, norm = N.to_jax(weights.params, dtype), N.to_jax(weights.norm, dtype)
+    for k in range(R):
+        cfg = run_config(snap, k)
+        scene, fom = build_full_order(cfg, precision, dt)
+        X0 = np.asarray(fom.particles.x)
+        if X0.shape != snap.x[k, 0].shape or not np.allclose(X0, snap.x[k, 0], rtol=0, atol=1e-9):
+            raise ConfigError(f"rom_eval: run {snap.names[k]}'s rebuilt scene has {len(X0)} points that are not its "
+                              f"snapshots' first frame ({snap.x.shape[2]} points): the scene changed since it was run.")
+        step_dt = float(fom.dt)
+        every = interval / step_dt if interval else 1.0
+        if abs(every - round(every)) > 1e-6 * every:
+            raise ConfigError(f"rom_eval: dt = {step_dt:g} s does not divide the snapshot interval {interval:g} s; "
+                              f"choose dt = {interval:g} / n.")
+        every = max(1, int(round(every)))
+        steps = every * (T - 1)
+        Xt = truth.x[k, 0]
+        c = truth.x[k, 0].mean(axis=0)
+        fom_rows.append(_time_full_order(scene, precision, fom_backend, min(int(fom_timing_steps), steps), every))
+        for sch in scheme_list:
+            m = len(X0) if sch.samples == "all" else int(sch.samples)
+            rom = ReducedStepper(fom, weights, samples=m, quadrature=sch.quadrature, projection=sch.projection,
+                                 seed=seed)
+            s0 = rom.init()
+            t0 = time.perf_counter()
+            np.asarray(rom.step(s0).z)                           # compile the reduced step
+            compile_s = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            status, why = "ok", ""
+            try:
+                out = rom.rollout(s0, steps=steps, every=every)
+            except SimulationDiverged as e:
+                status, why = "diverged", str(e)
+            wall = time.perf_counter() - t0
+            row = {"run": snap.names[k], "params": dict(zip(snap.param_names, map(float, snap.params[k]))),
+                   "scheme": sch.label, "quadrature": sch.quadrature, "projection": sch.projection,
+                   "samples": m, "dt": step_dt, "steps": steps, "status": status,
+                   "compile_s": compile_s, "wall_s": wall,
+                   "wall_s_per_simulated_s": wall / (steps * step_dt) if steps else None}
+            if status == "ok":
+                per_frame, sums = _sums(weights, params, norm, Xt, out["z"], out["zdot"], truth.x[k], truth.v[k],
+                                        truth.F[k], c)
+                row.update(sums=sums, per_frame=per_frame, **errors_of(sums), outside=int(out["state"].outside),
+                           unconverged=int(out["state"].unconverged), z=out["z"].tolist())
+            else:
+                row["message"] = why
+            rows.append(row)
+            if log is not None:
+                e = row.get("E")
+                log.info("rom_eval %s %s: %s%s, %.3g s per simulated s", snap.names[k], sch.label, status,
+                         "" if e is None else f" E = {e:.3%}", row["wall_s_per_simulated_s"] or float("nan"))
+        runs.append(snap.names[k])
+    table = []
+    for sch in scheme_list:
+        mine = [r for r in rows if r["scheme"] == sch.label]
+        ok = [r for r in mine if r["status"] == "ok"]
+        pooled = {key: sum(r["sums"][key] for r in ok) for key in ok[0]["sums"]} if ok else None
+        wall = sum(r["wall_s"] for r in mine)
+        sim = sum(r["steps"] * r["dt"] for r in mine)
+        table.append({"scheme": sch.label, "quadrature": sch.quadrature, "projection": sch.projection,
+                      "samples": sch.samples, "runs": len(mine), "diverged": len(mine) - len(ok),
+                      **(errors_of(pooled) if pooled and len(ok) == len(mine) else {k: None for k in _SUMS}),
+                      "wall_s_per_simulated_s": wall / sim if sim else None})
+    fom_wall = sum(f["wall_s"] for f in fom_rows)
+    fom_sim = sum(f["simulated_s"] for f in fom_rows)
+    fom = {"backend": fom_backend, "transfer": "pic", "precision": precision, "timed_steps": [f["steps"] for f in fom_rows],
+           "wall_s_per_simulated_s": fom_wall / fom_sim if fom_sim else None}
+    for row in table:
+        a, b = row["wall_s_per_simulated_s"], fom["wall_s_per_simulated_s"]
+        row["speedup_vs_fom"] = b / a if a and b else None
+    return {"schemes": table, "rows": rows, "runs": runs, "fom": fom, "snapshot_interval": interval,
+            "snapshots": T}
+
+
+def _time_full_order(scene, precision, backend, steps, chunk):
+    """Wall time of about ``steps`` full-order steps of ``scene`` (PIC), advanced ``chunk`` steps (one
+    snapshot interval) per call as a rollout does, after a compiled warm-up chunk."""
+    from ..simulator import build_stepper
+
+    fom = build_stepper(scene, backend, "pic", precision)
+    chunk = max(1, min(int(chunk), int(steps) or 1))
+    n = max(1, int(math.ceil(int(steps) / chunk))) if steps else 0
+    s = fom._advance(fom.init(), chunk)
+    fom._block(s)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        s = fom._advance(s, chunk)
+    fom._block(s)
+    wall = time.perf_counter() - t0
+    return {"steps": n * chunk, "wall_s": wall, "simulated_s": n * chunk * float(fom.dt)}

@@ -1,0 +1,209 @@
+"""``task=rom_eval``: the deformation-map ROM's online stage on a study's test runs (Chen et al. 2023,
+Sec. 5): every quadrature x projection x sample-count scheme stepped by ``ReducedStepper`` from each
+test run's initial state and compared with its full-order snapshots (``mpmlab.rom.evaluate``):
+
+    mpmlab task=rom_train task.study=beam_2d task.data=data/beam hydra.run.dir=runs/beam_train
+    mpmlab task=rom_eval task.study=beam_2d task.data=data/beam task.weights=runs/beam_train/rom_weights.safetensors
+
+Errors (pooled over the test runs, snapshots and points): E about the initial centroid (the paper's,
+Tabs. 3-6), and relative to the displacement, the velocity and F - I. ``task.truth_study`` /
+``task.truth_data`` compare against other full-order runs of the same parameters (super-resolution:
+``torsion_fine``). Outputs: ``summary.json`` (per scheme and per run, the latent trajectories, ROM and
+FOM wall time per simulated second from this process), ``rom_eval.md`` (the table) and
+``rom_eval.png`` (E against time per scheme).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, List, Optional
+
+import numpy as np
+
+from ..config import TaskConfig, register_task_schema
+from ..core.errors import ConfigError
+from .common import SUMMARY, save_figure, write_config, write_json, write_text
+
+log = logging.getLogger("mpmlab")
+TABLE = "rom_eval.md"
+PLOT = "rom_eval.png"
+
+
+@dataclass
+class RomEvalConfig(TaskConfig):
+    """Run the reduced model of a study's test runs beside their full-order snapshots."""
+
+    name: str = "rom_eval"
+    #: the study (mpmlab.rom.snapshots.STUDIES) whose test runs are evaluated
+    study: str = ""
+    #: the folder of the study's runs (its test runs are read)
+    data: str = ""
+    #: the networks (rom_weights.safetensors of task=rom_train)
+    weights: str = ""
+    #: the latent size the weights must have (None: whatever they have)
+    latent: Optional[int] = None
+    quadratures: List[str] = field(default_factory=lambda: ["lagrangian", "eulerian"])
+    projections: List[str] = field(default_factory=lambda: ["linear", "nonlinear"])
+    #: sample counts |M|: integers, or "all" (every material point)
+    samples: List[Any] = field(default_factory=lambda: [50, "all"])
+    #: seed of the sample draws
+    seed: int = 0
+    #: the reduced model's time step (None: the full-order run's); it must divide the snapshot interval
+    dt: Optional[float] = None
+    #: evaluate only the first k test runs
+    max_runs: Optional[int] = None
+    #: compare against another study's runs of the same parameters (e.g. torsion_fine), in truth_data
+    truth_study: str = ""
+    truth_data: str = ""
+    #: full-order steps timed per run (PIC, the same scene, this process), and their backend
+    fom_timing_steps: int = 100
+    fom_backend: str = "jax"
+
+
+register_task_schema("rom_eval", RomEvalConfig)
+
+
+def _samples(values) -> list:
+    out = []
+    for i, m in enumerate(values):
+        if m == "all":
+            out.append("all")
+            continue
+        try:
+            out.append(int(m))
+        except (TypeError, ValueError):
+            raise ConfigError(f"task.samples[{i}] = {m!r}; give an integer or 'all'.") from None
+    if not out:
+        raise ConfigError("task.samples is empty; give at least one sample count (e.g. [50, all]).")
+    return out
+
+
+def check_not_trained_on(weights, s, test_runs) -> None:
+    """Refuse test runs whose parameters are among the weights' training runs (the file's record)."""
+    t = weights.training or {}
+    if not t or not t.get("params"):
+        return
+    names = list(s.param_names)
+    seen = [tuple(float(p[k]) for k in names) for p in t["params"] if all(k in p for k in names)]
+    for i in test_runs:
+        key = tuple(float(s.runs[i].params[k]) for k in names)
+        if any(np.allclose(key, q, rtol=1e-9, atol=1e-12) for q in seen):
+            raise ConfigError(f"rom_eval: test run {s.runs[i].name} ({dict(zip(names, key))}) is one of the weights' "
+                              f"training runs (study '{t.get('study')}'); evaluate on runs the networks have not seen.")
+
+
+def run(cfg, ctx) -> dict:
+    from .. import __version__
+    from ..rom import evaluate as ev
+    from ..rom import networks as N
+    from ..rom.snapshots import load_snapshots, study
+
+    t_task = time.perf_counter()
+    out = Path(ctx.output_dir)
+    tc = cfg.task
+    if not tc.study or not tc.data or not tc.weights:
+        raise ConfigError("task=rom_eval needs task.study=NAME, task.data=DIR (the study's runs) and "
+                          "task.weights=FILE (rom_weights.safetensors of task=rom_train).")
+    if (out / SUMMARY).exists() and not ctx.overwrite:
+        raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
+    s = study(str(tc.study))
+    if not s.test:
+        raise ConfigError(f"task.study = '{s.name}' has no test runs.")
+    k = None if tc.max_runs is None else int(tc.max_runs)
+    if k is not None and k < 1:
+        raise ConfigError(f"task.max_runs = {k} must be >= 1 (or null: every test run).")
+    test_runs = tuple(s.test)[:k]
+    if not Path(str(tc.weights)).is_file():
+        raise ConfigError(f"task.weights = '{tc.weights}' is not a file; give rom_weights.safetensors of task=rom_train.")
+    if tc.fom_backend not in ("jax", "warp"):
+        raise ConfigError(f"task.fom_backend = '{tc.fom_backend}'; choose jax or warp.")
+    precision = cfg.precision.name
+    snap = load_snapshots(str(tc.data), s, runs=test_runs)
+    dim = snap.x.shape[-1]
+    weights = N.load(str(tc.weights), expect_dim=dim, expect_latent=None if tc.latent is None else int(tc.latent))
+    check_not_trained_on(weights, s, test_runs)
+    truth = None
+    if tc.truth_study:
+        ts = study(str(tc.truth_study))
+        names = [s.runs[i].name for i in test_runs]
+        idx = []
+        for i in test_runs:
+            hit = [j for j, r in enumerate(ts.runs) if r.params == s.runs[i].params]
+            if len(hit) != 1:
+                raise ConfigError(f"task.truth_study = '{ts.name}' has no run with the parameters of {s.runs[i].name}.")
+            idx.append(hit[0])
+        truth = load_snapshots(str(tc.truth_data or tc.data), ts, runs=idx)
+        truth.names = tuple(names)
+    sch = ev.schemes(list(tc.quadratures), list(tc.projections), _samples(tc.samples))
+    write_config(out, cfg, True)
+    log.info("rom_eval: study %s, %d test runs, %d schemes, weights %s (latent %d)", s.name, len(test_runs), len(sch),
+             tc.weights, weights.spec.latent)
+    res = ev.evaluate(weights, snap, sch, precision=precision, dt=None if tc.dt is None else float(tc.dt),
+                      seed=int(tc.seed), truth=truth, fom_timing_steps=int(tc.fom_timing_steps),
+                      fom_backend=str(tc.fom_backend), log=log)
+    diverged = [r for r in res["rows"] if r["status"] != "ok"]
+    summary = {"task": "rom_eval", "status": "ok" if not diverged else "diverged", "study": s.name,
+               "data": str(tc.data), "weights": str(tc.weights), "latent": weights.spec.latent,
+               "training": weights.training, "test_runs": list(snap.names),
+               "truth": {"study": tc.truth_study, "data": tc.truth_data or str(tc.data)} if tc.truth_study else None,
+               "precision": precision, "seed": int(tc.seed), **res,
+               "wall_time_s": float(time.perf_counter() - t_task), "mpmlab_version": __version__}
+    write_json(out / SUMMARY, summary, True)
+    write_text(out / TABLE, table_markdown(summary), True)
+    if cfg.output.plots:
+        _plot(out / PLOT, summary)
+    best = min((r for r in res["schemes"] if r["E"] is not None), key=lambda r: r["E"], default=None)
+    print(f"mpmlab: rom_eval {s.name}: {len(snap.names)} test runs x {len(sch)} schemes"
+          + (f"; best {best['scheme']}: E {best['E']:.2%}" if best else "")
+          + (f"; {len(diverged)} diverged" if diverged else "") + f" -> {out / TABLE}", flush=True)
+    if diverged:
+        from ..core.errors import SimulationDiverged
+
+        first = diverged[0]
+        raise SimulationDiverged(first["steps"], -1, "x_hat", "non-finite",
+                                 f"the reduced model of {first['run']} ({first['scheme']}) diverged; lower task.dt "
+                                 f"(the other schemes' results are in {out / SUMMARY})")
+    return summary
+
+
+def _pct(x) -> str:
+    return "—" if x is None else f"{100 * x:.2f}"
+
+
+def table_markdown(s: dict) -> str:
+    fom = s["fom"]["wall_s_per_simulated_s"]
+    lines = [f"# ROM evaluation: study {s['study']}, latent {s['latent']}, {len(s['test_runs'])} test runs ({s['precision']})", "",
+             f"Errors in % (pooled over runs, snapshots and points). Full-order model ({s['fom']['backend']}, PIC): "
+             f"{fom:.3g} s per simulated s." if fom else "", "",
+             "| scheme | E | E (displacement) | E_v | E_F | s per simulated s | speed-up | diverged |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in s["schemes"]:
+        sp = r["speedup_vs_fom"]
+        lines.append(f"| {r['scheme']} | {_pct(r['E'])} | {_pct(r['E_displacement'])} | {_pct(r['E_v'])} | "
+                     f"{_pct(r['E_F'])} | {r['wall_s_per_simulated_s']:.3g} | {'—' if sp is None else f'{sp:.2f}x'} | "
+                     f"{r['diverged']}/{r['runs']} |")
+    lines += ["", "E = sqrt(sum |x_ROM - x_FOM|^2 / sum |x_FOM - c|^2), c the initial centroid (mpmlab.rom.evaluate)."]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(path: Path, s: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for sch in s["schemes"]:
+        rows = [r for r in s["rows"] if r["scheme"] == sch["scheme"] and r["status"] == "ok"]
+        if not rows:
+            continue
+        num = np.sum([r["per_frame"]["x"] for r in rows], axis=0)
+        den = np.sum([r["per_frame"]["x_c"] for r in rows], axis=0)
+        t = np.arange(len(num)) * s["snapshot_interval"]
+        ax.plot(t, 100 * np.sqrt(num / den), label=sch["scheme"], lw=1.2)
+    ax.set_xlabel("time [s]"); ax.set_ylabel("E per snapshot [%]")
+    ax.set_title(f"rom_eval {s['study']}: latent {s['latent']}", fontsize=9); ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path, "rom_eval")
