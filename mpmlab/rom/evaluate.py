@@ -85,7 +85,7 @@ def build_full_order(cfg, precision: str, dt: float | None = None, backend: str 
     return scene, build_stepper(scene, backend, "pic", precision)
 
 
-def _sums(weights, params, norm, X, z, zdot, x, v, F, c):
+def _sums(params, norm, X, z, zdot, x, v, F, c):
     """The error sums of one run, (per snapshot, in all): x, v, F of g at (X, z, zdot) against the truth's
     ``[T, N, ...]``."""
     import jax.numpy as jnp
@@ -152,11 +152,11 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
             np.asarray(rom.step(s0).z)                           # compile the reduced step
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            status, why = "ok", ""
+            status, why, at = "ok", "", None
             try:
                 out = rom.rollout(s0, steps=steps, every=every)
             except SimulationDiverged as e:
-                status, why = "diverged", str(e)
+                status, why, at = "diverged", str(e), e.step
             wall = time.perf_counter() - t0
             row = {"run": snap.names[k], "params": dict(zip(snap.param_names, map(float, snap.params[k]))),
                    "scheme": sch.label, "quadrature": sch.quadrature, "projection": sch.projection,
@@ -164,12 +164,12 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
                    "compile_s": compile_s, "wall_s": wall,
                    "wall_s_per_simulated_s": wall / (steps * step_dt) if steps else None}
             if status == "ok":
-                per_frame, sums = _sums(weights, params, norm, Xt, out["z"], out["zdot"], truth.x[k], truth.v[k],
+                per_frame, sums = _sums(params, norm, Xt, out["z"], out["zdot"], truth.x[k], truth.v[k],
                                         truth.F[k], c)
                 row.update(sums=sums, per_frame=per_frame, **errors_of(sums), outside=int(out["state"].outside),
                            unconverged=int(out["state"].unconverged), z=out["z"].tolist())
             else:
-                row["message"] = why
+                row.update(message=why, diverged_at_step=at)
             rows.append(row)
             if log is not None:
                 e = row.get("E")

@@ -287,23 +287,36 @@ class ReducedStepper(AbstractStepper):
 
     def rollout(self, state=None, steps: int = 100, every: int = 1, **kw):
         """Run ``steps`` reduced steps; returns ``{"z", "zdot": [T, d_hat], "x": [T, N, d], "time": [T]}`` (frames
-        every ``every`` steps, the first one the initial state), and the final state as ``"state"``."""
+        every ``every`` steps, the first one the initial state), and the final state as ``"state"``. At every
+        kept frame the full-order guard's test: a non-finite x_hat, or a point outside the scene's domain,
+        raises ``SimulationDiverged`` (an unstable time step)."""
         import jax.numpy as jnp
+
+        from ..core.errors import SimulationDiverged
 
         state = self.init() if state is None else state
         every = max(1, int(every))
-        zs, vs, ts = [np.asarray(state.z)], [np.asarray(state.zdot)], [float(state.t)]
+        lo, hi = (np.asarray(a, float) for a in self.scene.domain)
+        zs, vs, xs, ts = [], [], [], []
+
+        def keep(k, s):
+            # the full-order guard's test at every kept frame: finite, and every point inside the domain
+            z = np.asarray(s.z)
+            x = np.asarray(N.g_apply(self.params, self.norm, self.X, jnp.asarray(z)[None, :])) if np.all(np.isfinite(z)) \
+                else np.full(self.X.shape, np.nan)
+            bad = ~np.all(np.isfinite(x) & (x >= lo) & (x <= hi), axis=1)
+            if bad.any():
+                p = int(np.argmax(bad))
+                raise SimulationDiverged(k, p, "x", x[p].tolist(), "the reduced state left the domain or is "
+                                         "non-finite; lower the time step")
+            zs.append(z); vs.append(np.asarray(s.zdot)); xs.append(x); ts.append(float(s.t))
+
+        keep(0, state)
         for k in range(1, int(steps) + 1):
             state = self.step(state)
             if k % every == 0 or k == steps:
-                zs.append(np.asarray(state.z)); vs.append(np.asarray(state.zdot)); ts.append(float(state.t))
-                if not np.all(np.isfinite(zs[-1])):
-                    from ..core.errors import SimulationDiverged
-
-                    raise SimulationDiverged(k, -1, "z", zs[-1].tolist(), "the reduced state is non-finite; lower "
-                                                                          "the time step")
-        z = np.stack(zs)
-        x = np.asarray(N.g_apply(self.params, self.norm, self.X[None], jnp.asarray(z)[:, None, :]))
+                keep(k, state)
+        z, x = np.stack(zs), np.stack(xs)
         return {"z": z, "zdot": np.stack(vs), "x": x, "time": np.asarray(ts), "state": state}
 
     def to_numpy(self, state, X=None) -> dict[str, np.ndarray]:

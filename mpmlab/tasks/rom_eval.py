@@ -162,7 +162,7 @@ def run(cfg, ctx) -> dict:
         from ..core.errors import SimulationDiverged
 
         first = diverged[0]
-        raise SimulationDiverged(first["steps"], -1, "x_hat", "non-finite",
+        raise SimulationDiverged(first["diverged_at_step"], -1, "x_hat", "non-finite or outside the domain",
                                  f"the reduced model of {first['run']} ({first['scheme']}) diverged; lower task.dt "
                                  f"(the other schemes' results are in {out / SUMMARY})")
     return summary

@@ -1,0 +1,151 @@
+"""task=rom_eval (ROM paper Sec. 5): the reduced model of each test run beside its full-order snapshots,
+on tiny torsion snapshots and briefly trained networks; the error measures; what it refuses."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mpmlab.core.errors import ConfigError, SimulationDiverged
+
+
+def _task(out, *overrides):
+    from mpmlab.config import compose
+    from mpmlab.tasks import RunContext, run_task
+
+    cfg = compose(["task=rom_eval", "precision=fp64", "task.max_runs=2", *overrides])
+    return run_task(cfg, RunContext(output_dir=out, overwrite=True, progress=False))
+
+
+@pytest.fixture(scope="module")
+def torsion(tmp_path_factory):
+    """Two training and two test runs of the torsion study at `tiny` (40 points, 2 snapshots) and
+    networks fitted to the training runs for a few epochs, recording them."""
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.snapshots import load_snapshots, run_study, study
+    from mpmlab.rom.train import TrainingSet, TrainOptions, fit
+
+    root = tmp_path_factory.mktemp("rom_eval")
+    s = study("torsion")
+    train, test = list(s.train[:2]), list(s.test[:2])
+    run_study(s, root / "data", runs=train + test, overrides=["scene.resolution=tiny", "backend=jax",
+                                                                          "precision=fp64"])
+    data = TrainingSet.from_snapshots(load_snapshots(root / "data", s, runs=train))
+    w, _ = fit(data, TrainOptions(latent=2, batch=2, schedule=((1e-3, 8),)), None, progress=False)
+    path = root / "weights.safetensors"
+    N.save(path, w.params, w.norm, w.spec, training={"study": "torsion", "params": [s.runs[i].params for i in train]})
+    return s, root, path, train, test
+
+
+def test_rom_eval_task_writes_errors_and_timings(torsion, tmp_path):
+    s, root, weights, _, test = torsion
+    out = tmp_path / "eval"
+    out.mkdir()
+    res = _task(out, "task.study=torsion", f"task.data={root / 'data'}", f"task.weights={weights}",
+                "task.quadratures=[lagrangian,eulerian]", "task.projections=[nonlinear]", "task.samples=[all]",
+                "task.fom_timing_steps=14")
+    assert res["status"] == "ok" and res["test_runs"] == [s.runs[i].name for i in test]
+    assert [r["scheme"] for r in res["schemes"]] == ["lagrangian+nonlinear, M=all", "eulerian+nonlinear, M=all"]
+    for row in res["schemes"]:
+        mine = [r for r in res["rows"] if r["scheme"] == row["scheme"]]
+        assert len(mine) == 2 and all(r["status"] == "ok" for r in mine)
+        pooled = {k: sum(r["sums"][k] for r in mine) for k in mine[0]["sums"]}
+        assert row["E"] == pytest.approx(math.sqrt(pooled["x"] / pooled["x_c"]), rel=1e-12)
+        assert 0 < row["E"] < 0.5 and row["E_displacement"] > row["E"]     # the body moves less than its size
+        assert row["wall_s_per_simulated_s"] > 0 and row["speedup_vs_fom"] > 0
+    assert res["fom"]["wall_s_per_simulated_s"] > 0 and res["fom"]["timed_steps"] == [14, 14]
+    on_disk = json.loads((out / "summary.json").read_text())
+    assert on_disk["schemes"][0]["E"] == res["schemes"][0]["E"]
+    assert "| eulerian+nonlinear, M=all |" in (out / "rom_eval.md").read_text()
+    assert (out / "rom_eval.png").exists()
+
+
+def test_rom_eval_refuses_runs_the_weights_were_trained_on(torsion, tmp_path):
+    from mpmlab.rom import networks as N
+
+    s, root, weights, train, test = torsion
+    w = N.load(weights)
+    leaky = tmp_path / "leaky.safetensors"
+    N.save(leaky, w.params, w.norm, w.spec, training={"study": "torsion", "params": [s.runs[test[0]].params]})
+    with pytest.raises(ConfigError, match=f"test run {s.runs[test[0]].name} .* is one of the weights' training runs"):
+        _task(tmp_path, "task.study=torsion", f"task.data={root / 'data'}", f"task.weights={leaky}")
+
+
+def test_rom_eval_refuses_weights_of_another_dimension_and_missing_inputs(torsion, tmp_path):
+    from mpmlab.rom import networks as N
+
+    s, root, weights, _, _ = torsion
+    spec = N.RomSpec(dim=2, latent=2)
+    flat = tmp_path / "2d.safetensors"
+    N.save(flat, N.init_params(spec), N.identity_norm(2), spec)
+    with pytest.raises(ConfigError, match="dimension is 2, expected 3"):
+        _task(tmp_path, "task.study=torsion", f"task.data={root / 'data'}", f"task.weights={flat}")
+    with pytest.raises(ConfigError, match="latent size is 2, expected 5"):
+        _task(tmp_path, "task.study=torsion", f"task.data={root / 'data'}", f"task.weights={weights}", "task.latent=5")
+    with pytest.raises(ConfigError, match="needs task.study"):
+        _task(tmp_path, "task.study=torsion")
+    with pytest.raises(ConfigError, match="samples = 100; it must be at least the latent size 2 and at most the 40"):
+        _task(tmp_path, "task.study=torsion", f"task.data={root / 'data'}", f"task.weights={weights}",
+              "task.samples=[100]", "task.quadratures=[lagrangian]", "task.projections=[linear]", "task.max_runs=1")
+
+
+@pytest.fixture(scope="module")
+def beam(tmp_path_factory):
+    """One training run (g = 4) and one test run (g = 3) of the 2D beam study at `tiny` (96 points, 20
+    snapshots) and networks fitted to the training run for a few epochs."""
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.snapshots import load_snapshots, run_study, study
+    from mpmlab.rom.train import TrainingSet, TrainOptions, fit
+
+    root = tmp_path_factory.mktemp("rom_eval_beam")
+    s = study("beam_2d")
+    run_study(s, root / "data", runs=[s.train[1], s.test[0]], overrides=["scene.resolution=tiny", "backend=jax",
+                                                                         "precision=fp64"])
+    data = TrainingSet.from_snapshots(load_snapshots(root / "data", s, runs=[s.train[1]]))
+    w, _ = fit(data, TrainOptions(latent=2, batch=4, schedule=((3e-3, 60),)), None, progress=False)
+    path = root / "weights.safetensors"
+    N.save(path, w.params, w.norm, w.spec, training={"study": "beam_2d", "params": [s.runs[s.train[1]].params]})
+    return root, path
+
+
+def test_an_unstable_rom_time_step_ends_in_simulation_diverged(beam, tmp_path):
+    """dt = the snapshot interval (20 full-order steps, CFL number about 4): the reduced beam leaves the
+    domain, and the task says so with SimulationDiverged (the CLI's exit code 3), after writing its
+    summary."""
+    root, weights = beam
+    with pytest.raises(SimulationDiverged, match="lower task.dt"):
+        _task(tmp_path, "task.study=beam_2d", f"task.data={root / 'data'}", f"task.weights={weights}",
+              "task.quadratures=[lagrangian]", "task.projections=[linear]", "task.samples=[all]", "task.max_runs=1",
+              "task.dt=0.01")
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "diverged" and summary["schemes"][0]["diverged"] == 1
+    assert "left the domain or is non-finite" in summary["rows"][0]["message"]
+
+
+def test_error_measures_of_a_uniform_offset():
+    """x_ROM = x_FOM + delta everywhere: E = |delta| sqrt(T N) / sqrt(sum |x - c|^2), and the v and F errors
+    of an exact v and F are zero."""
+    import jax
+
+    from mpmlab.rom import evaluate as ev
+    from mpmlab.rom import networks as N
+
+    jax.config.update("jax_enable_x64", True)
+    spec = N.RomSpec(dim=2, latent=2)
+    params = N.linear_params(spec, np.zeros((2, 2)), np.eye(2))        # g = X + x_hat
+    norm = N.identity_norm(2)
+    X = np.random.default_rng(0).uniform(0, 1, (30, 2))
+    z = np.array([[0.0, 0.0], [0.1, -0.2]])
+    zdot = np.array([[1.0, 0.0], [1.0, 0.0]])
+    delta = np.array([0.003, -0.004])
+    x = X[None] + z[:, None, :] - delta
+    v = np.broadcast_to(zdot[:, None, :], x.shape)
+    F = np.broadcast_to(np.eye(2), (2, 30, 2, 2))
+    per_frame, sums = ev._sums(N.to_jax(params), N.to_jax(norm), X, z, zdot, x, v, F, X.mean(0))
+    err = ev.errors_of(sums)
+    assert err["E"] == pytest.approx(0.005 * math.sqrt(60) / math.sqrt(np.sum((x - X.mean(0)) ** 2)), rel=1e-9)
+    assert err["E_v"] == pytest.approx(0.0, abs=1e-12)
+    assert err["E_F"] is None                                       # F = I: no deformation to be relative to
+    assert per_frame["x"] == pytest.approx([30 * 0.005 ** 2] * 2, rel=1e-9)
