@@ -188,7 +188,7 @@ class ReducedStepper(AbstractStepper):
         pick = jax.random.choice(key, self._free.shape[0], (self._n_random,), replace=False)
         return jnp.concatenate([self._forced_j, self._free[pick]])
 
-    def _lagrangian_points(self, s, M):
+    def _lagrangian_points(self, s, M, law=None):
         """Alg. 3: every material point, with its own mass and volume where it shares a node with a sample
         (else zero); the samples are rows M. Returns (x, v, law state per group, step params, sample rows,
         (outside, unconverged) counts), as ``_eulerian_points`` does."""
@@ -200,12 +200,14 @@ class ReducedStepper(AbstractStepper):
         near = jnp.all(jnp.abs(base[:, None, :] - base[M][None, :, :]) <= 2, axis=-1)   # [N, |M|]
         quad = jnp.any(near, axis=1).astype(self.dtype)
         prm = dict(self._fom_params)
+        if law is not None:
+            prm["law"] = tuple(law)
         prm["mass"] = prm["mass"] * quad
         prm["volume"] = prm["volume"] * quad
         none = jnp.zeros((), jnp.int32)
         return x, v, tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), prm, M, (none, none)
 
-    def _eulerian_points(self, s, M):
+    def _eulerian_points(self, s, M, law=None):
         """Alg. 4: quadrature points on the cells around the samples, then the samples (massless rows)."""
         import jax.numpy as jnp
 
@@ -243,7 +245,8 @@ class ReducedStepper(AbstractStepper):
         prm = dict(self._fom_params)
         prm["volume"] = jnp.concatenate([V0, jnp.zeros(n_M, self.dtype)])
         prm["mass"] = self._rho0 * prm["volume"]
-        prm["law"] = (jnp.broadcast_to(self._law_row, (x.shape[0],) + self._law_row.shape),)
+        row = self._law_row if law is None else law[0][0]           # uniform parameters (checked at set-up)
+        prm["law"] = (jnp.broadcast_to(row, (x.shape[0],) + row.shape),)
         rows = jnp.arange(self._q_size, self._q_size + n_M)
         counts = (jnp.sum(real & ~in_body).astype(jnp.int32), jnp.sum(real & in_body & ~converged).astype(jnp.int32))
         return x, v, ({"F": F},), prm, rows, counts
@@ -260,14 +263,15 @@ class ReducedStepper(AbstractStepper):
             vp, vpic = bc.apply_particles(xf, vp, vpic, t_end, self.dt, bp)
         return x0 + self.dt * vpic[M], vp[M]
 
-    def _step_impl(self, s: ReducedState):
+    def _step_impl(self, s: ReducedState, law=None):
+        """One reduced step; ``law``: the law parameters (as ``fom.params["law"]``; default the scene's)."""
         import jax
 
         key, sub = jax.random.split(s.key)
         M = self._sample(sub)
         points = self._eulerian_points if self.quadrature == "eulerian" else self._lagrangian_points
-        x, v, law, prm, rows, counts = points(s, M)
-        state = {"x": x, "v": v, "law": law, "t": s.t}
+        x, v, state_law, prm, rows, counts = points(s, M, law)
+        state = {"x": x, "v": v, "law": state_law, "t": s.t}
         if self.quadrature == "eulerian":             # Alg. 5 from the quadrature points; boundaries on M here
             new = self.fom.step_fn(state, prm, particle_bcs=False, update_law=False)
             x_tr, v_tr = self._kinematic_boundaries(M, x[rows], new["v"][rows], s.t + self.dt)
@@ -284,6 +288,40 @@ class ReducedStepper(AbstractStepper):
 
     def step(self, state):
         return self._step(state)
+
+    @property
+    def law_params(self):
+        """The scene's law parameters, one array per material group (rows per point, e.g. [E, nu]): the
+        ``law`` argument of :meth:`rollout_fn`."""
+        return self._fom_params["law"]
+
+    def rollout_fn(self, steps: int, every: int = 1):
+        """The reduced rollout as one pure JAX function ``f(z0, zdot0, law) -> z [steps // every + 1, d_hat]``
+        (the initial latent first, then every ``every`` steps), differentiable by ``jax.grad`` / ``jax.jvp``
+        in the initial latent state and the law parameters (``law``: as :attr:`law_params`). The sample
+        draws are the stepper's (seeded), so f is deterministic. One ``lax.scan``: jit it for speed.
+        The Eulerian quadrature's inverse map is a data-dependent Newton loop that reverse mode cannot
+        run through: its gradients are forward mode only (``jax.jvp`` / ``jax.jacfwd``)."""
+        import jax
+        import jax.numpy as jnp
+
+        steps, every = int(steps), max(1, int(every))
+        if steps < every or steps % every:
+            raise ConfigError(f"ReducedStepper.rollout_fn: steps = {steps} must be a positive multiple of every = {every}.")
+        key0 = jax.random.PRNGKey(self.seed)
+        zero = jnp.zeros((), jnp.int32)
+
+        def f(z0, zdot0, law):
+            s = ReducedState(z0, zdot0, z0, jnp.zeros((), self.dtype), key0, zero, zero)
+
+            def frame(s, _):
+                s, _ = jax.lax.scan(lambda c, _: (self._step_impl(c, law), None), s, None, length=every)
+                return s, s.z
+
+            _, zs = jax.lax.scan(frame, s, None, length=steps // every)
+            return jnp.concatenate([z0[None], zs])
+
+        return f
 
     def rollout(self, state=None, steps: int = 100, every: int = 1, **kw):
         """Run ``steps`` reduced steps; returns ``{"z", "zdot": [T, d_hat], "x": [T, N, d], "time": [T]}`` (frames
