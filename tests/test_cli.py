@@ -149,7 +149,7 @@ def test_python_m_mpmlab_help(tmp_path):
                           timeout=120)
     assert proc.returncode == 0
     for line in ("backend: jax, warp", "transfer: apic, flip, mls, pic, tpic", "precision: fp32, fp64",
-                 "task: bench, inverse, nclaw_eval, nclaw_train, replay, rom_train, simulate"):
+                 "task: bench, inverse, nclaw_eval, nclaw_train, replay, rom_eval, rom_train, simulate"):
         assert line in proc.stdout
     assert "nclaw_jelly" in proc.stdout and "experiment:" in proc.stdout
 
