@@ -13,8 +13,7 @@ from .transfers import make_transfer
 def check_capabilities(scene: Scene, backend: str, transfer: AbstractTransfer) -> None:
     """Fail before anything runs if a law, transfer or boundary has no implementation for ``backend``."""
     registry.backends.get(backend)  # unknown backend -> UnknownPluginError listing the known ones
-    for body in scene.bodies:
-        law = registry.laws.get(body.material)
+    for law in scene.body_laws():    # the configured instances (their class may follow the options)
         if backend not in law.implementations:
             raise MissingImplementationError("law", law.name, backend, list(law.implementations))
     if backend not in transfer.implementations:

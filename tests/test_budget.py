@@ -178,6 +178,25 @@ def test_memory_frames_kept_suggest_frame_every():
     assert budget.estimate_memory(scene, "jax", "fp32", "mls", frames=T_less, fields=("F", "C"))["total"] > 0.5 * avail
 
 
+def test_phase_change_body_is_counted_with_its_law_instance_before_sampling():
+    """The budget reads each body's law instance (``Scene._law``), not the registered class: the
+    ``phase_change`` class declares only switch_time and the clock, its configured pair both laws'
+    parameters and state (F). Unsampled, the estimate counts what sampling then holds."""
+    scene = _scene("scene=nclaw_melting", "scene.resolution=tiny", "precision=fp64")
+    law = scene._law(0)
+    assert type(law).__name__ == "Law_hencky_von_mises_to_hencky_drucker_prager"
+    assert budget._params_per_particle(scene) == len(law.param_names()) == 7
+    assert budget._laws(scene) == [(law, budget.estimate_particles(scene))]
+    assert budget.carried_fields(scene, "mls") == {"C", "F", "clock"}
+    before = budget.estimate_memory(scene, "jax", "fp64", "mls")
+    per_particle = budget._scene_particle_bytes(scene, 1)
+    assert "_particles" not in vars(scene)
+    P = scene.particles()
+    assert P.groups[0].law is law and P.groups[0].params.shape[1] == 7
+    after = budget.estimate_memory(scene, "jax", "fp64", "mls")
+    assert before["particles"] == after["particles"] and per_particle == budget._scene_particle_bytes(scene, 1)
+
+
 def test_available_memory_is_positive():
     assert 0 < budget.available_memory() < 1 << 60
 

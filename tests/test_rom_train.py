@@ -49,6 +49,30 @@ def test_schedule_is_the_papers_and_scales():
         [1e-3, 1e-3, 1e-4, 1e-4, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6]
 
 
+def test_task_schema_and_options_share_one_set_of_fields():
+    """``task=rom_train``'s training options are ``TrainOptions``' fields (written once, in
+    ``TrainSettings``), with the same defaults, and ``TrainOptions.from_config`` reads them off the
+    composed task (typed; ``points`` may stay None); the schedule is the library's alone."""
+    import dataclasses
+
+    from mpmlab.config import compose
+    from mpmlab.rom.options import TrainSettings
+    from mpmlab.tasks.rom_train import RomTrainConfig
+
+    shared = [f.name for f in dataclasses.fields(TrainSettings)]
+    assert shared == ["latent", "lambda_F", "lambda_v", "batch", "schedule_scale", "points", "frame_stride", "seed"]
+    options = {f.name: f.default for f in dataclasses.fields(TrainOptions)}
+    schema = {f.name: f.default for f in dataclasses.fields(RomTrainConfig)}
+    assert set(options) - set(shared) == {"schedule"} and "schedule" not in schema
+    assert {k: schema[k] for k in shared} == {k: options[k] for k in shared}
+    assert TrainOptions.from_config(compose(["task=rom_train"]).task) == TrainOptions()
+    tc = compose(["task=rom_train", "task.latent=7", "task.lambda_F=0", "task.points=64", "task.seed=3"]).task
+    opt = TrainOptions.from_config(tc, schedule=((1e-3, 5),))
+    assert opt == TrainOptions(latent=7, lambda_F=0.0, points=64, seed=3, schedule=((1e-3, 5),))
+    assert type(opt.lambda_F) is float and type(opt.points) is int
+    assert TrainOptions.from_config({"batch": "4"}) == TrainOptions(batch=4)      # a mapping; the rest defaults
+
+
 def test_refusals_are_one_line():
     data = bending(R=1, T=2)
     cases = [

@@ -90,3 +90,36 @@ def test_bad_input_is_one_clear_sentence(bad, match):
     with pytest.raises(mpmlab.ConfigError, match=match) as err:
         mpmlab.Scene(dim=2, dx=0.05, domain=([0, 0], [1, 1]), bodies=[mpmlab.Body(**spec)], dt=1e-4).particles()
     assert "\n" not in str(err.value)
+
+
+def test_each_body_law_is_built_once_and_serves_every_reader(monkeypatch):
+    """``Scene._law`` builds a body's law instance once (``from_config``) and keeps it: sampling, the
+    wave speed, dt: auto's safety factor, the capability check and the size budget all read it, and
+    bodies of equal material and options share one instance."""
+    from mpmlab.core import budget
+    from mpmlab.core.interfaces import AbstractConstitutiveLaw
+    from mpmlab.simulator import check_capabilities
+    from mpmlab.transfers import make_transfer
+
+    built = []
+    orig = AbstractConstitutiveLaw.from_config.__func__
+
+    def counting(cls, options, where):
+        built.append((cls.name, where))
+        return orig(cls, options, where)
+
+    monkeypatch.setattr(AbstractConstitutiveLaw, "from_config", classmethod(counting))
+    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0, 0], [1, 1]), bodies=[
+        body({"kind": "box", "lo": [0.1, 0.1], "hi": [0.3, 0.3]}, name="a"),
+        body({"kind": "box", "lo": [0.5, 0.1], "hi": [0.7, 0.3]}, name="b"),
+        body({"kind": "box", "lo": [0.1, 0.5], "hi": [0.3, 0.7]}, material="hencky_von_mises", name="c")],
+        dt="auto")
+    budget.estimate_memory(scene)               # before sampling: reads the instances, samples nothing
+    assert "_particles" not in vars(scene)
+    P = scene.particles()
+    scene.wave_speed(); scene.resolve_dt(); scene.cfl_number(1e-4); scene.effective_cfl
+    check_capabilities(scene, "jax", make_transfer("mls"))
+    budget.estimate_memory(scene)
+    assert [w for _, w in built] == [f"scene 'scene', body {n}" for n in "abc"]     # once per body
+    assert scene._law(0) is scene._law(1) is P.groups[0].law and scene._law(2) is P.groups[1].law
+    assert scene.body_laws() == [P.groups[0].law, P.groups[0].law, P.groups[1].law]

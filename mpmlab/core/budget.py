@@ -333,16 +333,15 @@ def estimate_sampling_peak(scene) -> int:
 # memory
 # ------------------------------------------------------------------------------------------------
 def _laws(scene) -> list[tuple[Any, int]]:
-    """(law class, particles) per material group, in the order of first appearance, estimated."""
-    from . import registry
-
-    counts: dict[str, int] = {}
+    """(law instance, particles) per material group, in the order of first appearance, estimated: the
+    groups of ``scene.particles()`` (bodies of equal law instances, ``Scene._law``) without sampling."""
     P = _sampled(scene)
     if P is not None:
         return [(g.law, int(g.count)) for g in P.groups]
-    for body, e in zip(scene.bodies, estimate_bodies(scene)):
-        counts[body.material] = counts.get(body.material, 0) + e.particles
-    return [(registry.laws.get(name), n) for name, n in counts.items()]
+    counts: dict[Any, int] = {}
+    for law, e in zip(scene.body_laws(), estimate_bodies(scene)):
+        counts[law] = counts.get(law, 0) + e.particles
+    return list(counts.items())
 
 
 def _field_size(name: str, dim: int) -> int:
@@ -354,18 +353,16 @@ def _field_size(name: str, dim: int) -> int:
     return f.size(dim) if f is not None else dim * dim
 
 
+def _params_per_particle(scene) -> int:
+    """P: the largest parameter count of the scene's law instances (``Scene._law``: a ``phase_change``
+    pair declares both laws' parameters)."""
+    return max(len(law.param_names()) for law in scene.body_laws())
+
+
 def _scene_particle_bytes(scene, n: int) -> int:
     """The scene's ParticleSet for ``n`` particles: float64 x, v [N, D], mass, volume; int64 body and
     material ids; float64 params [N, P] (P: the largest parameter count of the scene's laws)."""
-    from . import registry
-
-    P = 0
-    for body in scene.bodies:
-        try:
-            P = max(P, len(registry.laws.get(body.material).param_names()))
-        except Exception:
-            P = max(P, 4)
-    return n * (8 * (2 * scene.dim + 2 + P) + 16)
+    return n * (8 * (2 * scene.dim + 2 + _params_per_particle(scene)) + 16)
 
 
 def _transfer(transfer):
@@ -807,7 +804,6 @@ def output_preflight(cfg, scene, output_dir: str | os.PathLike, *, steps: int | 
         ``{file name: bytes}`` of the outputs.
     """
     from ..build import make_transfer_from_config
-    from . import registry
 
     tr = make_transfer_from_config(cfg)
     precision = str(cfg.precision.name)
@@ -830,7 +826,7 @@ def output_preflight(cfg, scene, output_dir: str | os.PathLike, *, steps: int | 
         keep_frames = write_rec and not write_traj
     if keep_frames:
         memory_preflight(cfg, scene, frames=T, fields=fields, steps=steps, frame_every=every, available=available)
-    P = max(len(registry.laws.get(b.material).param_names()) for b in scene.bodies)
+    P = _params_per_particle(scene)
     sizes = estimate_outputs(estimate_particles(scene), scene.dim, precision, T, fields, R,
                              field_particles=field_particles(scene, fields, tr, derived), params_per_particle=P,
                              color_scalar=str(out_cfg.get("color_by", "material")) not in ("material", "body"),

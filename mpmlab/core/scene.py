@@ -177,9 +177,8 @@ class Scene:
         xs, vs, ms, vols, bids, law_names, params = [], [], [], [], [], [], []
         instances = {}
         for b, body in enumerate(self.bodies):
-            where = f"scene '{self.name}', body {body.name or b}"
-            inst = self._law(body, where)
-            law = type(inst)          # a configured instance's class declares its parameters (phase_change)
+            where = self._where(b)
+            law = self._law(b)        # the configured instance declares the parameters (phase_change)
             prm = law.resolve_params(body.params, where, density=body.density)
             if not body.density > 0:
                 raise ConfigError(f"{where}: density = {body.density} must be positive.")
@@ -217,8 +216,8 @@ class Scene:
                     v += np.cross(w, r)
             xs.append(x); vs.append(v)
             ms.append(np.full(len(x), body.density * vol)); vols.append(np.full(len(x), vol))
-            bids.append(np.full(len(x), b)); law_names.append(inst)
-            instances.setdefault(inst, where)
+            bids.append(np.full(len(x), b)); law_names.append(law)
+            instances.setdefault(law, where)
             params.append(np.tile(np.array([prm[k] for k in law.param_names()]), (len(x), 1)))
         # group particles by law instance (law and options), in order of first appearance
         order_laws = list(dict.fromkeys(law_names))
@@ -238,19 +237,38 @@ class Scene:
     def particles(self) -> ParticleSet:
         return self._particles
 
-    @staticmethod
-    def _law(body: Body, where: str):
-        """The body's law instance (its class may depend on the options: ``phase_change``)."""
-        return registry.laws.get(body.material).from_config(body.options, where)
+    def _where(self, b: int) -> str:
+        return f"scene '{self.name}', body {self.bodies[b].name or b}"
+
+    @cached_property
+    def _law_instances(self) -> dict:
+        """``{body index: law instance}``, filled by ``_law`` as the bodies are asked for."""
+        return {}
+
+    def _law(self, b: int):
+        """The law instance of body ``b`` (an index into ``bodies``): built once from its material and
+        options (``from_config``) and kept; bodies whose material and options are equal get the same
+        instance. Everything that reads a body's law -- its parameters, state, implementations,
+        stable CFL, wave speed -- reads this instance, whose class may depend on the options (a
+        ``phase_change`` pair declares the two laws' parameters; the registered class only its own)."""
+        cache = self._law_instances
+        if b not in cache:
+            body = self.bodies[b]
+            inst = registry.laws.get(body.material).from_config(body.options, self._where(b))
+            cache[b] = next((law for law in cache.values() if law == inst), inst)
+        return cache[b]
+
+    def body_laws(self) -> list:
+        """The law instance of each body, in body order (``_law``); samples no particle."""
+        return [self._law(b) for b in range(len(self.bodies))]
 
     # ---- time step --------------------------------------------------------------------------
     def wave_speed(self) -> float:
         """Largest elastic wave speed over all bodies [m/s]."""
         c = 0.0
         for b, body in enumerate(self.bodies):
-            where = f"scene '{self.name}', body {body.name or b}"
-            inst = self._law(body, where)
-            prm = type(inst).resolve_params(body.params, where, density=body.density)
+            inst = self._law(b)
+            prm = inst.resolve_params(body.params, self._where(b), density=body.density)
             # a law with shared weights sees them (its stiffness may live there: a neural law)
             weights = (next(g.weights for g in self.particles().groups if g.law == inst)
                        if inst.weight_shapes(self.dim) else {})
@@ -282,8 +300,7 @@ class Scene:
     def effective_cfl(self) -> float:
         """The ``dt: auto`` safety factor: ``cfl``, capped at half the measured C* of any law in the scene
         that declares one (``stable_cfl``; benchmarks/stress.md)."""
-        caps = [getattr(type(self._law(b, f"scene '{self.name}', body {b.name or i}")), "stable_cfl", None)
-                for i, b in enumerate(self.bodies)]
+        caps = [getattr(law, "stable_cfl", None) for law in self.body_laws()]
         caps = [0.5 * c for c in caps if c is not None]
         return min([float(self.cfl)] + caps)
 

@@ -72,7 +72,12 @@ def _spin(C: np.ndarray) -> np.ndarray:
 
 
 def _law_energy(law_name: str):
-    """The law's ``reference.energy`` function, or None (unknown law, or a law without an energy)."""
+    """The law's ``reference.energy`` function, or None (unknown law, or a law without an energy).
+
+    By name: a trajectory's material record (possibly read from a file) names its law, not its
+    options, so there is no configured instance here; ``reference`` is a class attribute that every
+    instance of the law shares (a ``phase_change`` pair inherits the registered class's, which has no
+    energy)."""
     from ..core import registry
     from ..core.errors import MpmlabError
 

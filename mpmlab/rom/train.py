@@ -33,6 +33,7 @@ import numpy as np
 
 from ..core.errors import ConfigError
 from . import networks as N
+from .options import TrainSettings
 
 #: App. B / the release's README: learning rates and their epochs
 PAPER_SCHEDULE = ((1e-3, 500), (1e-4, 200), (1e-5, 100), (1e-6, 50))
@@ -83,20 +84,12 @@ class TrainingSet:
 
 
 @dataclass
-class TrainOptions:
-    """Eq. 24's weights, the schedule and the sampling (module doc)."""
+class TrainOptions(TrainSettings):
+    """Eq. 24's weights, the schedule and the sampling (module doc): ``TrainSettings``' fields (the
+    ``task=rom_train`` options too; ``TrainOptions.from_config(cfg.task)``) and the schedule."""
 
-    latent: int = 6
-    lambda_F: float = 100.0
-    lambda_v: float = 0.01
-    batch: int = 8
+    #: (learning rate, epochs) per stage, the epochs scaled by ``schedule_scale`` (App. B)
     schedule: tuple = PAPER_SCHEDULE
-    schedule_scale: float = 1.0
-    #: points per snapshot per batch (None: all)
-    points: int | None = None
-    #: use every k-th snapshot of each run
-    frame_stride: int = 1
-    seed: int = 0
 
     def epochs(self) -> list[tuple[float, int]]:
         """(lr, epochs) with the epoch counts scaled by ``schedule_scale`` (at least 1 each)."""

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..config import TaskConfig, register_task_schema
 from ..core.errors import ConfigError
+from ..rom.options import TrainSettings
 from .common import SUMMARY, save_figure, write_config, write_json
 
 log = logging.getLogger("mpmlab")
@@ -35,27 +36,16 @@ PLOT = "training.png"
 
 
 @dataclass
-class RomTrainConfig(TaskConfig):
-    """Train the ROM's encoder and deformation map on a study's snapshots."""
+class RomTrainConfig(TrainSettings, TaskConfig):
+    """Train the ROM's encoder and deformation map on a study's snapshots. The training options
+    (latent, lambda_F, lambda_v, batch, schedule_scale, points, frame_stride, seed) are
+    ``mpmlab.rom.options.TrainSettings``' fields, shared with ``mpmlab.rom.train.TrainOptions``."""
 
     name: str = "rom_train"
     #: the study (mpmlab.rom.snapshots.STUDIES): gravity | torsion | poke | tower | ...
     study: str = ""
     #: the folder of the study's runs (a sweep directory of experiment=rom_snapshots_<study>)
     data: str = ""
-    #: latent size d_hat (the paper: 7 torsion, 4 Fig. 9, 6 poke and tower)
-    latent: int = 6
-    lambda_F: float = 100.0
-    lambda_v: float = 0.01
-    #: snapshots per batch (App. B: 8)
-    batch: int = 8
-    #: scales the epochs of the App. B schedule (500 / 200 / 100 / 50): 0.2 is a 170-epoch run
-    schedule_scale: float = 1.0
-    #: points per snapshot per batch (None: all)
-    points: Optional[int] = None
-    #: use every k-th snapshot of each run
-    frame_stride: int = 1
-    seed: int = 0
     #: use only the first k training (and test) runs of the study: a reduced reproduction, or a test
     max_runs: Optional[int] = None
     #: end early on purpose (checkpointed; rerun to continue)
@@ -88,10 +78,7 @@ def run(cfg, ctx) -> dict:
     train_runs, test_runs = tuple(s.train)[:k], tuple(s.test)[:k]
     snap = load_snapshots(str(tc.data), s, runs=train_runs)
     data = TrainingSet.from_snapshots(snap)
-    opt = TrainOptions(latent=int(tc.latent), lambda_F=float(tc.lambda_F), lambda_v=float(tc.lambda_v),
-                       batch=int(tc.batch), schedule_scale=float(tc.schedule_scale),
-                       points=None if tc.points is None else int(tc.points), frame_stride=int(tc.frame_stride),
-                       seed=int(tc.seed))
+    opt = TrainOptions.from_config(tc)
     ckpt = out / CHECKPOINT
     if (out / SUMMARY).exists() and not ckpt.exists() and not ctx.overwrite:
         raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
