@@ -50,6 +50,8 @@ def run(a) -> None:
     opts = [f"task.study={a.study}", f"task.data={data}", f"task.latent={a.latent}", f"task.batch={a.batch}",
             f"task.schedule_scale={a.schedule_scale}", f"task.lambda_F={a.lambda_F}", f"task.lambda_v={a.lambda_v}",
             f"task.seed={a.seed}", f"precision={a.precision}"]
+    if a.schedule:
+        opts.append(f"task.schedule={a.schedule}")
     if not (train / "summary.json").exists() or json.loads((train / "summary.json").read_text())["status"] != "ok":
         rc = mpmlab(["task=rom_train", *opts, f"hydra.run.dir={train}", "output.overwrite=true"])
         if rc != 0:
@@ -110,6 +112,7 @@ def main():
     ap.add_argument("--latent", type=int, default=3)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--schedule-scale", type=float, default=1.0)
+    ap.add_argument("--schedule", default="", help="Adam stages as [[lr,epochs],...] (default: App. B's)")
     ap.add_argument("--lambda-F", dest="lambda_F", type=float, default=100.0)
     ap.add_argument("--lambda-v", dest="lambda_v", type=float, default=0.01)
     ap.add_argument("--seed", type=int, default=0)

@@ -52,7 +52,7 @@ def test_schedule_is_the_papers_and_scales():
 def test_task_schema_and_options_share_one_set_of_fields():
     """``task=rom_train``'s training options are ``TrainOptions``' fields (written once, in
     ``TrainSettings``), with the same defaults, and ``TrainOptions.from_config`` reads them off the
-    composed task (typed; ``points`` may stay None); the schedule is the library's alone."""
+    composed task (typed; ``points`` may stay None; ``schedule`` from a YAML list of pairs)."""
     import dataclasses
 
     from mpmlab.config import compose
@@ -60,10 +60,11 @@ def test_task_schema_and_options_share_one_set_of_fields():
     from mpmlab.tasks.rom_train import RomTrainConfig
 
     shared = [f.name for f in dataclasses.fields(TrainSettings)]
-    assert shared == ["latent", "lambda_F", "lambda_v", "batch", "schedule_scale", "points", "frame_stride", "seed"]
+    assert shared == ["latent", "lambda_F", "lambda_v", "batch", "schedule", "schedule_scale", "points",
+                      "frame_stride", "seed"]
     options = {f.name: f.default for f in dataclasses.fields(TrainOptions)}
     schema = {f.name: f.default for f in dataclasses.fields(RomTrainConfig)}
-    assert set(options) - set(shared) == {"schedule"} and "schedule" not in schema
+    assert set(options) == set(shared)
     assert {k: schema[k] for k in shared} == {k: options[k] for k in shared}
     assert TrainOptions.from_config(compose(["task=rom_train"]).task) == TrainOptions()
     tc = compose(["task=rom_train", "task.latent=7", "task.lambda_F=0", "task.points=64", "task.seed=3"]).task
@@ -71,6 +72,15 @@ def test_task_schema_and_options_share_one_set_of_fields():
     assert opt == TrainOptions(latent=7, lambda_F=0.0, points=64, seed=3, schedule=((1e-3, 5),))
     assert type(opt.lambda_F) is float and type(opt.points) is int
     assert TrainOptions.from_config({"batch": "4"}) == TrainOptions(batch=4)      # a mapping; the rest defaults
+    custom = TrainOptions.from_config(compose(["task=rom_train", "task.schedule=[[3e-3,150],[1e-4,50]]"]).task)
+    assert custom.epochs() == [(3e-3, 150), (1e-4, 50)] and custom.total_epochs == 200
+
+
+@pytest.mark.parametrize("bad", [(), ((1e-3, 0),), ((-1.0, 5),), ((1e-3,),), "fast"])
+def test_a_malformed_schedule_is_refused_in_one_line(bad):
+    with pytest.raises(ConfigError, match="schedule") as e:
+        TrainOptions(schedule=bad)
+    assert "\n" not in str(e.value)
 
 
 def test_refusals_are_one_line():

@@ -106,10 +106,11 @@ def errors_of(sums: dict) -> dict:
 
 def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64", dt: float | None = None,
              seed: int = 0, truth=None, fom_timing_steps: int = 100, fom_backend: str = "jax",
-             progress: bool = False, log=None) -> dict:
+             progress: bool | None = False, log=None) -> dict:
     """Every scheme on every run of ``snap`` (``mpmlab.rom.snapshots.load_snapshots``' result: the test
     runs). ``truth``: snapshots of the same runs to compare against (default ``snap``; e.g. a 2x finer
-    FOM). Returns ``{"schemes": [...], "runs": [...], "fom": {...}}`` (module doc)."""
+    FOM). ``progress``: a bar over the rollouts (None: when stderr is a terminal). Returns
+    ``{"schemes": [...], "runs": [...], "fom": {...}}`` (module doc)."""
     import jax.numpy as jnp
 
     from ..core.errors import SimulationDiverged
@@ -126,6 +127,10 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
     rows, runs, fom_rows = [], [], []
     dtype = jnp.float64 if precision == "fp64" else jnp.float32
     params, norm = N.to_jax(weights.params, dtype), N.to_jax(weights.norm, dtype)
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=R * len(scheme_list), unit="rollout", desc="rom_eval", leave=False,
+               disable=None if progress is None else not progress)
     for k in range(R):
         cfg = run_config(snap, k)
         scene, fom = build_full_order(cfg, precision, dt)
@@ -143,7 +148,8 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
         steps = every * (T - 1)
         Xt = truth.x[k, 0]
         c = truth.x[k, 0].mean(axis=0)
-        fom_rows.append(_time_full_order(scene, precision, fom_backend, min(int(fom_timing_steps), steps), every))
+        timed = fom if fom_backend == "jax" else build_full_order(cfg, precision, dt, fom_backend)[1]
+        fom_rows.append(_time_full_order(timed, min(int(fom_timing_steps), steps), every))
         for sch in scheme_list:
             m = len(X0) if sch.samples == "all" else int(sch.samples)
             rom = ReducedStepper(fom, weights, samples=m, quadrature=sch.quadrature, projection=sch.projection,
@@ -172,11 +178,13 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
             else:
                 row.update(message=why, diverged_at_step=at)
             rows.append(row)
+            bar.update()
             if log is not None:
                 e = row.get("E")
                 log.info("rom_eval %s %s: %s%s, %.3g s per simulated s", snap.names[k], sch.label, status,
                          "" if e is None else f" E = {e:.3%}", row["wall_s_per_simulated_s"] or float("nan"))
         runs.append(snap.names[k])
+    bar.close()
     table = []
     for sch in scheme_list:
         mine = [r for r in rows if r["scheme"] == sch.label]
@@ -199,12 +207,9 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
             "snapshots": T}
 
 
-def _time_full_order(scene, precision, backend, steps, chunk):
-    """Wall time of about ``steps`` full-order steps of ``scene`` (PIC), advanced ``chunk`` steps (one
-    snapshot interval) per call as a rollout does, after a compiled warm-up chunk."""
-    from ..simulator import build_stepper
-
-    fom = build_stepper(scene, backend, "pic", precision)
+def _time_full_order(fom, steps, chunk):
+    """Wall time of about ``steps`` steps of the full-order stepper ``fom`` (PIC), advanced ``chunk`` steps
+    (one snapshot interval) per call as a rollout does, after a compiled warm-up chunk."""
     chunk = max(1, min(int(chunk), int(steps) or 1))
     n = max(1, int(math.ceil(int(steps) / chunk))) if steps else 0
     s = fom._advance(fom.init(), chunk)

@@ -1,5 +1,5 @@
 """The ROM training options written once: ``TrainSettings`` holds the fields (and defaults) that both
-``mpmlab.rom.train.TrainOptions`` (the library's options, which add the learning-rate ``schedule``) and
+``mpmlab.rom.train.TrainOptions`` (the library's options, which add the schedule's arithmetic) and
 the ``task=rom_train`` schema ``mpmlab.tasks.rom_train.RomTrainConfig`` (a Hydra structured config,
 which adds the task's own fields) inherit. Plain dataclasses, no JAX: the task schema is registered
 when the CLI starts."""
@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, List, Optional
 
 
 @dataclass
@@ -24,7 +24,10 @@ class TrainSettings:
     lambda_v: float = 0.01
     #: snapshots per batch (App. B: 8)
     batch: int = 8
-    #: scales the epochs of the schedule (App. B: 500 / 200 / 100 / 50): 0.2 is a 170-epoch run
+    #: [[learning rate, epochs], ...] per Adam stage; None: App. B's 1e-3 / 1e-4 / 1e-5 / 1e-6 for
+    #: 500 / 200 / 100 / 50 epochs (``mpmlab.rom.train.PAPER_SCHEDULE``)
+    schedule: Optional[List[Any]] = None
+    #: scales the epochs of the schedule: 0.2 of the paper's is a 170-epoch run
     schedule_scale: float = 1.0
     #: points per snapshot per batch (None: all)
     points: Optional[int] = None
@@ -38,13 +41,13 @@ class TrainSettings:
         """An instance with ``TrainSettings``' fields read from ``cfg`` (a composed ``cfg.task``, any
         object with those attributes, or a mapping; a field it lacks keeps its default), each converted
         to its field's type (``None`` kept where the field allows it); ``more`` sets the other fields of
-        a subclass (``TrainOptions.schedule``)."""
+        a subclass or overrides a field of ``cfg``."""
         if isinstance(cfg, Mapping):
             given = {k: cfg[k] for k in _NAMES if k in cfg}
         else:
             given = {k: getattr(cfg, k) for k in _NAMES if hasattr(cfg, k)}
         hints = typing.get_type_hints(TrainSettings)
-        return cls(**{k: _typed(v, hints[k]) for k, v in given.items()}, **more)
+        return cls(**{**{k: _typed(v, hints[k]) for k, v in given.items()}, **more})
 
 
 _NAMES = tuple(f.name for f in dataclasses.fields(TrainSettings))
@@ -55,4 +58,6 @@ def _typed(value: Any, hint: Any) -> Any:
     if value is None and type(None) in args:
         return None
     kind = next((a for a in args if a is not type(None)), hint)
+    if typing.get_origin(kind) is list:                # the schedule: (lr, epochs) pairs, checked in TrainOptions
+        return tuple(tuple(p) if isinstance(p, Sequence) and not isinstance(p, str) else p for p in value)
     return kind(value)

@@ -86,10 +86,20 @@ class TrainingSet:
 @dataclass
 class TrainOptions(TrainSettings):
     """Eq. 24's weights, the schedule and the sampling (module doc): ``TrainSettings``' fields (the
-    ``task=rom_train`` options too; ``TrainOptions.from_config(cfg.task)``) and the schedule."""
+    ``task=rom_train`` options too; ``TrainOptions.from_config(cfg.task)``) and the schedule's arithmetic.
+    ``schedule`` None is App. B's (``PAPER_SCHEDULE``)."""
 
-    #: (learning rate, epochs) per stage, the epochs scaled by ``schedule_scale`` (App. B)
-    schedule: tuple = PAPER_SCHEDULE
+    def __post_init__(self):
+        stages = PAPER_SCHEDULE if self.schedule is None else self.schedule
+        try:
+            stages = tuple((float(lr), int(n)) for lr, n in stages)
+            ok = len(stages) > 0 and all(lr > 0 and math.isfinite(lr) and n >= 1 for lr, n in stages)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ConfigError(f"rom_train: schedule = {self.schedule!r}; give [[learning rate, epochs], ...] with "
+                              f"positive rates and epochs >= 1 (e.g. [[3e-3,150],[1e-3,100]]), or null (App. B's).")
+        self.schedule = stages
 
     def epochs(self) -> list[tuple[float, int]]:
         """(lr, epochs) with the epoch counts scaled by ``schedule_scale`` (at least 1 each)."""

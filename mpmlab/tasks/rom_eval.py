@@ -142,7 +142,7 @@ def run(cfg, ctx) -> dict:
              tc.weights, weights.spec.latent)
     res = ev.evaluate(weights, snap, sch, precision=precision, dt=None if tc.dt is None else float(tc.dt),
                       seed=int(tc.seed), truth=truth, fom_timing_steps=int(tc.fom_timing_steps),
-                      fom_backend=str(tc.fom_backend), log=log)
+                      fom_backend=str(tc.fom_backend), progress=ctx.progress, log=log)
     diverged = [r for r in res["rows"] if r["status"] != "ok"]
     summary = {"task": "rom_eval", "status": "ok" if not diverged else "diverged", "study": s.name,
                "data": str(tc.data), "weights": str(tc.weights), "latent": weights.spec.latent,

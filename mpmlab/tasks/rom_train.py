@@ -38,7 +38,7 @@ PLOT = "training.png"
 @dataclass
 class RomTrainConfig(TrainSettings, TaskConfig):
     """Train the ROM's encoder and deformation map on a study's snapshots. The training options
-    (latent, lambda_F, lambda_v, batch, schedule_scale, points, frame_stride, seed) are
+    (latent, lambda_F, lambda_v, batch, schedule, schedule_scale, points, frame_stride, seed) are
     ``mpmlab.rom.options.TrainSettings``' fields, shared with ``mpmlab.rom.train.TrainOptions``."""
 
     name: str = "rom_train"
