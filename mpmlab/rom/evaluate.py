@@ -113,7 +113,10 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
     ``{"schemes": [...], "runs": [...], "fom": {...}}`` (module doc)."""
     import jax.numpy as jnp
 
+    from tqdm.auto import tqdm
+
     from ..core.errors import SimulationDiverged
+    from ..simulator import build_stepper
     from .stepper import ReducedStepper
 
     truth = snap if truth is None else truth
@@ -127,8 +130,6 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
     rows, runs, fom_rows = [], [], []
     dtype = jnp.float64 if precision == "fp64" else jnp.float32
     params, norm = N.to_jax(weights.params, dtype), N.to_jax(weights.norm, dtype)
-    from tqdm.auto import tqdm
-
     bar = tqdm(total=R * len(scheme_list), unit="rollout", desc="rom_eval", leave=False,
                disable=None if progress is None else not progress)
     for k in range(R):
@@ -148,7 +149,7 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
         steps = every * (T - 1)
         Xt = truth.x[k, 0]
         c = truth.x[k, 0].mean(axis=0)
-        timed = fom if fom_backend == "jax" else build_full_order(cfg, precision, dt, fom_backend)[1]
+        timed = fom if fom_backend == "jax" else build_stepper(scene, fom_backend, "pic", precision)
         fom_rows.append(_time_full_order(timed, min(int(fom_timing_steps), steps), every))
         for sch in scheme_list:
             m = len(X0) if sch.samples == "all" else int(sch.samples)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, List, Optional
 
@@ -58,6 +58,6 @@ def _typed(value: Any, hint: Any) -> Any:
     if value is None and type(None) in args:
         return None
     kind = next((a for a in args if a is not type(None)), hint)
-    if typing.get_origin(kind) is list:                # the schedule: (lr, epochs) pairs, checked in TrainOptions
-        return tuple(tuple(p) if isinstance(p, Sequence) and not isinstance(p, str) else p for p in value)
+    if typing.get_origin(kind) is list:                # the schedule: TrainOptions checks it, makes it pairs
+        return value
     return kind(value)
