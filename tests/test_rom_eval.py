@@ -124,6 +124,27 @@ def test_an_unstable_rom_time_step_ends_in_simulation_diverged(beam, tmp_path):
     assert "left the domain or is non-finite" in summary["rows"][0]["message"]
 
 
+def test_rom_eval_on_the_warp_reduced_model_matches_jax(beam, tmp_path):
+    """task.rom_backend=warp: the same scheme (Lagrangian + linear, every point a sample) gives the JAX
+    reduced model's errors; the Eulerian quadrature, not on Warp yet, is refused before anything runs."""
+    root, weights = beam
+    common = ["task.study=beam_2d", f"task.data={root / 'data'}", f"task.weights={weights}",
+              "task.quadratures=[lagrangian]", "task.projections=[linear]", "task.samples=[all]", "task.max_runs=1",
+              "task.fom_timing_steps=20", "output.plots=false"]
+    res = {}
+    for backend in ("jax", "warp"):
+        out = tmp_path / backend
+        out.mkdir()
+        res[backend] = _task(out, *common, f"task.rom_backend={backend}", f"task.fom_backend={backend}")
+    j, w = res["jax"]["schemes"][0], res["warp"]["schemes"][0]
+    assert res["warp"]["fom"]["rom_backend"] == "warp" and w["diverged"] == 0
+    for k in ("E", "E_displacement", "E_v", "E_F"):
+        assert w[k] == pytest.approx(j[k], rel=1e-8), k
+    assert "reduced model on warp" in (tmp_path / "warp" / "rom_eval.md").read_text()
+    with pytest.raises(ConfigError, match="Eulerian quadrature is not written for the Warp reduced model"):
+        _task(tmp_path, *common[:3], "task.rom_backend=warp")
+
+
 def test_error_measures_of_a_uniform_offset():
     """x_ROM = x_FOM + delta everywhere: E = |delta| sqrt(T N) / sqrt(sum |x - c|^2), and the v and F errors
     of an exact v and F are zero."""

@@ -16,7 +16,7 @@ x_ROM, v_ROM, F_ROM are g(X; x_hat), dg/dx_hat v_hat and dg/dX at the truth's re
 truth may be a finer full-order run of the same parameters (super-resolution, Sec. 5.2.1): ``truth``.
 
 Each run's scene is rebuilt from the config its ``trajectory.h5`` records (the same scene, resolution
-and dt as the snapshots), with the PIC transfer (Alg. 5). The ROM's time step defaults to the FOM's;
+and dt as the snapshots), with the PIC transfer (Alg. 5), on the reduced model's backend (JAX or Warp). The ROM's time step defaults to the FOM's;
 another ``dt`` must divide the snapshot interval, and is not held to the FOM's CFL limit (an unstable
 one ends in ``SimulationDiverged``). Wall times: the reduced rollout (after one compiled warm-up step)
 and ``fom_timing_steps`` steps of the full-order model of the same scene in the same process, both per
@@ -106,10 +106,11 @@ def errors_of(sums: dict) -> dict:
 
 def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64", dt: float | None = None,
              seed: int = 0, truth=None, fom_timing_steps: int = 100, fom_backend: str = "jax",
-             progress: bool | None = False, log=None) -> dict:
+             backend: str = "jax", progress: bool | None = False, log=None) -> dict:
     """Every scheme on every run of ``snap`` (``mpmlab.rom.snapshots.load_snapshots``' result: the test
     runs). ``truth``: snapshots of the same runs to compare against (default ``snap``; e.g. a 2x finer
-    FOM). ``progress``: a bar over the rollouts (None: when stderr is a terminal). Returns
+    FOM). ``backend``: the reduced model's (jax: ``ReducedStepper``; warp: ``WarpReducedStepper``, which
+    has no Eulerian quadrature yet). ``progress``: a bar over the rollouts (None: when stderr is a terminal). Returns
     ``{"schemes": [...], "runs": [...], "fom": {...}}`` (module doc)."""
     import jax.numpy as jnp
 
@@ -117,8 +118,13 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
 
     from ..core.errors import SimulationDiverged
     from ..simulator import build_stepper
-    from .stepper import ReducedStepper
+    from .stepper import reduced_stepper
 
+    if backend not in ("jax", "warp"):
+        raise ConfigError(f"rom_eval: backend '{backend}'; choose jax or warp.")
+    if backend == "warp" and any(sch.quadrature == "eulerian" for sch in scheme_list):
+        raise ConfigError("rom_eval: the Eulerian quadrature is not written for the Warp reduced model yet; evaluate "
+                          "it with backend jax, or give quadratures [lagrangian].")
     truth = snap if truth is None else truth
     if tuple(truth.names) != tuple(snap.names):
         raise ConfigError(f"rom_eval: the truth's runs {list(truth.names)} are not the test runs {list(snap.names)}.")
@@ -134,7 +140,7 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
                disable=None if progress is None else not progress)
     for k in range(R):
         cfg = run_config(snap, k)
-        scene, fom = build_full_order(cfg, precision, dt)
+        scene, fom = build_full_order(cfg, precision, dt, backend)
         X0 = np.asarray(fom.particles.x)
         tol = (1e-9 if snap.x.dtype == np.float64 else 1e-5) * max(1.0, float(np.abs(X0).max(initial=0.0)))
         if X0.shape != snap.x[k, 0].shape or not np.allclose(X0, snap.x[k, 0], rtol=0, atol=tol):
@@ -149,15 +155,15 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
         steps = every * (T - 1)
         Xt = truth.x[k, 0]
         c = truth.x[k, 0].mean(axis=0)
-        timed = fom if fom_backend == "jax" else build_stepper(scene, fom_backend, "pic", precision)
+        timed = fom if fom_backend == backend else build_stepper(scene, fom_backend, "pic", precision)
         fom_rows.append(_time_full_order(timed, min(int(fom_timing_steps), steps), every))
         for sch in scheme_list:
             m = len(X0) if sch.samples == "all" else int(sch.samples)
-            rom = ReducedStepper(fom, weights, samples=m, quadrature=sch.quadrature, projection=sch.projection,
-                                 seed=seed)
+            rom = reduced_stepper(fom, weights, samples=m, quadrature=sch.quadrature, projection=sch.projection,
+                                  seed=seed)
             s0 = rom.init()
             t0 = time.perf_counter()
-            np.asarray(rom.step(s0).z)                           # compile the reduced step
+            rom._np(rom.step(s0).z)                              # compile the reduced step
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             status, why, at = "ok", "", None
@@ -199,7 +205,7 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
                       "wall_s_per_simulated_s": wall / sim if sim else None})
     fom_wall = sum(f["wall_s"] for f in fom_rows)
     fom_sim = sum(f["simulated_s"] for f in fom_rows)
-    fom = {"backend": fom_backend, "transfer": "pic", "precision": precision, "timed_steps": [f["steps"] for f in fom_rows],
+    fom = {"backend": fom_backend, "rom_backend": backend, "transfer": "pic", "precision": precision, "timed_steps": [f["steps"] for f in fom_rows],
            "wall_s_per_simulated_s": fom_wall / fom_sim if fom_sim else None}
     for row in table:
         a, b = row["wall_s_per_simulated_s"], fom["wall_s_per_simulated_s"]

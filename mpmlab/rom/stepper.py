@@ -33,6 +33,8 @@ so P2G, the grid update, every boundary, G2P and the law's ``kirchhoff`` are the
 
 One reduced step is one compiled JAX program (``jax.jit``); ``rollout`` keeps x_hat and the points'
 positions every ``every`` steps; ``to_numpy(state, X)`` gives x, F and v at any reference points.
+The Warp counterpart is ``mpmlab.rom.stepper_warp.WarpReducedStepper`` (Lagrangian quadrature);
+``reduced_stepper(fom, weights, ...)`` picks the one of the full-order stepper's backend.
 """
 from __future__ import annotations
 
@@ -66,18 +68,19 @@ class ReducedState(NamedTuple):
 _EULER_REACH = np.arange(-3, 7)
 
 
-class ReducedStepper(AbstractStepper):
-    """The reduced model of a scene (module doc). ``fom``: a JAX full-order stepper of the scene with
-    the ``pic`` transfer; ``weights``: ``mpmlab.rom.networks.RomWeights`` (``networks.load``)."""
+class _ReducedBase(AbstractStepper):
+    """What the JAX and the Warp reduced steppers share: the checks on the full-order stepper, the weights
+    and the options (one-line ``ConfigError``s), the kinematic boundaries' forced samples, and the
+    rollout with the full-order guard's test. A backend supplies ``_positions(z)`` (g at the material
+    points, numpy) and ``_np`` (its arrays to numpy)."""
 
-    def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
-                 projection: str = "linear", per_boundary: int = 5, seed: int = 0):
-        import jax
-        import jax.numpy as jnp
+    backend_name = ""
 
-        if getattr(fom, "backend_name", "") != "jax":
-            raise ConfigError("ReducedStepper: the reduced step is built on the JAX backend so far (the Warp one is "
-                              "not written yet); build the full-order stepper with backend 'jax'.")
+    def _check(self, fom, weights, samples, quadrature, projection, per_boundary, seed):
+        if getattr(fom, "backend_name", "") != self.backend_name:
+            raise ConfigError(f"{type(self).__name__}: the full-order stepper is on backend "
+                              f"'{getattr(fom, 'backend_name', '?')}'; build it with backend '{self.backend_name}' "
+                              f"(or use mpmlab.rom.stepper.reduced_stepper, which picks by the stepper's backend).")
         if fom.transfer.name != "pic":
             raise ConfigError(f"ReducedStepper: transfer '{fom.transfer.name}'; the reduced model uses PIC (Sec. 3, "
                               f"Alg. 5): build the full-order stepper with transfer 'pic'.")
@@ -101,12 +104,7 @@ class ReducedStepper(AbstractStepper):
                               f"and at most the {n} material points.")
         self.fom, self.weights, self.scene = fom, weights, fom.scene
         self.quadrature, self.projection = quadrature, projection
-        self.dim, self.dt, self.dtype = d, float(fom.dt), fom.dtype
-        self.backend_name = "jax"
-        dt = fom.dtype
-        self.params = N.to_jax(weights.params, dt)
-        self.norm = N.to_jax(weights.norm, dt)
-        self.X = jnp.asarray(P.x, dt)
+        self.dim, self.dt = d, float(fom.dt)
         # kinematic boundaries: at least per_boundary samples each (Sec. 3.3)
         forced = []
         for b in self.scene.boundaries:
@@ -118,10 +116,76 @@ class ReducedStepper(AbstractStepper):
             raise ConfigError(f"ReducedStepper: samples = {samples} is fewer than the {len(self._forced)} points the "
                               f"kinematic boundaries need ({per_boundary} each).")
         self.samples, self.seed = samples, int(seed)
-        free = np.setdiff1d(np.arange(n), self._forced)
-        self._free = jnp.asarray(free)
-        self._forced_j = jnp.asarray(self._forced)
+        self._free_np = np.setdiff1d(np.arange(n), self._forced)
         self._n_random = samples - len(self._forced)
+
+    def _np(self, a):
+        return np.asarray(a)
+
+    def _positions(self, z: np.ndarray) -> np.ndarray:
+        """g(X_p; z) at the scene's material points, [N, d] numpy."""
+        raise NotImplementedError
+
+    def rollout(self, state=None, steps: int = 100, every: int = 1, **kw):
+        """Run ``steps`` reduced steps; returns ``{"z", "zdot": [T, d_hat], "x": [T, N, d], "time": [T]}`` (frames
+        every ``every`` steps, the first one the initial state), and the final state as ``"state"``. At every
+        kept frame the full-order guard's test: a non-finite x_hat, or a point outside the scene's domain,
+        raises ``SimulationDiverged`` (an unstable time step)."""
+        from ..core.errors import SimulationDiverged
+
+        state = self.init() if state is None else state
+        every = max(1, int(every))
+        lo, hi = (np.asarray(a, float) for a in self.scene.domain)
+        zs, vs, xs, ts = [], [], [], []
+
+        def keep(k, s):
+            # the full-order guard's test at every kept frame: finite, and every point inside the domain
+            z = self._np(s.z)
+            x = self._positions(z) if np.all(np.isfinite(z)) else np.full((self.fom.particles.count, self.dim), np.nan)
+            bad = ~np.all(np.isfinite(x) & (x >= lo) & (x <= hi), axis=1)
+            if bad.any():
+                p = int(np.argmax(bad))
+                raise SimulationDiverged(k, p, "x", x[p].tolist(), "the reduced state left the domain or is "
+                                         "non-finite; lower the time step")
+            zs.append(z); vs.append(self._np(s.zdot)); xs.append(x); ts.append(float(s.t))
+
+        keep(0, state)
+        for k in range(1, int(steps) + 1):
+            state = self.step(state)
+            if k % every == 0 or k == steps:
+                keep(k, state)
+        z, x = np.stack(zs), np.stack(xs)
+        return {"z": z, "zdot": np.stack(vs), "x": x, "time": np.asarray(ts), "state": state}
+
+
+def reduced_stepper(fom, weights, **kw):
+    """The reduced model on the full-order stepper's backend: ``ReducedStepper`` (JAX) or
+    ``mpmlab.rom.stepper_warp.WarpReducedStepper`` (Warp, networks in torch)."""
+    if getattr(fom, "backend_name", "") == "warp":
+        from .stepper_warp import WarpReducedStepper
+
+        return WarpReducedStepper(fom, weights, **kw)
+    return ReducedStepper(fom, weights, **kw)
+
+
+class ReducedStepper(_ReducedBase):
+    """The reduced model of a scene (module doc) on JAX. ``fom``: a JAX full-order stepper of the scene
+    with the ``pic`` transfer; ``weights``: ``mpmlab.rom.networks.RomWeights`` (``networks.load``)."""
+
+    backend_name = "jax"
+
+    def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
+                 projection: str = "linear", per_boundary: int = 5, seed: int = 0):
+        import jax
+        import jax.numpy as jnp
+
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed)
+        self.dtype = dt = fom.dtype
+        self.params = N.to_jax(weights.params, dt)
+        self.norm = N.to_jax(weights.norm, dt)
+        self.X = jnp.asarray(fom.particles.x, dt)
+        self._free = jnp.asarray(self._free_np)
+        self._forced_j = jnp.asarray(self._forced)
         self._base0 = fom._node_x[0]
         self._fom_params = dict(fom.params)          # made here, outside any trace (it is cached on the stepper)
         nb = len(fom._grid_bcs)
@@ -187,6 +251,17 @@ class ReducedStepper(AbstractStepper):
 
         pick = jax.random.choice(key, self._free.shape[0], (self._n_random,), replace=False)
         return jnp.concatenate([self._forced_j, self._free[pick]])
+
+    def draws(self, steps: int, state=None) -> list[np.ndarray]:
+        """The sample rows M that the next ``steps`` steps from ``state`` (default: the initial state) draw:
+        the same seeded draws ``step`` makes (e.g. to replay them on another backend)."""
+        import jax
+
+        key, out = (self.init() if state is None else state).key, []
+        for _ in range(int(steps)):
+            key, sub = jax.random.split(key)
+            out.append(np.asarray(self._sample(sub)))
+        return out
 
     def _lagrangian_points(self, s, M, law=None):
         """Alg. 3: every material point, with its own mass and volume where it shares a node with a sample
@@ -323,39 +398,10 @@ class ReducedStepper(AbstractStepper):
 
         return f
 
-    def rollout(self, state=None, steps: int = 100, every: int = 1, **kw):
-        """Run ``steps`` reduced steps; returns ``{"z", "zdot": [T, d_hat], "x": [T, N, d], "time": [T]}`` (frames
-        every ``every`` steps, the first one the initial state), and the final state as ``"state"``. At every
-        kept frame the full-order guard's test: a non-finite x_hat, or a point outside the scene's domain,
-        raises ``SimulationDiverged`` (an unstable time step)."""
+    def _positions(self, z):
         import jax.numpy as jnp
 
-        from ..core.errors import SimulationDiverged
-
-        state = self.init() if state is None else state
-        every = max(1, int(every))
-        lo, hi = (np.asarray(a, float) for a in self.scene.domain)
-        zs, vs, xs, ts = [], [], [], []
-
-        def keep(k, s):
-            # the full-order guard's test at every kept frame: finite, and every point inside the domain
-            z = np.asarray(s.z)
-            x = np.asarray(N.g_apply(self.params, self.norm, self.X, jnp.asarray(z)[None, :])) if np.all(np.isfinite(z)) \
-                else np.full(self.X.shape, np.nan)
-            bad = ~np.all(np.isfinite(x) & (x >= lo) & (x <= hi), axis=1)
-            if bad.any():
-                p = int(np.argmax(bad))
-                raise SimulationDiverged(k, p, "x", x[p].tolist(), "the reduced state left the domain or is "
-                                         "non-finite; lower the time step")
-            zs.append(z); vs.append(np.asarray(s.zdot)); xs.append(x); ts.append(float(s.t))
-
-        keep(0, state)
-        for k in range(1, int(steps) + 1):
-            state = self.step(state)
-            if k % every == 0 or k == steps:
-                keep(k, state)
-        z, x = np.stack(zs), np.stack(xs)
-        return {"z": z, "zdot": np.stack(vs), "x": x, "time": np.asarray(ts), "state": state}
+        return np.asarray(N.g_apply(self.params, self.norm, self.X, jnp.asarray(z)[None, :]))
 
     def to_numpy(self, state, X=None) -> dict[str, np.ndarray]:
         """x, F, v at reference points ``X`` [Q, d] (default: the scene's material points) and x_hat."""
