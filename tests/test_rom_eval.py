@@ -126,7 +126,7 @@ def test_an_unstable_rom_time_step_ends_in_simulation_diverged(beam, tmp_path):
 
 def test_rom_eval_on_the_warp_reduced_model_matches_jax(beam, tmp_path):
     """task.rom_backend=warp: the same scheme (Lagrangian + linear, every point a sample) gives the JAX
-    reduced model's errors; the Eulerian quadrature, not on Warp yet, is refused before anything runs."""
+    reduced model's errors."""
     root, weights = beam
     common = ["task.study=beam_2d", f"task.data={root / 'data'}", f"task.weights={weights}",
               "task.quadratures=[lagrangian]", "task.projections=[linear]", "task.samples=[all]", "task.max_runs=1",
@@ -141,8 +141,6 @@ def test_rom_eval_on_the_warp_reduced_model_matches_jax(beam, tmp_path):
     for k in ("E", "E_displacement", "E_v", "E_F"):
         assert w[k] == pytest.approx(j[k], rel=1e-8), k
     assert "reduced model on warp" in (tmp_path / "warp" / "rom_eval.md").read_text()
-    with pytest.raises(ConfigError, match="Eulerian quadrature is not written for the Warp reduced model"):
-        _task(tmp_path, *common[:3], "task.rom_backend=warp")
 
 
 def test_error_measures_of_a_uniform_offset():

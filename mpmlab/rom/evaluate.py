@@ -122,9 +122,6 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
 
     if backend not in ("jax", "warp"):
         raise ConfigError(f"rom_eval: backend '{backend}'; choose jax or warp.")
-    if backend == "warp" and any(sch.quadrature == "eulerian" for sch in scheme_list):
-        raise ConfigError("rom_eval: the Eulerian quadrature is not written for the Warp reduced model yet; evaluate "
-                          "it with backend jax, or give quadratures [lagrangian].")
     truth = snap if truth is None else truth
     if tuple(truth.names) != tuple(snap.names):
         raise ConfigError(f"rom_eval: the truth's runs {list(truth.names)} are not the test runs {list(snap.names)}.")

@@ -38,6 +38,7 @@ The Warp counterpart is ``mpmlab.rom.stepper_warp.WarpReducedStepper`` (Lagrangi
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import NamedTuple
 
 import numpy as np
@@ -119,6 +120,39 @@ class _ReducedBase(AbstractStepper):
         self._free_np = np.setdiff1d(np.arange(n), self._forced)
         self._n_random = samples - len(self._forced)
 
+    def _eulerian_layout(self) -> SimpleNamespace:
+        """The fixed parts of Alg. 4, numpy: the quadrature lattice, V_q, rho_0, one law-parameter row and
+        the reference body's voxels (module doc); refuses scenes it cannot carry."""
+        fom, d, dx = self.fom, self.dim, self.scene.dx
+        if len(fom.groups) != 1:
+            raise ConfigError(f"ReducedStepper: the Eulerian quadrature needs one material group (its points take "
+                              f"rho_0 and the law from it); this scene has {len(fom.groups)}: use 'lagrangian'.")
+        if any(getattr(b, "stage", "") == "particle_force" for b in self.scene.boundaries):
+            raise ConfigError("ReducedStepper: the Eulerian quadrature does not carry particle loads "
+                              "(particle_force boundaries); use 'lagrangian'.")
+        prm = np.asarray(fom.groups[0].params)
+        rows = prm.reshape(-1, prm.shape[-1]) if prm.ndim else prm.reshape(1, 1)
+        if np.ptp(rows, axis=0).max(initial=0.0) > 0:
+            raise ConfigError("ReducedStepper: the Eulerian quadrature needs law parameters that are the same for "
+                              "every material point; use 'lagrangian'.")
+        P = fom.particles
+        origin = np.asarray(self.scene.origin, float)
+        h = float(np.mean(P.volume)) ** (1.0 / d)
+        vox = np.floor((np.asarray(P.x) - origin) / h).astype(np.int64)
+        lo = vox.min(0) - 1
+        shape = vox.max(0) - lo + 2
+        occ = np.zeros(tuple(shape), bool)
+        occ[tuple((vox - lo).T)] = True
+        q_size = self.samples * len(_EULER_REACH) ** d
+        return SimpleNamespace(
+            law_row=rows[0], rho0=float(np.sum(P.mass) / np.sum(P.volume)), Vq=dx ** d / 2 ** d,
+            h=h, vox_lo=lo, vox_shape=tuple(int(a) for a in shape), occupied=occ.ravel(),
+            # the voxels' box: an inverse-map iterate that leaves it is outside the body (no mass), and stops
+            box_lo=origin + lo * h, box_hi=origin + (lo + shape) * h,
+            q_off=np.stack(np.meshgrid(*[_EULER_REACH] * d, indexing="ij"), -1).reshape(-1, d),
+            q_lattice=tuple(2 * int(a) for a in self.scene.grid_shape), q_size=q_size,
+            inv_tol=1e-10 if self.fom.precision == "fp64" else 1e-5 * dx)
+
     def _np(self, a):
         return np.asarray(a)
 
@@ -195,39 +229,16 @@ class ReducedStepper(_ReducedBase):
         self._step = jax.jit(self._step_impl)
 
     def _setup_eulerian(self):
-        """The fixed parts of Alg. 4: the quadrature lattice, V_q, rho_0, one law-parameter row and the
-        reference body's voxels (module doc)."""
+        """Alg. 4's fixed parts (``_eulerian_layout``) as JAX arrays."""
         import jax.numpy as jnp
 
-        fom, d, dx = self.fom, self.dim, self.scene.dx
-        if len(fom.groups) != 1:
-            raise ConfigError(f"ReducedStepper: the Eulerian quadrature needs one material group (its points take "
-                              f"rho_0 and the law from it); this scene has {len(fom.groups)}: use 'lagrangian'.")
-        if fom._force_bcs:
-            raise ConfigError("ReducedStepper: the Eulerian quadrature does not carry particle loads "
-                              "(particle_force boundaries); use 'lagrangian'.")
-        prm = np.asarray(fom.groups[0].params)
-        rows = prm.reshape(-1, prm.shape[-1]) if prm.ndim else prm.reshape(1, 1)
-        if np.ptp(rows, axis=0).max(initial=0.0) > 0:
-            raise ConfigError("ReducedStepper: the Eulerian quadrature needs law parameters that are the same for "
-                              "every material point; use 'lagrangian'.")
-        self._law_row = jnp.asarray(rows[0], self.dtype)
-        P = fom.particles
-        self._rho0 = float(np.sum(P.mass) / np.sum(P.volume))
-        self._Vq = dx ** d / 2 ** d
-        h = float(np.mean(P.volume)) ** (1.0 / d)
-        vox = np.floor((np.asarray(P.x) - np.asarray(self._base0)) / h).astype(np.int64)
-        lo = vox.min(0) - 1
-        shape = vox.max(0) - lo + 2
-        occ = np.zeros(tuple(shape), bool)
-        occ[tuple((vox - lo).T)] = True
-        self._vox = (h, jnp.asarray(lo), tuple(int(a) for a in shape), jnp.asarray(occ.ravel()))
-        # the voxels' box: an inverse-map iterate that leaves it is outside the body (no mass), and stops
-        self._ref_box = (jnp.asarray(self._base0 + lo * h, self.dtype), jnp.asarray(self._base0 + (lo + shape) * h, self.dtype))
-        self._q_off = jnp.asarray(np.stack(np.meshgrid(*[_EULER_REACH] * d, indexing="ij"), -1).reshape(-1, d))
-        self._q_lattice = tuple(2 * int(a) for a in fom.grid_shape)
-        self._q_size = self.samples * len(_EULER_REACH) ** d
-        self._inv_tol = 1e-10 if np.dtype(self.dtype) == np.float64 else 1e-5 * dx
+        e = self._eulerian_layout()
+        self._law_row = jnp.asarray(e.law_row, self.dtype)
+        self._rho0, self._Vq = e.rho0, e.Vq
+        self._vox = (e.h, jnp.asarray(e.vox_lo), e.vox_shape, jnp.asarray(e.occupied))
+        self._ref_box = (jnp.asarray(e.box_lo, self.dtype), jnp.asarray(e.box_hi, self.dtype))
+        self._q_off = jnp.asarray(e.q_off)
+        self._q_lattice, self._q_size, self._inv_tol = e.q_lattice, e.q_size, e.inv_tol
 
     # ---- state ------------------------------------------------------------------------------------
     def init(self):

@@ -5,19 +5,22 @@ its P2G, grid update, walls, grid and particle boundaries and G2P, and the law's
 for tau), fed with the pseudo-particles g(X; x_hat), dg/dx_hat v_hat, F = dg/dX and the Lagrangian
 quadrature's masses, written into Warp arrays (zero-copy from torch where the device allows).
 
-What it has of the JAX ``ReducedStepper``: the Lagrangian quadrature (Alg. 3), both projections (Algs.
-6-7), the seeded sample draws with the kinematic boundaries' forced points, Eq. 19's initial state,
-``rollout`` with the full-order guard's test and ``to_numpy``. Same inputs give the same steps: the
-conformance test replays the JAX stepper's draws (``draws=``) and compares the latent trajectories.
+What it has of the JAX ``ReducedStepper``: both quadratures and both projections (Algs. 3-7), the seeded
+sample draws with the kinematic boundaries' forced points, Eq. 19's initial state, ``rollout`` with the
+full-order guard's test and ``to_numpy``. The Lagrangian quadrature steps the scene's own Warp stepper;
+the Eulerian one a second Warp stepper of the same scene over its fixed-size point set (|M| 10^d lattice
+points and the samples; the torch inverse map ``manifold_torch.inverse_map``), the scene's kinematic
+boundaries applied to the samples. Same inputs give the same steps: the conformance test replays the
+JAX stepper's draws (``draws=``) and compares the latent trajectories.
 
-Not yet on Warp (refused in one line when asked for): the Eulerian quadrature (Alg. 4: its inverse map
-and per-step quadrature set need a second, variable-size particle set in the Warp stepper) and the
-differentiable reduced rollout (``rollout_fn``; on JAX it is ``jax.grad`` through ``lax.scan``).
+Not yet on Warp (refused in one line when asked for): the differentiable reduced rollout (``rollout_fn``;
+on JAX it is ``jax.grad`` through ``lax.scan``).
 The sample draws are numpy's (``default_rng((seed, step))``), not JAX's: a Warp and a JAX run with the
 same seed draw different points unless ``draws`` replays one's on the other.
 """
 from __future__ import annotations
 
+import contextlib
 from types import SimpleNamespace
 
 import numpy as np
@@ -26,24 +29,49 @@ from ..core.errors import ConfigError
 from .stepper import ReducedState, _ReducedBase
 
 
+@contextlib.contextmanager
+def _torch_threads(n):
+    """torch's intra-op thread count set to ``n`` inside (None: unchanged), restored after."""
+    import torch
+
+    if n is None:
+        yield
+        return
+    old = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _row_major_strides(shape):
+    """The strides of a C-ordered array of ``shape`` (an int64 tensor): (s_1 s_2 .., .., s_{d-1}, 1)."""
+    import torch
+
+    return torch.cat([shape[1:], torch.ones(1, dtype=shape.dtype, device=shape.device)]).flip(0).cumprod(0).flip(0)
+
+
 class WarpReducedStepper(_ReducedBase):
     """The reduced model of a scene on Warp (module doc). ``fom``: a Warp full-order stepper of the scene
     with the ``pic`` transfer; ``weights``: ``mpmlab.rom.networks.RomWeights``; ``draws``: optional sample
-    rows, one array per step (e.g. ``ReducedStepper.draws``), instead of the seeded numpy draws."""
+    rows, one array per step (e.g. ``ReducedStepper.draws``), instead of the seeded numpy draws;
+    ``torch_threads``: torch's intra-op threads during a step (default 1: a reduced step's tensors are
+    small, and on the CPU torch's thread pool made them up to 40x slower on a busy machine, measured;
+    None leaves torch's setting)."""
 
     backend_name = "warp"
 
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
-                 projection: str = "linear", per_boundary: int = 5, seed: int = 0, draws=None):
+                 projection: str = "linear", per_boundary: int = 5, seed: int = 0, draws=None,
+                 torch_threads: int | None = 1):
         import torch
         import warp as wp
 
         from . import networks_torch as NT
 
         self._check(fom, weights, samples, quadrature, projection, per_boundary, seed)
-        if quadrature == "eulerian":
-            raise ConfigError("ReducedStepper: the Eulerian quadrature is not written for the Warp backend yet; use "
-                              "quadrature 'lagrangian' on Warp, or backend 'jax' for the Eulerian one.")
+        self._threads = None if torch_threads is None or fom.device.startswith("cuda") else int(torch_threads)
         self.tdtype = torch.float64 if fom.precision == "fp64" else torch.float32
         self.tdevice = torch.device("cuda", wp.get_device(fom.device).ordinal) if fom.device.startswith("cuda") \
             else torch.device("cpu")
@@ -64,6 +92,48 @@ class WarpReducedStepper(_ReducedBase):
         self._in.order = SimpleNamespace(perm=None, mass=wp.empty_like(fom.mass), vol=wp.empty_like(fom.vol),
                                          params=fom.law_params)
         self._in.age = 0
+        if quadrature == "eulerian":
+            self._setup_eulerian()
+
+    def _setup_eulerian(self):
+        """Alg. 4's fixed parts (``_eulerian_layout``) as torch tensors, and a second Warp stepper of the same
+        scene over the quadrature's fixed-size point set (|M| 10^d lattice points, then the samples): the
+        same kernels and walls, no particle boundaries (the step applies the scene's to the samples)."""
+        import copy
+
+        import torch
+        import warp as wp
+
+        from ..backends.warp.stepper import WarpStepper
+        from ..core.scene import MaterialGroup, ParticleSet
+
+        e = self._eulerian_layout()
+        kw = {"dtype": self.tdtype, "device": self.tdevice}
+        d, Q = self.dim, e.q_size + self.samples
+        self._eu = SimpleNamespace(
+            rho0=e.rho0, Vq=e.Vq, h=e.h, vox_lo=torch.as_tensor(e.vox_lo, device=self.tdevice),
+            vox_shape=torch.as_tensor(e.vox_shape, device=self.tdevice), occupied=torch.as_tensor(e.occupied, device=self.tdevice),
+            box=(torch.as_tensor(e.box_lo, **kw), torch.as_tensor(e.box_hi, **kw)),
+            q_off=torch.as_tensor(e.q_off, device=self.tdevice), q_lattice=torch.as_tensor(e.q_lattice, device=self.tdevice),
+            q_size=e.q_size, inv_tol=e.inv_tol)
+        g = self.fom.groups[0]
+        sc = copy.copy(self.scene)
+        sc.boundaries = [b for b in self.scene.boundaries if getattr(b, "stage", "") != "particle_velocity"]
+        zeros = np.zeros(Q)
+        sc.__dict__["_particles"] = ParticleSet(
+            x=np.tile(np.asarray(self.fom.particles.x[:1]), (Q, 1)), v=np.zeros((Q, d)), mass=zeros, volume=zeros,
+            body_id=np.zeros(Q, np.int64), material_id=np.zeros(Q, np.int64),
+            groups=[MaterialGroup(g.law, 0, Q, np.tile(np.asarray(e.law_row, float), (Q, 1)), g.weights)])
+        fom = self.fom
+        self._pseudo = ps = WarpStepper(sc, fom.transfer, fom.precision, device=fom.device, threads=1)
+        ps._set_dt(fom.dt)
+        self._q_in, self._q_out = ps._alloc(), ps._alloc()
+        self._q_in.order = SimpleNamespace(perm=None, mass=wp.empty_like(ps.mass), vol=wp.empty_like(ps.vol),
+                                           params=ps.law_params)
+        self._q_in.age = 0
+        # the samples' kinematic boundaries run on scene-indexed scratch arrays (start, end positions, velocity)
+        n = fom.particles.count
+        self._kb = [wp.zeros(n, dtype=fom.T.vec, device=fom.device) for _ in range(3)] if fom.particle_bcs else None
 
     # ---- torch <-> warp ---------------------------------------------------------------------------
     def _write(self, dst, src):
@@ -85,7 +155,7 @@ class WarpReducedStepper(_ReducedBase):
         P = self.fom.particles
         kw = {"dtype": self.tdtype, "device": self.tdevice}
         x0, v0 = torch.as_tensor(np.asarray(P.x), **kw), torch.as_tensor(np.asarray(P.v), **kw)
-        with torch.no_grad():
+        with torch.no_grad(), _torch_threads(self._threads):
             if self.weights.spec.n_points == len(P.x) and "e_fc1_W" in self.params:
                 guess = NT.encode(self.params, self.norm, x0.T)
             else:
@@ -105,42 +175,125 @@ class WarpReducedStepper(_ReducedBase):
         pick = np.random.default_rng((self.seed, k)).choice(len(self._free_np), self._n_random, replace=False)
         return torch.cat([self._forced_t, self._free_t[torch.as_tensor(pick, device=self.tdevice)]])
 
-    def step(self, s: ReducedState) -> ReducedState:
+    def _lagrangian(self, s, M):
+        """Alg. 3 and Alg. 5 on the scene's own stepper: every material point at g(X; x_hat), its own mass
+        where it shares a node with a sample; returns the samples' trial (x, v) and the point counts."""
+        import torch
+        import warp as wp
+
+        from . import networks_torch as NT
+
+        fom, dx = self.fom, self.scene.dx
+        x, F, dxdz = NT.g_jacobians(self.params, self.norm, self.X, s.z[None, :])
+        v = torch.einsum("pdk,k->pd", dxdz, s.zdot)
+        base = torch.floor((x - self._base0) / dx - 0.5).to(torch.int64)
+        near = torch.all(torch.abs(base[:, None, :] - base[M][None, :, :]) <= 2, dim=-1)
+        quad = torch.any(near, dim=1).to(self.tdtype)
+        a = self._in
+        self._write(a.x, x)
+        self._write(a.v, v)
+        self._write(a.order.mass, self._mass0 * quad)
+        self._write(a.order.vol, self._vol0 * quad)
+        for i, (g, k) in enumerate(zip(fom.groups, fom.k_laws)):
+            st = a.law[i]
+            self._write(st["F"], F[g.start:g.stop])
+            wp.launch(k.stress, dim=g.count, inputs=[*fom._law_args(i, st), g.start, a.tau], device=fom.device)
+        a.t = float(s.t)
+        fom._step_into(a, self._out)              # P2G, grid update, boundaries, G2P (Alg. 5)
+        return wp.to_torch(self._out.x)[M], wp.to_torch(self._out.v)[M], (s.outside, s.unconverged)
+
+    def _eulerian(self, s, M):
+        """Alg. 4 and Alg. 5 on the quadrature's stepper (as ``ReducedStepper._eulerian_points``): lattice
+        points on the cells around the samples, X_q by the inverse map, m_q = rho_0 V_q / J_q; the samples
+        are massless rows after them; then the scene's kinematic boundaries on the samples."""
         import torch
         import warp as wp
 
         from . import manifold_torch as MT
         from . import networks_torch as NT
+        from .stepper import INVERSE_HALVINGS, INVERSE_ITERATIONS
 
-        fom, dx = self.fom, self.scene.dx
+        e, d, dx, z = self._eu, self.dim, self.scene.dx, s.z
+        dev = self.tdevice
+        XM = self.X[M]
+        xM, FM, dM = NT.g_jacobians(self.params, self.norm, XM, z[None, :])
+        base = torch.floor((xM - self._base0) / dx - 0.5).to(torch.int64)
+        j = (2 * base[:, None, :] + e.q_off[None]).reshape(-1, d)
+        inside_grid = torch.all((j >= 0) & (j < e.q_lattice), dim=1)
+        strides = _row_major_strides(e.q_lattice)
+        sentinel = int(torch.prod(e.q_lattice))
+        ids = torch.where(inside_grid, (j * strides).sum(1), sentinel)
+        uniq, inv = torch.unique(ids, sorted=True, return_inverse=True)
+        pos = torch.arange(ids.shape[0], device=dev)
+        first = torch.full(uniq.shape, ids.shape[0], dtype=torch.int64, device=dev).scatter_reduce(0, inv, pos, "amin")
+        pad = e.q_size - uniq.shape[0]
+        uniq = torch.cat([uniq, torch.full((pad,), sentinel, dtype=torch.int64, device=dev)])
+        first = torch.cat([first, torch.zeros(pad, dtype=torch.int64, device=dev)])
+        real = uniq < sentinel
+        flat = torch.where(real, uniq, 0)
+        jq = torch.stack([(flat // strides[k]) % e.q_lattice[k] for k in range(d)], -1)
+        xq = self._base0 + (jq.to(self.tdtype) / 2 + 0.25) * dx
+        src = first // e.q_off.shape[0]                                           # the sample it came from
+        guess = XM[src] + torch.linalg.solve(FM[src], (xq - xM[src])[..., None])[..., 0]
+        iv = MT.inverse_map(self.params, self.norm, xq, z, guess, iterations=INVERSE_ITERATIONS, tol=e.inv_tol,
+                            halvings=INVERSE_HALVINGS, bounds=e.box)
+        vox = torch.floor((iv.X - self._base0) / e.h).to(torch.int64) - e.vox_lo
+        in_box = torch.all((vox >= 0) & (vox < e.vox_shape), dim=1)
+        vstr = _row_major_strides(e.vox_shape)
+        vflat = (torch.minimum(torch.clamp(vox, min=0), e.vox_shape - 1) * vstr).sum(1)
+        in_body = in_box & e.occupied[vflat]
+        _, Fq, dq = NT.g_jacobians(self.params, self.norm, iv.X, z[None, :])
+        Jq = torch.linalg.det(Fq)
+        converged = iv.converged & (Jq > 0)
+        ok = real & in_body & converged
+        V0 = torch.where(ok, e.Vq / torch.where(ok, Jq, torch.ones_like(Jq)), torch.zeros_like(Jq))
+        x = torch.cat([xq, xM])
+        v = torch.einsum("pdk,k->pd", torch.cat([dq, dM]), s.zdot)
+        eye = torch.eye(d, dtype=self.tdtype, device=dev)
+        F = torch.cat([torch.where(ok[:, None, None], Fq, eye), FM])
+        vol = torch.cat([V0, torch.zeros(M.shape[0], dtype=self.tdtype, device=dev)])
+        ps, a = self._pseudo, self._q_in
+        self._write(a.x, x)
+        self._write(a.v, v)
+        self._write(a.order.mass, e.rho0 * vol)
+        self._write(a.order.vol, vol)
+        st = a.law[0]
+        self._write(st["F"], F)
+        wp.launch(ps.k_laws[0].stress, dim=x.shape[0], inputs=[*ps._law_args(0, st), 0, a.tau], device=ps.device)
+        a.t = float(s.t)
+        ps._step_into(a, self._q_out)
+        rows = slice(e.q_size, e.q_size + M.shape[0])
+        x0, v_tr = x[rows], wp.to_torch(self._q_out.v)[rows]
+        x_tr = x0 + self.dt * v_tr
+        if self._kb is not None:                  # the scene's particle_velocity boundaries on the samples
+            xs, xe, vs = self._kb
+            for arr in self._kb:
+                arr.zero_()
+            wp.to_torch(xs)[M] = x0
+            wp.to_torch(xe)[M] = x_tr
+            wp.to_torch(vs)[M] = v_tr
+            for bc in self.fom.particle_bcs:
+                bc.apply_particles(vs, xs, xe, float(s.t) + self.dt)
+            x_tr, v_tr = wp.to_torch(xe)[M], wp.to_torch(vs)[M]
+        counts = (torch.sum(real & ~in_body).to(torch.int32), torch.sum(real & in_body & ~converged).to(torch.int32))
+        return x_tr, v_tr, counts
+
+    def step(self, s: ReducedState) -> ReducedState:
+        import torch
+
+        from . import manifold_torch as MT
+
         M = self._sample(int(s.key))
-        with torch.no_grad():
-            # Alg. 3: every material point at g(X; x_hat), its own mass where it shares a node with a sample
-            x, F, dxdz = NT.g_jacobians(self.params, self.norm, self.X, s.z[None, :])
-            v = torch.einsum("pdk,k->pd", dxdz, s.zdot)
-            base = torch.floor((x - self._base0) / dx - 0.5).to(torch.int64)
-            near = torch.all(torch.abs(base[:, None, :] - base[M][None, :, :]) <= 2, dim=-1)
-            quad = torch.any(near, dim=1).to(self.tdtype)
-            a = self._in
-            self._write(a.x, x)
-            self._write(a.v, v)
-            self._write(a.order.mass, self._mass0 * quad)
-            self._write(a.order.vol, self._vol0 * quad)
-            for i, (g, k) in enumerate(zip(fom.groups, fom.k_laws)):
-                st = a.law[i]
-                self._write(st["F"], F[g.start:g.stop])
-                wp.launch(k.stress, dim=g.count, inputs=[*fom._law_args(i, st), g.start, a.tau], device=fom.device)
-            a.t = float(s.t)
-            fom._step_into(a, self._out)              # P2G, grid update, boundaries, G2P (Alg. 5)
-            x_tr = wp.to_torch(self._out.x)[M]
-            v_tr = wp.to_torch(self._out.v)[M]
+        with torch.no_grad(), _torch_threads(self._threads):
+            points = self._eulerian if self.quadrature == "eulerian" else self._lagrangian
+            x_tr, v_tr, counts = points(s, M)
             XM = self.X[M]
             vhat = MT.project_velocity(self.params, self.norm, XM, s.z, v_tr)            # Eqs. 21 / 23
             if self.projection == "linear":
                 z = MT.project_linear(s.z, vhat, self.dt)                                # Alg. 7
             else:
                 z = MT.project_nonlinear(self.params, self.norm, XM, x_tr, s.z, s.z_prev)  # Alg. 6, Eq. 22
-        return ReducedState(z, vhat, s.z, float(s.t) + self.dt, int(s.key) + 1, s.outside, s.unconverged)
+        return ReducedState(z, vhat, s.z, float(s.t) + self.dt, int(s.key) + 1, *counts)
 
     def rollout_fn(self, steps: int, every: int = 1):
         raise ConfigError("ReducedStepper: the differentiable reduced rollout is not written for the Warp backend yet; "
@@ -151,7 +304,7 @@ class WarpReducedStepper(_ReducedBase):
 
         from . import networks_torch as NT
 
-        with torch.no_grad():
+        with torch.no_grad(), _torch_threads(self._threads):
             zt = torch.as_tensor(z, dtype=self.tdtype, device=self.tdevice)
             return self._np(NT.g_apply(self.params, self.norm, self.X, zt[None, :]))
 
@@ -161,7 +314,7 @@ class WarpReducedStepper(_ReducedBase):
 
         from . import networks_torch as NT
 
-        with torch.no_grad():
+        with torch.no_grad(), _torch_threads(self._threads):
             Xq = self.X if X is None else torch.as_tensor(np.asarray(X), dtype=self.tdtype, device=self.tdevice)
             x, F, dxdz = NT.g_jacobians(self.params, self.norm, Xq, state.z[None, :])
             v = torch.einsum("pdk,k->pd", dxdz, state.zdot)
