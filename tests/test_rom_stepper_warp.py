@@ -1,7 +1,7 @@
 """The reduced stepper on Warp (``mpmlab.rom.stepper_warp``, ROM paper Sec. 3, Alg. 2): the rigid-translation
 manifold's free fall matches the full-order model, a body at rest stays at rest, the same draws give the
-JAX stepper's latent trajectory on a nonlinear map (both quadratures, both projections), and what it does
-not have yet is refused."""
+JAX stepper's latent trajectory on a nonlinear map (both quadratures, both projections), and what it
+refuses. Its gradients: tests/test_rom_grad.py."""
 from __future__ import annotations
 
 import numpy as np
@@ -79,8 +79,10 @@ def test_warp_replays_the_jax_reduced_rollout(beam, quadrature, projection, samp
 
 def test_refusals(beam):
     fj, fw, w = beam
-    with pytest.raises(ConfigError, match="differentiable reduced rollout is not written for the Warp backend"):
-        reduced_stepper(fw, w).rollout_fn(10)
+    with pytest.raises(ConfigError, match="differentiable reduced rollout uses the Lagrangian quadrature"):
+        reduced_stepper(fw, w, samples=10, quadrature="eulerian").rollout_fn(10)
+    with pytest.raises(ConfigError, match="multiple of every"):
+        reduced_stepper(fw, w).rollout_fn(15, 10)
     with pytest.raises(ConfigError, match="on backend 'warp'; build it with backend 'jax'"):
         ReducedStepper(fw, w)
     with pytest.raises(ConfigError, match="on backend 'jax'; build it with backend 'warp'"):

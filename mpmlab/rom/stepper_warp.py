@@ -13,8 +13,10 @@ points and the samples; the torch inverse map ``manifold_torch.inverse_map``), t
 boundaries applied to the samples. Same inputs give the same steps: the conformance test replays the
 JAX stepper's draws (``draws=``) and compares the latent trajectories.
 
-Not yet on Warp (refused in one line when asked for): the differentiable reduced rollout (``rollout_fn``;
-on JAX it is ``jax.grad`` through ``lax.scan``).
+``rollout_fn`` is the reduced rollout as a torch function, differentiable by autograd in x_hat_0 and the
+law parameters: torch through g and the projections, and each Warp step a ``torch.autograd.Function``
+over the stepper's tape-safe path (``backends/warp/grad.py``), as ``ReducedStepper.rollout_fn`` is by
+``jax.grad``.
 The sample draws are numpy's (``default_rng((seed, step))``), not JAX's: a Warp and a JAX run with the
 same seed draw different points unless ``draws`` replays one's on the other.
 """
@@ -295,9 +297,76 @@ class WarpReducedStepper(_ReducedBase):
                 z = MT.project_nonlinear(self.params, self.norm, XM, x_tr, s.z, s.z_prev)  # Alg. 6, Eq. 22
         return ReducedState(z, vhat, s.z, float(s.t) + self.dt, int(s.key) + 1, *counts)
 
+    # ---- the differentiable reduced rollout (issue 16, item 7) ---------------------------------------
+    @property
+    def law_params(self):
+        """The scene's law parameters as torch tensors, one [count, P] per material group: the ``law``
+        argument of :meth:`rollout_fn`."""
+        import torch
+
+        return tuple(torch.as_tensor(np.asarray(g.params), dtype=self.tdtype, device=self.tdevice)
+                     for g in self.fom.groups)
+
     def rollout_fn(self, steps: int, every: int = 1):
-        raise ConfigError("ReducedStepper: the differentiable reduced rollout is not written for the Warp backend yet; "
-                          "use backend 'jax' (rollout_fn: jax.grad through the reduced steps).")
+        """The reduced rollout as a torch function ``f(z0, zdot0, law) -> z [steps // every + 1, d_hat]``,
+        differentiable by torch autograd in the initial latent state and the law parameters (``law``: as
+        :attr:`law_params`), as ``ReducedStepper.rollout_fn`` is by ``jax.grad``. Each Warp step is one
+        ``torch.autograd.Function`` over the stepper's tape-safe path (``backends/warp/grad.py``: P2G,
+        grid update, boundaries, G2P, the law's stress), recorded on a ``wp.Tape`` and replayed backward;
+        g, the quadrature and the projections are torch. The sample draws are the stepper's (seeded or
+        ``draws``), so f is deterministic. Lagrangian quadrature only (the Eulerian one's inverse map is
+        forward-mode only on JAX too)."""
+        import torch
+
+        if self.quadrature != "lagrangian":
+            raise ConfigError("ReducedStepper.rollout_fn: the differentiable reduced rollout uses the Lagrangian "
+                              "quadrature (the Eulerian inverse map is a data-dependent Newton loop); build the "
+                              "stepper with quadrature 'lagrangian'.")
+        steps, every = int(steps), max(1, int(every))
+        if steps < every or steps % every:
+            raise ConfigError(f"ReducedStepper.rollout_fn: steps = {steps} must be a positive multiple of every = {every}.")
+        self._diff_setup()
+
+        def f(z0, zdot0, law):
+            with _torch_threads(self._threads):
+                z, zdot, zp, out = z0, zdot0, z0, [z0]
+                for k in range(steps):
+                    zn, zdot = self._diff_step(z, zdot, zp, k * self.dt, self._sample(k), tuple(law))
+                    zp, z = z, zn
+                    if (k + 1) % every == 0:
+                        out.append(z)
+                return torch.stack(out)
+
+        return f
+
+    def _diff_setup(self):
+        from ..backends.warp import grad as WG
+
+        if getattr(self, "_path", None) is None:
+            self._path = WG.path_of(self.fom)
+            c = self._path.controls()
+            self._ctl_defaults = {k: c[k] for k in ("law_weights", "boundary", "gravity")}
+
+    def _diff_step(self, z, zdot, z_prev, t, M, law):
+        """One reduced step (Lagrangian quadrature) in torch autograd: (x_hat_{n+1}, v_hat_{n+1})."""
+        import torch
+
+        from . import manifold_torch as MT
+        from . import networks_torch as NT
+
+        x, F, dxdz = NT.g_jacobians(self.params, self.norm, self.X, z[None, :])
+        v = torch.einsum("pdk,k->pd", dxdz, zdot)
+        with torch.no_grad():                      # the quadrature set: piecewise constant in x
+            base = torch.floor((x - self._base0) / self.scene.dx - 0.5).to(torch.int64)
+            quad = torch.any(torch.all(torch.abs(base[:, None, :] - base[M][None, :, :]) <= 2, dim=-1), dim=1)
+        quad = quad.to(self.tdtype)
+        Fs = [F[g.start:g.stop] for g in self.fom.groups]
+        x_new, v_new = _warp_step().apply(self, float(t), x, v, self._mass0 * quad, self._vol0 * quad, *Fs, *law)
+        XM = self.X[M]
+        vhat = MT.project_velocity(self.params, self.norm, XM, z, v_new[M])
+        if self.projection == "linear":
+            return MT.project_linear(z, vhat, self.dt), vhat
+        return MT.project_nonlinear(self.params, self.norm, XM, x_new[M], z, z_prev), vhat
 
     def _positions(self, z):
         import torch
@@ -319,3 +388,48 @@ class WarpReducedStepper(_ReducedBase):
             x, F, dxdz = NT.g_jacobians(self.params, self.norm, Xq, state.z[None, :])
             v = torch.einsum("pdk,k->pd", dxdz, state.zdot)
         return {"x": self._np(x), "F": self._np(F), "v": self._np(v), "z": self._np(state.z), "t": float(state.t)}
+
+
+_WARP_STEP = None
+
+
+def _warp_step():
+    """``torch.autograd.Function``: one Warp MPM step of pseudo-particles, (x, v, mass, volume, F per group,
+    law parameters per group) -> (x, v) after the step, differentiable in all of them (a ``wp.Tape``
+    over the full-order stepper's tape-safe path)."""
+    global _WARP_STEP
+    if _WARP_STEP is not None:
+        return _WARP_STEP
+    import torch
+    import warp as wp
+
+    class WarpStep(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, rom, t, x, v, mass, vol, *rest):
+            path = rom._path
+            G = len(path.st.groups)
+            c = dict(rom._ctl_defaults, x=x, v=v, mass=mass, volume=vol, law=tuple(rest[G:]),
+                     law_state=tuple({"F": F} for F in rest[:G]))
+            names, flat = path.flatten(c)
+            ctl = path.to_warp(names, flat, grad=True)
+            tape = wp.Tape()
+            with tape:
+                o = path.step(path.initial(ctl, grad=True), ctl, t, grad=True)
+            ctx.tape, ctx.ctl, ctx.o, ctx.G = tape, ctl, o, G
+            ctx.shapes = [a.shape for a in (x, v, mass, vol, *rest)]
+            return wp.to_torch(o.x).clone(), wp.to_torch(o.v).clone()
+
+        @staticmethod
+        def backward(ctx, gx, gv):
+            o, ctl, G = ctx.o, ctx.ctl, ctx.G
+            tape = ctx.tape
+            tape.backward(grads={o.x: wp.from_torch(gx.contiguous(), dtype=o.x.dtype),
+                                 o.v: wp.from_torch(gv.contiguous(), dtype=o.v.dtype)})
+            arrays = [ctl.x, ctl.v, ctl.mass, ctl.volume, *(d["F"] for d in ctl.law_state), *ctl.law]
+            grads = [wp.to_torch(a.grad).reshape(sh).clone() for a, sh in zip(arrays, ctx.shapes)]
+            tape.zero()
+            ctx.tape = ctx.ctl = ctx.o = None
+            return (None, None, *grads)
+
+    _WARP_STEP = WarpStep
+    return WarpStep
