@@ -222,8 +222,6 @@ class ReducedStepper(_ReducedBase):
         self._forced_j = jnp.asarray(self._forced)
         self._base0 = fom._node_x[0]
         self._fom_params = dict(fom.params)          # made here, outside any trace (it is cached on the stepper)
-        nb = len(fom._grid_bcs)
-        self._pbc_params = fom.params["boundary"][nb:nb + len(fom._particle_bcs)]
         if quadrature == "eulerian":
             self._setup_eulerian()
         self._step = jax.jit(self._step_impl)
@@ -248,13 +246,18 @@ class ReducedStepper(_ReducedBase):
 
         P = self.fom.particles
         x0, v0 = jnp.asarray(P.x, self.dtype), jnp.asarray(P.v, self.dtype)
-        if self.weights.spec.n_points == len(P.x) and "e_fc1_W" in self.params:
-            guess = N.encode(self.params, self.norm, x0.T)
-        else:
-            guess = jnp.zeros(self.weights.spec.latent, self.dtype)
-        s = Mf.initial_state(self.params, self.norm, self.X, x0, v0, guess)
+        s = Mf.initial_state(self.params, self.norm, self.X, x0, v0, self._initial_guess(x0))
         zero = jnp.zeros((), jnp.int32)
         return ReducedState(s.z, s.zdot, s.z, jnp.asarray(0.0, self.dtype), jax.random.PRNGKey(self.seed), zero, zero)
+
+    def _initial_guess(self, x0):
+        """Eq. 19's starting latent: the encoder's of the positions x0 when the weights have one for this
+        many points, else zero."""
+        import jax.numpy as jnp
+
+        if self.weights.spec.n_points == x0.shape[0] and "e_fc1_W" in self.params:
+            return N.encode(self.params, self.norm, x0.T)
+        return jnp.zeros(self.weights.spec.latent, self.dtype)
 
     def _sample(self, key):
         import jax
@@ -274,7 +277,7 @@ class ReducedStepper(_ReducedBase):
             out.append(np.asarray(self._sample(sub)))
         return out
 
-    def _lagrangian_points(self, s, M, law=None):
+    def _lagrangian_points(self, s, M, law=None, fom_params=None):
         """Alg. 3: every material point, with its own mass and volume where it shares a node with a sample
         (else zero); the samples are rows M. Returns (x, v, law state per group, step params, sample rows,
         (outside, unconverged) counts), as ``_eulerian_points`` does."""
@@ -285,7 +288,7 @@ class ReducedStepper(_ReducedBase):
         base = jnp.floor((x - self._base0) / self.scene.dx - 0.5).astype(jnp.int32)
         near = jnp.all(jnp.abs(base[:, None, :] - base[M][None, :, :]) <= 2, axis=-1)   # [N, |M|]
         quad = jnp.any(near, axis=1).astype(self.dtype)
-        prm = dict(self._fom_params)
+        prm = dict(self._fom_params if fom_params is None else fom_params)
         if law is not None:
             prm["law"] = tuple(law)
         prm["mass"] = prm["mass"] * quad
@@ -293,7 +296,7 @@ class ReducedStepper(_ReducedBase):
         none = jnp.zeros((), jnp.int32)
         return x, v, tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), prm, M, (none, none)
 
-    def _eulerian_points(self, s, M, law=None):
+    def _eulerian_points(self, s, M, law=None, fom_params=None):
         """Alg. 4: quadrature points on the cells around the samples, then the samples (massless rows)."""
         import jax.numpy as jnp
 
@@ -328,7 +331,7 @@ class ReducedStepper(_ReducedBase):
         x = jnp.concatenate([xq, xM])
         v = jnp.einsum("pdk,k->pd", jnp.concatenate([dq, dM]), s.zdot)
         F = jnp.concatenate([jnp.where(ok[:, None, None], Fq, jnp.eye(d, dtype=self.dtype)), FM])
-        prm = dict(self._fom_params)
+        prm = dict(self._fom_params if fom_params is None else fom_params)
         prm["volume"] = jnp.concatenate([V0, jnp.zeros(n_M, self.dtype)])
         prm["mass"] = self._rho0 * prm["volume"]
         row = self._law_row if law is None else law[0][0]           # uniform parameters (checked at set-up)
@@ -337,30 +340,36 @@ class ReducedStepper(_ReducedBase):
         counts = (jnp.sum(real & ~in_body).astype(jnp.int32), jnp.sum(real & in_body & ~converged).astype(jnp.int32))
         return x, v, ({"F": F},), prm, rows, counts
 
-    def _kinematic_boundaries(self, M, x0, v, t_end):
+    def _kinematic_boundaries(self, M, x0, v, t_end, boundary):
         """The scene's particle_velocity boundaries on the samples (they address material points by index):
-        (trial positions, velocities) at M after the step from x0."""
+        (trial positions, velocities) at M after the step from x0; ``boundary``: the step's boundary
+        parameters (stepper order, as ``fom.params["boundary"]``)."""
         import jax.numpy as jnp
 
         n, d = self.X.shape
         xf = jnp.zeros((n, d), self.dtype).at[M].set(x0)
         vp = vpic = jnp.zeros((n, d), self.dtype).at[M].set(v)
-        for bc, bp in zip(self.fom._particle_bcs, self._pbc_params):
+        nb = len(self.fom._grid_bcs)
+        for bc, bp in zip(self.fom._particle_bcs, boundary[nb:nb + len(self.fom._particle_bcs)]):
             vp, vpic = bc.apply_particles(xf, vp, vpic, t_end, self.dt, bp)
         return x0 + self.dt * vpic[M], vp[M]
 
-    def _step_impl(self, s: ReducedState, law=None):
-        """One reduced step; ``law``: the law parameters (as ``fom.params["law"]``; default the scene's)."""
+    def _step_impl(self, s: ReducedState, law=None, fom_params=None):
+        """One reduced step; ``law``: the law parameters (as ``fom.params["law"]``; default the scene's);
+        ``fom_params``: every step parameter of the full-order model (as ``fom.params``: masses, volumes,
+        law, boundaries, gravity), e.g. from controls (``observe``); ``law`` then comes from it."""
         import jax
 
         key, sub = jax.random.split(s.key)
         M = self._sample(sub)
         points = self._eulerian_points if self.quadrature == "eulerian" else self._lagrangian_points
-        x, v, state_law, prm, rows, counts = points(s, M, law)
+        if fom_params is not None:
+            law = fom_params["law"]
+        x, v, state_law, prm, rows, counts = points(s, M, law, fom_params)
         state = {"x": x, "v": v, "law": state_law, "t": s.t}
         if self.quadrature == "eulerian":             # Alg. 5 from the quadrature points; boundaries on M here
             new = self.fom.step_fn(state, prm, particle_bcs=False, update_law=False)
-            x_tr, v_tr = self._kinematic_boundaries(M, x[rows], new["v"][rows], s.t + self.dt)
+            x_tr, v_tr = self._kinematic_boundaries(M, x[rows], new["v"][rows], s.t + self.dt, prm["boundary"])
         else:                                         # Alg. 5 over every material point (massless off P)
             new = self.fom.step_fn(state, prm, update_law=False)
             x_tr, v_tr = new["x"][rows], new["v"][rows]
@@ -408,6 +417,91 @@ class ReducedStepper(_ReducedBase):
             return jnp.concatenate([z0[None], zs])
 
         return f
+
+    # ---- the differentiable entry points of AbstractStepper (issue 16, item 7) -------------------------
+    #: the inverse workflow's adapter (``mpmlab.core.autodiff``): the JAX one, observing through this stepper
+    autodiff_adapter = "mpmlab.rom.autodiff:ReducedJaxAdapter"
+
+    @property
+    def particles(self):
+        return self.fom.particles
+
+    @property
+    def groups(self):
+        return self.fom.groups
+
+    @property
+    def precision(self):
+        return self.fom.precision
+
+    def controls(self) -> dict:
+        """The full-order model's controls (``fom.controls()``: x, v, law, boundary, gravity, mass, volume):
+        an inverse problem states its unknowns on the scene, and ``observe`` runs them through the reduced
+        model, so ``mpmlab.inverse.Fit`` (``task=inverse``) fits in the reduced space unchanged."""
+        return self.fom.controls()
+
+    def observe(self, controls, observation, steps, segment=None, health: bool = False):
+        """Observations [T, L, d] of the reduced rollout from full-order ``controls`` after each of ``steps``
+        (``AbstractStepper.observe``), pure JAX (differentiable by ``jax.grad``). The initial latent state is
+        Eq. 19 of ``controls["x"]`` and ``["v"]``; x_hat(0) comes from Gauss-Newton under ``stop_gradient``
+        (gradients reach v_hat(0), the law, the boundaries, gravity, masses and volumes, not x). The
+        observation operator reads g's state: x = g(X; x_hat), v = dg/dx_hat v_hat, F = dg/dX. Reverse mode
+        needs the Lagrangian quadrature (``rollout_fn``). ``health``: also return whether an observed state
+        was non-finite or left the domain. ``segment`` is accepted for the interface (a reduced state is a
+        few numbers: no rematerialisation)."""
+        key = (id(observation), tuple(np.asarray(steps).reshape(-1).tolist()), bool(health))
+        cache = self.__dict__.setdefault("_observe_cache", {})
+        if key not in cache:
+            cache[key] = (observation, self._observe_fn(observation, steps, health))
+        return cache[key][1](controls)
+
+    def _observe_fn(self, observation, steps, health):
+        import jax
+        import jax.numpy as jnp
+
+        from ..backends.jax.differentiable import schedule, split_controls
+
+        impl = observation.implementation("jax", "observation")(observation, self.fom)
+        first, g, count, pick = schedule(steps)
+        dense = len(pick) != count
+        with jax.ensure_compile_time_eval():          # built inside a caller's trace (a fit): constants
+            key0 = jax.random.PRNGKey(self.seed)
+            zero = jnp.zeros((), jnp.int32)
+            lo, hi = (jnp.asarray(a, self.dtype) for a in self.scene.inner_bounds)
+
+        def seen(s):
+            x, F, dxdz = N.g_jacobians(self.params, self.norm, self.X, s.z[None, :])
+            v = jnp.einsum("pdk,k->pd", dxdz, s.zdot)
+            law = tuple({"F": F[gr.start:gr.stop]} for gr in self.fom.groups)
+            bad = ~jnp.all(jnp.isfinite(x)) | ~jnp.all(jnp.isfinite(v)) | jnp.any((x < lo) | (x >= hi))
+            return impl.fn({"x": x, "v": v, "law": law, "t": s.t}), bad
+
+        def fn(c):
+            _, prm = split_controls(self.fom, c)
+            x0 = jax.lax.stop_gradient(jnp.asarray(c["x"], self.dtype))
+            z0 = jax.lax.stop_gradient(Mf.initial_state(self.params, self.norm, self.X, x0, x0,
+                                                        self._initial_guess(x0)).z)     # Eq. 19, as init()
+            zdot0 = Mf.project_velocity(self.params, self.norm, self.X, z0, jnp.asarray(c["v"], self.dtype))
+            s = ReducedState(z0, zdot0, z0, jnp.zeros((), self.dtype), key0, zero, zero)
+
+            def run(s, n):
+                return jax.lax.scan(lambda q, _: (self._step_impl(q, fom_params=prm), None), s, None, length=n)[0]
+
+            s = run(s, first) if first else s
+            y0, bad0 = seen(s)
+            if count == 1:
+                return (y0[None], bad0) if health else y0[None]
+
+            def interval(s, _):
+                s = run(s, g)
+                return s, seen(s)
+
+            _, (ys, bad) = jax.lax.scan(interval, s, None, length=count - 1)
+            ys = jnp.concatenate([y0[None], ys], axis=0)
+            ys = ys[jnp.asarray(pick)] if dense else ys
+            return (ys, bad0 | jnp.any(bad)) if health else ys
+
+        return jax.jit(fn)
 
     def _positions(self, z):
         import jax.numpy as jnp
