@@ -101,6 +101,15 @@ def markdown(builtin_only: bool = False) -> str:
         cells += ["✓" if be in getattr(o, "implementations", {}) and be in getattr(o, "gradients", ()) else "–"
                   for be in backends]
         lines.append("| " + " | ".join([f"`{name}`"] + cells + [registry.observations.provenance(name)]) + " |")
+    # the deformation-map reduced model (mpmlab.rom): its quadratures per backend, linear and nonlinear projection
+    from .rom.stepper import CAPABILITIES as ROM
+
+    rom_backends = ("jax", "warp")
+    lines += ["", "| reduced model (`mpmlab.rom`), quadrature | " + " | ".join(rom_backends) + " | "
+              + " | ".join(f"{b} gradient" for b in rom_backends) + " |", "|---|" + "---|" * (2 * len(rom_backends))]
+    for q, by in ROM.items():
+        grad = {"reverse": "✓", "forward": "forward mode", None: "–"}
+        lines.append("| " + " | ".join([f"`{q}`"] + ["✓" for _ in rom_backends] + [grad[by[b]] for b in rom_backends]) + " |")
     return "\n".join(lines) + "\n"
 
 

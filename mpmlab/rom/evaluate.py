@@ -131,6 +131,10 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
                           f"the test runs {T} up to {snap.time[-1]:.6g} s; they must share the snapshot times.")
     interval = float(snap.time[1] - snap.time[0]) if T > 1 else 0.0
     rows, runs, fom_rows = [], [], []
+    if precision == "fp64":       # before any array is made: without it the error sums' networks ran in float32
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
     dtype = jnp.float64 if precision == "fp64" else jnp.float32
     params, norm = N.to_jax(weights.params, dtype), N.to_jax(weights.norm, dtype)
     bar = tqdm(total=R * len(scheme_list), unit="rollout", desc="rom_eval", leave=False,

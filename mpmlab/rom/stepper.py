@@ -49,6 +49,12 @@ from . import manifold as Mf
 from . import networks as N
 
 QUADRATURES = ("lagrangian", "eulerian")
+#: what the reduced model has per backend (the capability matrix, ``mpmlab.capabilities``): the rollout, and
+#: its gradient ("reverse": reverse mode through ``rollout_fn``; "forward": forward mode only; None: none).
+#: Both projections are available wherever a quadrature is; the Eulerian inverse map is a Newton loop with
+#: a data-dependent end, which JAX differentiates in forward mode only and the Warp path not at all.
+CAPABILITIES = {"lagrangian": {"jax": "reverse", "warp": "reverse"},
+                "eulerian": {"jax": "forward", "warp": None}}
 #: the Eulerian quadrature's inverse map: Newton iterations and backtracking halvings per iteration
 INVERSE_ITERATIONS, INVERSE_HALVINGS = 8, 10
 PROJECTIONS = ("linear", "nonlinear")
