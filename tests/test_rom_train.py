@@ -38,6 +38,12 @@ def test_loss_falls_reconstructs_and_resumes_the_same(tmp_path):
     err = reconstruction_error(w, data)
     assert err["E"] < 0.02 and err["origin"] == "centroid"
     assert {"u", "F", "v", "lr", "seconds"} <= set(straight[-1])
+    # a resume that would change the curve is refused, naming the option
+    for changed, name in ((dict(schedule=((3e-3, 30),)), "schedule"), (dict(lambda_F=10.0), "lambda_F"),
+                          (dict(batch=4), "batch")):
+        other = TrainOptions(**{**dict(latent=2, batch=2, schedule=((1e-3, 30),), points=64), **changed})
+        with pytest.raises(ConfigError, match=f"trained with {name} = .* this run asks for"):
+            fit(data, other, ck, progress=False)
 
 
 def test_schedule_is_the_papers_and_scales():

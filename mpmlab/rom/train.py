@@ -199,12 +199,21 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
     update = jax.jit(lambda g, s, p: tx.update(g, s, p))
 
     ckpt = Path(checkpoint) if checkpoint else None
+    # what shapes the training curve: a resume must not change it silently (an older checkpoint records none)
+    curve = {"lambda_F": float(opt.lambda_F), "lambda_v": float(opt.lambda_v), "batch": int(opt.batch),
+             "schedule": [[float(lr), int(k)] for lr, k in opt.epochs()], "points": opt.points,
+             "frame_stride": int(opt.frame_stride), "seed": int(opt.seed)}
     if ckpt is not None and ckpt.exists():
         with open(ckpt, "rb") as f:
             saved = pickle.load(f)
         if saved.get("spec") != (d, int(opt.latent), n):
             raise ConfigError(f"rom_train: the checkpoint {ckpt} is for (dim, latent, points) = {saved.get('spec')}, "
                               f"this run is {(d, int(opt.latent), n)}; use another run directory.")
+        changed = [k for k, v in saved.get("options", curve).items() if curve.get(k) != v]
+        if changed:
+            k = changed[0]
+            raise ConfigError(f"rom_train: the checkpoint {ckpt} was trained with {k} = {saved['options'][k]!r}, this run "
+                              f"asks for {curve[k]!r}; resume with the same options, or use another run directory.")
         params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), saved["params"])
         state = jax.tree_util.tree_map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, saved["opt_state"])
         epoch0, history = int(saved["epoch"]), list(saved["history"])
@@ -255,7 +264,7 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
         history.append(rec)
         bar.set_postfix(loss=f"{rec['loss']:.3e}")
         if ckpt is not None:
-            _atomic_pickle(ckpt, {"epoch": epoch + 1, "spec": (d, int(opt.latent), n),
+            _atomic_pickle(ckpt, {"epoch": epoch + 1, "spec": (d, int(opt.latent), n), "options": curve,
                                   "params": jax.tree_util.tree_map(np.asarray, params),
                                   "opt_state": jax.tree_util.tree_map(
                                       lambda a: np.asarray(a) if hasattr(a, "shape") else a, state),
