@@ -7,9 +7,10 @@ and ``task=rom_eval`` of one configuration per ``--tag`` -> ``benchmarks/rom.md`
 
 Stages, each a separate ``mpmlab`` process (a killed invocation loses at most the current epoch): (1) the
 study's snapshots, ``mpmlab -m experiment=rom_snapshots_<study> scene.resolution=<res>`` (PIC, as the
-ROM; skipped when present); (2) ``task=rom_train`` (checkpointed: a rerun resumes); (3) ``task=rom_eval``
-on the test runs, every quadrature x projection and the sample counts given. Snapshots and run folders
-live in ``benchmarks/out/rom`` (not committed). The paper's own studies (gravity, torsion, poke, tower)
+ROM; skipped when present); (2) ``task=rom_train`` in ``benchmarks/results/rom/<tag>/train`` (committed:
+checkpointed every epoch, ``--budget-min`` stops it, a rerun resumes, also from a fresh clone); (3)
+``task=rom_eval`` on the test runs, every quadrature x projection and the sample counts given, once
+the training is complete. Snapshots and evaluation runs live in ``benchmarks/out/rom`` (not committed). The paper's own studies (gravity, torsion, poke, tower)
 run through the same stages; their tables (3-6) are not reproduced yet.
 """
 from __future__ import annotations
@@ -46,16 +47,25 @@ def snapshots(study: str, resolution: str, precision: str) -> Path:
 
 def run(a) -> None:
     data = snapshots(a.study, a.resolution, a.precision)
-    train = RAW / "runs" / a.tag / "train"
+    # the training run (checkpoint, weights, summary) is kept with the results, so that a training longer than
+    # one session resumes from a fresh clone (the snapshots are regenerated: seconds per run)
+    train = RES / a.tag / "train"
     opts = [f"task.study={a.study}", f"task.data={data}", f"task.latent={a.latent}", f"task.batch={a.batch}",
             f"task.schedule_scale={a.schedule_scale}", f"task.lambda_F={a.lambda_F}", f"task.lambda_v={a.lambda_v}",
             f"task.seed={a.seed}", f"precision={a.precision}"]
     if a.schedule:
         opts.append(f"task.schedule={a.schedule}")
+    if a.budget_min:
+        opts.append(f"task.stop_after_s={60.0 * a.budget_min}")
     if not (train / "summary.json").exists() or json.loads((train / "summary.json").read_text())["status"] != "ok":
         rc = mpmlab(["task=rom_train", *opts, f"hydra.run.dir={train}", "output.overwrite=true"])
         if rc != 0:
             raise SystemExit(f"rom_train failed (exit {rc})")
+        t = json.loads((train / "summary.json").read_text())
+        if t["status"] != "ok":
+            log(f"{a.tag}: training stopped at epoch {t['epochs']} of {t['epochs_planned']} (--budget-min); rerun the "
+                f"same command to continue (the checkpoint is in {train})")
+            return
     ev = RAW / "runs" / a.tag / "eval"
     rc = mpmlab(["task=rom_eval", f"task.study={a.study}", f"task.data={data}",
                  f"task.weights={train / 'rom_weights.safetensors'}", f"task.samples=[{a.samples}]",
@@ -120,6 +130,8 @@ def main():
     ap.add_argument("--quadratures", default="lagrangian,eulerian")
     ap.add_argument("--projections", default="linear,nonlinear")
     ap.add_argument("--tag", default="")
+    ap.add_argument("--budget-min", dest="budget_min", type=float, default=0.0,
+                    help="stop training after this many minutes (checkpointed: rerun to continue); 0: no limit")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/rom.md")
     a = ap.parse_args()
     if not a.report:

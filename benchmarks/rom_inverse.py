@@ -23,11 +23,10 @@ import sys
 import time
 from pathlib import Path
 
-from _harness import OUT, RESULTS, ROOT, log, machine_info, md_table, parser, write_readme_section
+from _harness import RESULTS, ROOT, log, machine_info, md_table, parser, write_readme_section
 
 MD = Path(__file__).resolve().parent / "rom.md"
 RES = RESULTS / "rom"
-RAW = OUT / "rom"
 
 #: the training recipes benchmarks/rom.py is run with when a tag's weights are missing
 RECIPES = {"beam_tiny_l3_lf1000_s3": ["--study", "beam_2d", "--resolution", "tiny", "--latent", "3", "--lambda-F", "1000",
@@ -36,7 +35,7 @@ RECIPES = {"beam_tiny_l3_lf1000_s3": ["--study", "beam_2d", "--resolution", "tin
 
 
 def weights_of(tag: str) -> Path:
-    path = RAW / "runs" / tag / "train" / "rom_weights.safetensors"
+    path = RES / tag / "train" / "rom_weights.safetensors"
     if not path.exists():
         if tag not in RECIPES:
             raise SystemExit(f"no weights for tag {tag} ({path}); train them with benchmarks/rom.py --tag {tag} first")
