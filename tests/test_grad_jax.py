@@ -1,5 +1,9 @@
-"""Gradients through JAX rollouts (issue #4): AD vs central finite differences for every law x transfer,
-segmenting invariance, friction coefficients, observation operators and NaN localisation. fp64."""
+"""Gradients through JAX rollouts (issue #4), fp64. AD against central finite differences (FD): every
+law on APIC (one six-law scene), every other transfer on a hencky_drucker_prager block, 3D
+(fixed_corotated and hencky_drucker_prager), walls of each kind in contact, friction per segment and
+per node; segmenting invariance, JAX = Warp gradients, observation operators, NaN localisation."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +21,17 @@ from .scenes import LAW_PARAMS
 TRANSFERS = ("pic", "flip", "apic", "mls", "tpic")
 LAWS = tuple(LAW_PARAMS)
 STEPS = [4, 8]
+#: the transfer whose FD checks run every law: APIC's P2G and G2P use the most terms of the built-in
+#: schemes (affine momentum m C and the grad-w force; the first moment B and the velocity gradient: the
+#: capability table); PIC, MLS and TPIC use subsets of them, FLIP alone its split force and grid-velocity
+#: increment (mpmlab/transfers/*/jax.py)
+ALL_LAWS_TRANSFER = "apic"
+#: the law(s) of the scene each other transfer's FD checks run on (every law on every transfer cost a
+#: 17-24 s compile of the six-law scene's gradient per transfer in CI): plastic, so the transfer's
+#: adjoint runs through an elastic stress (Hencky) and the yield return map (its friction angle active)
+OTHER_TRANSFER_LAWS = ("hencky_drucker_prager",)
+#: (transfer, law) pairs of the 2D FD checks: every law on APIC, OTHER_TRANSFER_LAWS on every other transfer
+FD_CASES = [(t, law) for t in TRANSFERS for law in (LAWS if t == ALL_LAWS_TRANSFER else OTHER_TRANSFER_LAWS)]
 
 
 def grad_scene(dim, laws=LAWS):
@@ -92,20 +107,28 @@ def fd_check(loss, c, key, direction, hs=(1e-5, 1e-6, 1e-7)):
     return ad, min(errs)
 
 
-@pytest.fixture(scope="module", params=TRANSFERS)
-def setup_2d(request):
-    scene = grad_scene(2)
-    st = build_stepper(scene, "jax", request.param, "fp64")
-    c = smooth_controls(st)
+@functools.lru_cache(maxsize=None)
+def setup_2d(transfer):
+    """(stepper, controls, loss) of the 2D FD checks on ``transfer``: the six-law scene on
+    ALL_LAWS_TRANSFER, the OTHER_TRANSFER_LAWS scene on the others; built once per transfer, so (with
+    ``grad_of``) the gradient is compiled once per transfer, whichever test asks first."""
+    scene = grad_scene(2, LAWS if transfer == ALL_LAWS_TRANSFER else OTHER_TRANSFER_LAWS)
+    st = build_stepper(scene, "jax", transfer, "fp64")
+    return st, smooth_controls(st), fd_loss(st)
+
+
+def fd_loss(st, segment=3):
+    """The 2D FD checks' loss: the velocities at STEPS against fixed random weights, recomputed in
+    segments of ``segment`` steps."""
     obs = Lagrangian(quantity="v")
     w = jnp.asarray(np.random.default_rng(0).standard_normal((len(STEPS), st.particles.count, 2)))
-    loss = jax.jit(lambda c: jnp.sum(w * st.observe(c, obs, STEPS, segment=3)))
-    return st, c, loss
+    return jax.jit(lambda c: jnp.sum(w * st.observe(c, obs, STEPS, segment=segment)))
 
 
-@pytest.mark.parametrize("law", LAWS)
-def test_fd_initial_velocity_and_position(setup_2d, law):
-    st, c, loss = setup_2d
+@pytest.mark.parametrize("transfer,law", FD_CASES)
+def test_fd_initial_velocity_and_position(transfer, law):
+    """d loss / d v and d loss / d x along a random direction on one law's particles."""
+    st, c, loss = setup_2d(transfer)
     g = next(g for g in st.groups if g.law.name == law)
     rng = np.random.default_rng(1)
     for key in ("v", "x"):
@@ -116,21 +139,26 @@ def test_fd_initial_velocity_and_position(setup_2d, law):
         assert err <= 1e-6, f"{law} {st.transfer.name}: d loss / d {key} AD {ad:.6e}, relative error {err:.2e}"
 
 
-@pytest.mark.parametrize("law", LAWS)
-def test_fd_law_parameters(setup_2d, law):
-    st, c, loss = setup_2d
+@pytest.mark.parametrize("transfer,law", FD_CASES)
+def test_fd_law_parameters(transfer, law):
+    """d loss / d each parameter of one law (relative perturbation; parameters inactive in the regime skipped)."""
+    st, c, loss = setup_2d(transfer)
     gi = next(i for i, g in enumerate(st.groups) if g.law.name == law)
     prm = np.asarray(c["law"][gi])
     g = grad_of(loss, c)["law"][gi]
     scale = float(jnp.max(jnp.abs(g * prm)))
     assert scale > 0
+    inactive = []
     for j, name in enumerate(st.groups[gi].law.param_names()):
         d = np.zeros_like(prm)
         d[:, j] = prm[:, j] if prm[0, j] != 0 else 1.0   # relative perturbation of the parameter
         ad, err = fd_check(loss, c, "law", (gi, jnp.asarray(d)), hs=(1e-3, 1e-4, 1e-5, 1e-6))
         if abs(ad) < 1e-9 * scale:                       # parameter inactive in this regime (e.g. cohesion)
+            inactive.append(name)
             continue
         assert err <= 1e-6, f"{law} {st.transfer.name}: d loss / d {name} AD {ad:.6e}, relative error {err:.2e}"
+    if transfer != ALL_LAWS_TRANSFER:                    # the other transfers' law yields: every parameter acts
+        assert not inactive, f"{law} {transfer}: inactive {inactive}"
 
 
 def test_fd_3d_fixed_corotated_and_sand():
@@ -146,13 +174,14 @@ def test_fd_3d_fixed_corotated_and_sand():
 
 
 def test_segmenting_does_not_change_the_gradient():
-    st = build_stepper(grad_scene(2, laws=("fixed_corotated",)), "jax", "mls", "fp64")
-    c = smooth_controls(st)
-    obs = Lagrangian(quantity="x", particles=5)
-    grads = [jax.grad(lambda c: jnp.sum(st.observe(c, obs, [3, 6, 9], segment=s) ** 2))(c) for s in (1, 4, 100)]
-    for other in grads[1:]:
-        for a, b in zip(jax.tree_util.tree_leaves(grads[0]), jax.tree_util.tree_leaves(other)):
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
+    """The MLS FD checks' loss (steps 4, 8 with segment=3: per interval one unscanned 3-step segment and
+    a 1-step remainder) has the same gradient recomputed in 1-step segments (a scan over four). A
+    segment longer than the interval is clamped to it: the default segment of the friction and
+    JAX = Warp tests, checked there by FD and against Warp."""
+    st, c, loss = setup_2d("mls")
+    grads = [grad_of(loss, c), jax.jit(jax.grad(fd_loss(st, segment=1)))(c)]
+    for a, b in zip(jax.tree_util.tree_leaves(grads[0]), jax.tree_util.tree_leaves(grads[1])):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
 
 
 def test_observe_matches_rollout_and_irregular_schedule():
@@ -165,34 +194,69 @@ def test_observe_matches_rollout_and_irregular_schedule():
         st.observe(c, Lagrangian(quantity="v"), [3, 3])
 
 
-def test_friction_gradient_per_segment_and_per_node():
-    """Block sliding over a floor with Coulomb friction (JAX-MPM Eqs. 35-36): d loss / d mu by FD."""
-    floorless = Walls(default="slip", faces={"y-": "none"}, thickness=2)
-    for fw in (FrictionWalls(face="y-", mu=[0.3, 0.2], along="x", thickness=2),
-               FrictionWalls(face="y-", mu=list(np.linspace(0.1, 0.4, 21)), along="x", thickness=2, per_node=True)):
-        body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.05], "hi": [0.5, 0.15]}, material="fixed_corotated",
-                           params={"E": 5e4, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=[1.5, -0.3])
-        scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
-                             boundaries=[floorless, fw], dt=5e-4, name="slide")
-        st = build_stepper(scene, "jax", "apic", "fp64")
-        c = st.controls()
-        obs = Lagrangian(quantity="x")
-        loss = jax.jit(lambda c: jnp.sum(st.observe(c, obs, [10, 20])[..., 0]))
-        g = jax.grad(loss)(c)["boundary"][1]["mu"]
-        assert float(jnp.max(jnp.abs(g))) > 0
-        mu = c["boundary"][1]["mu"]
-        for d in (jnp.ones_like(mu), jnp.asarray(np.random.default_rng(3).standard_normal(mu.shape))):
-            ad = float(jnp.sum(g * d))
+def slide_scene(*boundaries, name="slide"):
+    """A fixed_corotated block sliding along the floor at 1.5 m/s while falling onto it."""
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.05], "hi": [0.5, 0.15]}, material="fixed_corotated",
+                       params={"E": 5e4, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=[1.5, -0.3])
+    return mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
+                        boundaries=list(boundaries), dt=5e-4, name=name)
 
-            def shifted(s):
-                cp = dict(c)
-                b = list(c["boundary"])
-                b[1] = {"mu": mu + s * d}
-                cp["boundary"] = tuple(b)
-                return cp
-            h = 1e-6
-            fd = float(loss(shifted(h)) - loss(shifted(-h))) / (2 * h)
-            assert abs(ad - fd) <= 1e-6 * abs(ad), (fw.per_node, ad, fd)
+
+FLOORLESS = Walls(default="slip", faces={"y-": "none"}, thickness=2)
+
+
+@functools.lru_cache(maxsize=None)
+def sliding_setup():
+    """The sliding block over a floor with friction per segment, its left strip driven by a particle
+    constraint listed before the grid boundaries: (scene, observation, JAX stepper, controls, loss
+    sum |x|^2 at steps 10 and 20, its gradient), one compile shared by the JAX = Warp test and the
+    per-segment friction FD check."""
+    from mpmlab.boundaries import ParticleVelocity
+
+    bcs = [ParticleVelocity(region={"kind": "box", "lo": [0.1, 0.0], "hi": [0.16, 1.0]}, velocity=[0.5, 0.0], t_end=0.005),
+           FLOORLESS, FrictionWalls(face="y-", mu=[0.3, 0.2], along="x", thickness=2)]
+    scene = slide_scene(*bcs, name="order")
+    obs = Lagrangian(quantity="x")
+    st = build_stepper(scene, "jax", "apic", "fp64")
+    c = st.controls()
+    loss = lambda c: jnp.sum(st.observe(c, obs, [10, 20]) ** 2)   # noqa: E731
+    return scene, obs, st, c, loss, jax.grad(loss)(c)
+
+
+def check_friction_fd(loss, c, k, g):
+    """The AD gradient ``g`` of ``loss`` w.r.t. boundary ``k``'s mu against a central difference, along
+    all-ones and a random direction."""
+    assert float(jnp.max(jnp.abs(g))) > 0
+    mu = c["boundary"][k]["mu"]
+    for d in (jnp.ones_like(mu), jnp.asarray(np.random.default_rng(3).standard_normal(mu.shape))):
+        ad = float(jnp.sum(g * d))
+
+        def shifted(s):
+            cp = dict(c)
+            b = list(c["boundary"])
+            b[k] = {**b[k], "mu": mu + s * d}
+            cp["boundary"] = tuple(b)
+            return cp
+        h = 1e-6
+        fd = float(loss(shifted(h)) - loss(shifted(-h))) / (2 * h)
+        assert abs(ad - fd) <= 1e-6 * abs(ad), (k, ad, fd)
+
+
+def test_friction_gradient_per_segment():
+    """Block sliding over a floor with Coulomb friction (JAX-MPM Eqs. 35-36), mu per segment (two along
+    x), a particle constraint on its left strip for the first 10 of 20 steps: d loss / d mu by FD."""
+    _, _, st, c, loss, g = sliding_setup()
+    check_friction_fd(loss, c, 2, g["boundary"][2]["mu"])
+
+
+def test_friction_gradient_per_node():
+    """The same block over a floor with Coulomb friction per grid node along x: d loss / d mu by FD."""
+    fw = FrictionWalls(face="y-", mu=list(np.linspace(0.1, 0.4, 21)), along="x", thickness=2, per_node=True)
+    st = build_stepper(slide_scene(FLOORLESS, fw), "jax", "apic", "fp64")
+    c = st.controls()
+    obs = Lagrangian(quantity="x")
+    loss = jax.jit(lambda c: jnp.sum(st.observe(c, obs, [10, 20])[..., 0]))
+    check_friction_fd(loss, c, 1, jax.grad(loss)(c)["boundary"][1]["mu"])
 
 
 def test_observations_against_hand_values():
@@ -232,27 +296,48 @@ def test_nan_gradient_is_located():
     assert D.check_gradient({"a": jnp.asarray([1.0, 2.0])})
 
 
-@pytest.mark.parametrize("kind", ["sticky", "slip", "separate"])
-def test_fd_with_walls_in_contact(kind):
-    """A block pressed onto the floor and sliding along it (every floor node in contact keeps v.n < 0,
-    away from the separate-wall switch): wall clamps are differentiated correctly."""
-    body = mpmlab.Body(shape={"kind": "box", "lo": [0.2, 0.05], "hi": [0.5, 0.2]}, material="fixed_corotated",
-                       params={"E": 3e4, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=[1.0, -1.5])
-    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
-                         boundaries=[Walls(default=kind, thickness=2)], dt=5e-4, name="press")
+#: the contact scene's blocks, one per wall kind: (face of that kind, lo, hi, initial velocity), each
+#: pressed onto its face and sliding along it
+CONTACT = {"separate": ("y-", [0.2, 0.05], [0.5, 0.2], [1.0, -1.5]),    # the floor, gravity pressing too
+           "sticky": ("x-", [0.05, 0.45], [0.2, 0.75], [-1.5, -1.0]),
+           "slip": ("x+", [0.8, 0.45], [0.95, 0.75], [1.5, 1.0])}
+
+
+@functools.lru_cache(maxsize=None)
+def contact_setup():
+    """Three fixed_corotated blocks, each pressed onto a wall of one kind (far from each other and
+    from the other faces), one stepper and loss: one compile serves the three kinds."""
+    bodies = [mpmlab.Body(shape={"kind": "box", "lo": lo, "hi": hi}, material="fixed_corotated",
+                          params={"E": 3e4, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=v, name=kind)
+              for kind, (face, lo, hi, v) in CONTACT.items()]
+    walls = Walls(default="slip", faces={face: kind for kind, (face, *_) in CONTACT.items()}, thickness=2)
+    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=bodies, gravity=[0.0, -9.8],
+                         boundaries=[walls], dt=5e-4, name="press")
     st = build_stepper(scene, "jax", "apic", "fp64")
     c = st.controls()
     obs = Lagrangian(quantity="v")
     w = jnp.asarray(np.random.default_rng(5).standard_normal((2, st.particles.count, 2)))
     loss = jax.jit(lambda c: jnp.sum(w * st.observe(c, obs, [6, 12], segment=4)))
-    d = jnp.asarray(np.random.default_rng(6).standard_normal(np.shape(c["v"])))
-    ad, err = fd_check(loss, c, "v", d)
-    assert err <= 1e-6, (kind, ad, err)
+    return st, c, loss
+
+
+@pytest.mark.parametrize("kind", list(CONTACT))
+def test_fd_with_walls_in_contact(kind):
+    """A block pressed onto a wall of ``kind`` and sliding along it (the separate floor's nodes in contact
+    keep v.n < 0, away from its switch): d loss / d v of that block and d loss / d E of its particles by
+    FD, so each kind's clamp is differentiated correctly."""
+    st, c, loss = contact_setup()
+    mine = st.particles.body_id == list(CONTACT).index(kind)
+    assert mine.sum() > 0 and len(st.groups) == 1
+    d = np.zeros(np.shape(c["v"]))
+    d[mine] = np.random.default_rng(6).standard_normal((int(mine.sum()), 2))
+    ad, err = fd_check(loss, c, "v", jnp.asarray(d))
+    assert ad != 0.0 and err <= 1e-6, (kind, ad, err)
     gi = 0
     dl = np.zeros(np.shape(c["law"][0]))
-    dl[:, 0] = np.asarray(c["law"][0])[:, 0]
+    dl[mine, 0] = np.asarray(c["law"][0])[mine, 0]
     ad, err = fd_check(loss, c, "law", (gi, jnp.asarray(dl)), hs=(1e-3, 1e-4, 1e-5, 1e-6))
-    assert err <= 1e-6, (kind, "E", ad, err)
+    assert ad != 0.0 and err <= 1e-6, (kind, "E", ad, err)
 
 
 def test_jax_and_warp_gradients_agree_in_scene_order():
@@ -260,20 +345,8 @@ def test_jax_and_warp_gradients_agree_in_scene_order():
     boundaries here) and give the same gradient of every control (fp64)."""
     import torch  # noqa: F401 - required (the Warp side of the comparison)
 
-    from mpmlab.boundaries import ParticleVelocity
-
-    body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.05], "hi": [0.5, 0.15]}, material="fixed_corotated",
-                       params={"E": 5e4, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=[1.5, -0.3])
-    bcs = [ParticleVelocity(region={"kind": "box", "lo": [0.1, 0.0], "hi": [0.16, 1.0]}, velocity=[0.5, 0.0], t_end=0.005),
-           Walls(default="slip", faces={"y-": "none"}, thickness=2),
-           FrictionWalls(face="y-", mu=[0.3, 0.2], along="x", thickness=2)]
-    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, -9.8],
-                         boundaries=bcs, dt=5e-4, name="order")
-    obs = Lagrangian(quantity="x")
-    sj = build_stepper(scene, "jax", "apic", "fp64")
-    cj = sj.controls()
+    scene, obs, sj, cj, _, gj = sliding_setup()
     assert [sorted(d) for d in cj["boundary"]] == [["velocity"], [], ["mu"]]
-    gj = jax.grad(lambda c: jnp.sum(sj.observe(c, obs, [10, 20]) ** 2))(cj)
     sw = build_stepper(scene, "warp", "apic", "fp64")
     cw = sw.controls()
     leaves = [cw["x"], cw["v"], cw["law"][0], cw["boundary"][0]["velocity"], cw["boundary"][2]["mu"], cw["gravity"],
