@@ -133,6 +133,9 @@ class BodyConfig:
     #: included, volume = box volume / point count (NCLaw's training cube: [10, 10, 10])
     lattice: Optional[List[int]] = None
     particle_volume: Optional[float] = None
+    #: massless points (mass and volume 0): they follow the grid's velocity and put nothing into it (the
+    #: tracer baseline of the deformation-map ROM paper, Tab. 4)
+    tracer: bool = False
     #: set false to leave the body out (``scene.bodies.<name>.enabled=false``)
     enabled: bool = True
 

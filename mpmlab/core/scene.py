@@ -35,6 +35,12 @@ class Body:
             only: ``lattice`` = points per axis, ``np.linspace(lo, hi, n)`` with the faces included,
             volume = box volume / point count; NCLaw's training cube is ``[10, 10, 10]``).
         particle_volume: override of the per-particle volume [m^D] (e.g. Taichi mpm3d's quirk).
+        tracer: massless points (mass and volume 0): they move with the grid's velocity (G2P) and put no
+            mass, momentum or stress into it (P2G), so they observe a run without changing it (the
+            tracer baseline of the deformation-map ROM paper, Tab. 4). A scene needs at least one body
+            that is not a tracer. A tracer's law state integrates the grid's velocity gradient as a
+            material point's does; where that gradient is steep (next to empty nodes, e.g. the ends of
+            the torsion cuboid at `paper` resolution) its F can fail the J > 0 check and stop the run.
         options: the law's configuration (its instance fields: network widths, a weights file, ...);
             bodies with the same material and options share one law instance and its weights.
     """
@@ -52,6 +58,7 @@ class Body:
     name: str = ""
     lattice: Sequence[int] | None = None
     options: Mapping[str, Any] = field(default_factory=dict)
+    tracer: bool = False
 
     def __post_init__(self):
         if isinstance(self.shape, Mapping):
@@ -215,10 +222,15 @@ class Scene:
                         raise ConfigError(f"{where}: angular_velocity is a 3-vector in 3D.")
                     v += np.cross(w, r)
             xs.append(x); vs.append(v)
+            if body.tracer:
+                vol = 0.0
             ms.append(np.full(len(x), body.density * vol)); vols.append(np.full(len(x), vol))
             bids.append(np.full(len(x), b)); law_names.append(law)
             instances.setdefault(law, where)
             params.append(np.tile(np.array([prm[k] for k in law.param_names()]), (len(x), 1)))
+        if self.bodies and all(b.tracer for b in self.bodies):
+            raise ConfigError(f"scene '{self.name}': every body is a tracer (massless); give at least one body "
+                              f"with tracer: false.")
         # group particles by law instance (law and options), in order of first appearance
         order_laws = list(dict.fromkeys(law_names))
         blocks, groups, start = [], [], 0

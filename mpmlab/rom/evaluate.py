@@ -92,7 +92,12 @@ def _sums(params, norm, X, z, zdot, x, v, F, c):
 
     xr, Fr, dxdz = N.g_jacobians(params, norm, jnp.asarray(X)[None], jnp.asarray(z)[:, None, :])
     vr = jnp.einsum("tpdk,tk->tpd", dxdz, jnp.asarray(zdot))
-    xr, Fr, vr = np.asarray(xr), np.asarray(Fr), np.asarray(vr)
+    return error_sums(np.asarray(xr), np.asarray(vr), np.asarray(Fr), x, v, F, X, c)
+
+
+def error_sums(xr, vr, Fr, x, v, F, X, c):
+    """The error sums of one run, (per snapshot, in all): predicted x, v, F ``[T, N, ...]`` against the
+    truth's, with the truth's reference positions X and initial centroid c."""
     eye = np.eye(X.shape[1])
     per_frame = {"x": np.sum((xr - x) ** 2, axis=(1, 2)).tolist(), "x_c": np.sum((x - c) ** 2, axis=(1, 2)).tolist()}
     return per_frame, {"x": float(np.sum((xr - x) ** 2)), "x_c": float(np.sum((x - c) ** 2)),
