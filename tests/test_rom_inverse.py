@@ -9,22 +9,7 @@ import numpy as np
 import pytest
 
 
-@pytest.fixture(scope="module")
-def beam():
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    from mpmlab.build import build_scene
-    from mpmlab.config import compose
-    from mpmlab.rom import networks as N
-    from mpmlab.simulator import build_stepper
-
-    scene = build_scene(compose(["scene=rom_beam_2d", "scene.resolution=tiny"]))
-    fom = build_stepper(scene, "jax", "pic", "fp64")
-    spec = N.RomSpec(dim=2, latent=3)
-    X = np.asarray(fom.particles.x)
-    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(2), "u_std": np.full(2, 3e-3)}
-    return scene, fom, N.RomWeights(N.init_params(spec, seed=3), norm, spec, 3)
+from .test_rom_grad import beam  # noqa: F401  (the fixture: the tiny beam and a random smooth map)
 
 
 def test_levenberg_marquardt_recovers_young_modulus_through_the_reduced_model(beam):
@@ -34,7 +19,8 @@ def test_levenberg_marquardt_recovers_young_modulus_through_the_reduced_model(be
     from mpmlab.observations import Lagrangian, ObservationSchedule
     from mpmlab.rom.stepper import ReducedStepper
 
-    scene, fom, w = beam
+    fom, w = beam
+    scene = fom.scene
     rom = ReducedStepper(fom, w, samples=30)
     E0 = float(scene.bodies[0].params["E"])
     p = FitParameter(name="E", target="law", param="E", init=0.9 * E0, truth=E0, transform="exp").bind(scene, rom, ["walls"])
@@ -52,7 +38,7 @@ def test_reduced_observe_matches_its_rollout(beam):
     from mpmlab.observations import Lagrangian
     from mpmlab.rom.stepper import ReducedStepper
 
-    _, fom, w = beam
+    fom, w = beam
     rom = ReducedStepper(fom, w, samples=30)
     obs = Lagrangian(quantity="x", particles=20)
     y = np.asarray(rom.observe(rom.controls(), obs, (0, 10, 30)))

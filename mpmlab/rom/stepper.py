@@ -159,6 +159,15 @@ class _ReducedBase(AbstractStepper):
             q_lattice=tuple(2 * int(a) for a in self.scene.grid_shape), q_size=q_size,
             inv_tol=1e-10 if self.fom.precision == "fp64" else 1e-5 * dx)
 
+    def _project(self, mf, XM, z, z_prev, x_tr, v_tr):
+        """The samples' trial state back onto the manifold with the backend's ``mf`` (``manifold`` or
+        ``manifold_torch``): v_hat by Eqs. 21/23, then x_hat by Alg. 7 (linear) or Alg. 6 / Eq. 22
+        (nonlinear, from 2 z - z_prev). Returns (x_hat_{n+1}, v_hat_{n+1})."""
+        vhat = mf.project_velocity(self.params, self.norm, XM, z, v_tr)
+        if self.projection == "linear":
+            return mf.project_linear(z, vhat, self.dt), vhat
+        return mf.project_nonlinear(self.params, self.norm, XM, x_tr, z, z_prev), vhat
+
     def _np(self, a):
         return np.asarray(a)
 
@@ -379,12 +388,7 @@ class ReducedStepper(_ReducedBase):
         else:                                         # Alg. 5 over every material point (massless off P)
             new = self.fom.step_fn(state, prm, update_law=False)
             x_tr, v_tr = new["x"][rows], new["v"][rows]
-        XM = self.X[M]
-        vhat = Mf.project_velocity(self.params, self.norm, XM, s.z, v_tr)            # Eqs. 21 / 23
-        if self.projection == "linear":
-            z = Mf.project_linear(s.z, vhat, self.dt)                                # Alg. 7
-        else:
-            z = Mf.project_nonlinear(self.params, self.norm, XM, x_tr, s.z, s.z_prev)  # Alg. 6, Eq. 22
+        z, vhat = self._project(Mf, self.X[M], s.z, s.z_prev, x_tr, v_tr)
         return ReducedState(z, vhat, s.z, s.t + self.dt, key, *counts)
 
     def step(self, state):

@@ -289,12 +289,7 @@ class WarpReducedStepper(_ReducedBase):
         with torch.no_grad(), _torch_threads(self._threads):
             points = self._eulerian if self.quadrature == "eulerian" else self._lagrangian
             x_tr, v_tr, counts = points(s, M)
-            XM = self.X[M]
-            vhat = MT.project_velocity(self.params, self.norm, XM, s.z, v_tr)            # Eqs. 21 / 23
-            if self.projection == "linear":
-                z = MT.project_linear(s.z, vhat, self.dt)                                # Alg. 7
-            else:
-                z = MT.project_nonlinear(self.params, self.norm, XM, x_tr, s.z, s.z_prev)  # Alg. 6, Eq. 22
+            z, vhat = self._project(MT, self.X[M], s.z, s.z_prev, x_tr, v_tr)
         return ReducedState(z, vhat, s.z, float(s.t) + self.dt, int(s.key) + 1, *counts)
 
     # ---- the differentiable reduced rollout (issue 16, item 7) ---------------------------------------
@@ -362,11 +357,7 @@ class WarpReducedStepper(_ReducedBase):
         quad = quad.to(self.tdtype)
         Fs = [F[g.start:g.stop] for g in self.fom.groups]
         x_new, v_new = _warp_step().apply(self, float(t), x, v, self._mass0 * quad, self._vol0 * quad, *Fs, *law)
-        XM = self.X[M]
-        vhat = MT.project_velocity(self.params, self.norm, XM, z, v_new[M])
-        if self.projection == "linear":
-            return MT.project_linear(z, vhat, self.dt), vhat
-        return MT.project_nonlinear(self.params, self.norm, XM, x_new[M], z, z_prev), vhat
+        return self._project(MT, self.X[M], z, z_prev, x_new[M], v_new[M])
 
     def _positions(self, z):
         import torch
