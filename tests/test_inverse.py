@@ -244,6 +244,25 @@ def test_backoff_steps_back_and_halves_the_learning_rate(backend, tmp_path):
         impact_fit(backend).run(3, *optimizer(backend, 2e8, 1.0), on_divergence="backoff", max_backoffs=1)
 
 
+class _AlwaysDivergesAt2(_CappedFit):
+    """Epoch 2 diverges whatever the parameters: each step back re-runs epoch 1 and fails at 2 again."""
+
+    def epoch_objective(self):
+        vg = super().epoch_objective()
+        return lambda raw: (float("nan"), "epoch 2 always diverges", None) if self.epoch == 2 else vg(raw)
+
+
+def test_backoff_that_keeps_diverging_stops_after_max_backoffs():
+    """A regression: the re-run epoch's record (with its "backoff" entry) is dropped when the fit steps
+    back to it again, so counting step-backs in the history looped for ever at one scale (NCLaw SAND on
+    Warp did). Now each step back counts and halves the scale again, and the fit stops after
+    max_backoffs."""
+    fit = impact_fit("jax", _AlwaysDivergesAt2)
+    with pytest.raises(FitDiverged, match=r"epoch 2: epoch 2 always diverges .* \[3 step\(s\) back already taken of 3\]"):
+        fit.run(4, *optimizer("jax", 1e6, 1.0), on_divergence="backoff", max_backoffs=3)
+    assert fit.lr_scale == 0.125 and [h["epoch"] for h in fit.history] == [0, 1]
+
+
 def test_backoff_after_a_resume_uses_the_saved_previous_epoch(tmp_path):
     """A fit stopped right after the step that will diverge steps back on resume (from <checkpoint>.prev)."""
     ck = tmp_path / "ck.pkl"

@@ -248,12 +248,14 @@ class Fit:
         bar = self._bar(epochs, progress)
         t0 = time.perf_counter() - (self.history[-1]["time_s"] if self.history else 0.0)
         backoff = None
+        # step-backs taken, counted here: the history cannot count them, since stepping back again to
+        # the epoch re-run after a step back drops that epoch's record (with its "backoff" entry)
+        used = sum(1 for h in self.history if "backoff" in h)
         try:
             while self.epoch < epochs:
                 val, why, g = vg(raw)
                 if why is not None or not np.isfinite(val):
                     err = self._diverged(self.epoch, val, why or "")
-                    used = sum(1 for h in self.history if "backoff" in h)
                     if not max_backoffs or used >= max_backoffs or not prev.exists():
                         if max_backoffs:
                             err.args = (err.args[0] + f" [{used} step(s) back already taken of {max_backoffs}"
@@ -261,10 +263,11 @@ class Fit:
                         raise err
                     at = self.epoch
                     self.epoch, self.history, raw, state = ad.load_checkpoint(prev, raw, state)
-                    self.lr_scale = 0.5 * self._last_lr_scale()
+                    self.lr_scale = 0.5 * self.lr_scale        # the scale that diverged, halved
+                    used += 1
                     backoff = {"diverged_at": int(at), "why": why or f"the loss is {val}"}
                     log.warning("fit: epoch %d diverged (%s); stepping back to epoch %d with the updates scaled by "
-                                "%g (step back %d of %d).", at, backoff["why"], self.epoch, self.lr_scale, used + 1,
+                                "%g (step back %d of %d).", at, backoff["why"], self.epoch, self.lr_scale, used,
                                 max_backoffs)
                     continue
                 if not ad.check_gradient(g):
