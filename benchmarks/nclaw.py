@@ -107,7 +107,24 @@ def train(material: str, backend: str, fraction: float, epochs: int, budget_s: f
     rc = mpmlab(args) if method == "labeled" else watched(args, ckpt, budget_s, STALL_S)
     if rc != 0:
         log(f"training {material}/{backend} ended with exit code {rc}")
-    return json.loads(summary.read_text()) if summary.exists() else None
+    if summary.exists():
+        return json.loads(summary.read_text())
+    # no summary: the run failed (or was stopped) before writing one; say where its checkpoint stands
+    return {"status": "failed" if rc != 0 else "stopped", "exit_code": rc, "epochs": checkpoint_epoch(ckpt)}
+
+
+def checkpoint_epoch(path: Path) -> int:
+    """The epochs done according to a training checkpoint (0 without one)."""
+    if not path.exists():
+        return 0
+    if path.suffix == ".pkl":
+        import pickle
+
+        with open(path, "rb") as f:
+            return int(pickle.load(f)["epoch"])
+    import torch
+
+    return int(torch.load(path, weights_only=False)["epoch"])
 
 
 def evaluate(material: str, backend: str, weights: Path | None, label: str, cases: list[str], precision: str,
@@ -171,7 +188,8 @@ def report() -> None:
                 sched.append([material, backend, f"teacher (on_divergence={h.get('on_divergence')})",
                               f"{h['diverged_at_epoch']} / {h['epochs_planned']}", h.get('fraction'),
                               fmt(hist[0]["loss"] if hist else None), "–",
-                              f"{spe:.1f}" if spe else "–", f"{times[-1] / 3600:.2f}" if times else "–", 0,
+                              f"{spe:.1f}" if spe else "–", f"{times[-1] / 3600:.2f}" if times else "–",
+                              h.get("steps_back", 0),
                               f"{h['status']} at epoch {h['diverged_at_epoch']}"])
             continue
         s = json.loads(s_path.read_text())
@@ -268,7 +286,11 @@ def main():
             share = left / max(len(mats) - i, 1)           # split what is left among the materials to go
             s = train(m, backend, a.segment_fraction, a.epochs, share, a.precision)
             if s is None or s.get("status") != "ok":
-                log(f"{m}/{backend}: training at epoch {s['epochs'] if s else 0} of {a.epochs}; rerun to continue")
+                if s and s.get("status") == "failed":
+                    log(f"{m}/{backend}: training failed at epoch {s['epochs']} of {a.epochs} (exit code "
+                        f"{s['exit_code']}; its log is in {RES / 'train' / f'{m}_{backend}'})")
+                else:
+                    log(f"{m}/{backend}: training at epoch {s['epochs'] if s else 0} of {a.epochs}; rerun to continue")
                 continue
             weights = RES / "train" / f"{m}_{backend}" / "nclaw_weights.safetensors"
             cases = csv(a.cases)
