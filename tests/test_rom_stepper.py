@@ -82,3 +82,24 @@ def test_refusals():
         ReducedStepper(build_stepper(sc, "jax", "pic", "fp64"), w)
     with pytest.raises(ConfigError, match="3D"):
         ReducedStepper(fom, translation(3))
+
+
+def folded(dim):
+    """g = X + x_hat + A X with A = diag(-2, 0, ..): F = diag(-1, 1, ..), det F = -1 everywhere."""
+    spec = N.RomSpec(dim=dim, latent=dim)
+    A = np.zeros((dim, dim))
+    A[0, 0] = -2.0
+    return N.RomWeights(N.linear_params(spec, A, np.eye(dim)), N.identity_norm(dim), spec, 0)
+
+
+@pytest.mark.parametrize("backend", ("jax", "warp"))
+def test_a_folded_map_stops_the_rollout(backend):
+    """The full-order guard's J > 0 check on the reduced model: a map with det dg/dX <= 0 raises
+    SimulationDiverged (field J) at the first kept frame."""
+    from mpmlab.core.errors import SimulationDiverged
+    from mpmlab.rom.stepper import reduced_stepper
+
+    rom = reduced_stepper(build_stepper(scene(gravity=(0.0, 0.0)), backend, "pic", "fp64"), folded(2), samples=8)
+    with pytest.raises(SimulationDiverged, match="deformation map folded") as e:
+        rom.rollout(steps=2, every=1)
+    assert e.value.field == "J" and e.value.step == 0 and e.value.value == pytest.approx(-1.0)

@@ -171,15 +171,16 @@ class _ReducedBase(AbstractStepper):
     def _np(self, a):
         return np.asarray(a)
 
-    def _positions(self, z: np.ndarray) -> np.ndarray:
-        """g(X_p; z) at the scene's material points, [N, d] numpy."""
+    def _positions(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(g(X_p; z) [N, d], det dg/dX [N]) at the scene's material points, numpy."""
         raise NotImplementedError
 
     def rollout(self, state=None, steps: int = 100, every: int = 1, **kw):
         """Run ``steps`` reduced steps; returns ``{"z", "zdot": [T, d_hat], "x": [T, N, d], "time": [T]}`` (frames
         every ``every`` steps, the first one the initial state), and the final state as ``"state"``. At every
-        kept frame the full-order guard's test: a non-finite x_hat, or a point outside the scene's domain,
-        raises ``SimulationDiverged`` (an unstable time step)."""
+        kept frame the full-order guard's test: a non-finite x_hat, a point outside the scene's domain, or
+        a folded map (J = det dg/dX <= 0 at a point, the full-order J > 0 check) raises ``SimulationDiverged``
+        (an unstable time step, or a latent state the manifold does not cover)."""
         from ..core.errors import SimulationDiverged
 
         state = self.init() if state is None else state
@@ -190,12 +191,17 @@ class _ReducedBase(AbstractStepper):
         def keep(k, s):
             # the full-order guard's test at every kept frame: finite, and every point inside the domain
             z = self._np(s.z)
-            x = self._positions(z) if np.all(np.isfinite(z)) else np.full((self.fom.particles.count, self.dim), np.nan)
+            n = self.fom.particles.count
+            x, J = self._positions(z) if np.all(np.isfinite(z)) else (np.full((n, self.dim), np.nan), np.full(n, np.nan))
             bad = ~np.all(np.isfinite(x) & (x >= lo) & (x <= hi), axis=1)
             if bad.any():
                 p = int(np.argmax(bad))
                 raise SimulationDiverged(k, p, "x", x[p].tolist(), "the reduced state left the domain or is "
                                          "non-finite; lower the time step")
+            if not np.all(J > 0):
+                p = int(np.argmin(J))
+                raise SimulationDiverged(k, p, "J", float(J[p]), "the deformation map folded (det dg/dX <= 0): the "
+                                         "latent state left what the manifold covers; lower the time step")
             zs.append(z); vs.append(self._np(s.zdot)); xs.append(x); ts.append(float(s.t))
 
         keep(0, state)
@@ -516,7 +522,8 @@ class ReducedStepper(_ReducedBase):
     def _positions(self, z):
         import jax.numpy as jnp
 
-        return np.asarray(N.g_apply(self.params, self.norm, self.X, jnp.asarray(z)[None, :]))
+        x, F, _ = N.g_jacobians(self.params, self.norm, self.X, jnp.asarray(z)[None, :])
+        return np.asarray(x), np.asarray(jnp.linalg.det(F))
 
     def to_numpy(self, state, X=None) -> dict[str, np.ndarray]:
         """x, F, v at reference points ``X`` [Q, d] (default: the scene's material points) and x_hat."""

@@ -366,7 +366,8 @@ class WarpReducedStepper(_ReducedBase):
 
         with torch.no_grad(), _torch_threads(self._threads):
             zt = torch.as_tensor(z, dtype=self.tdtype, device=self.tdevice)
-            return self._np(NT.g_apply(self.params, self.norm, self.X, zt[None, :]))
+            x, F, _ = NT.g_jacobians(self.params, self.norm, self.X, zt[None, :])
+            return self._np(x), self._np(torch.linalg.det(F))
 
     def to_numpy(self, state, X=None) -> dict[str, np.ndarray]:
         """x, F, v at reference points ``X`` [Q, d] (default: the scene's material points) and x_hat."""
