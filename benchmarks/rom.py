@@ -66,11 +66,12 @@ def run(a) -> None:
             log(f"{a.tag}: training stopped at epoch {t['epochs']} of {t['epochs_planned']} (--budget-min); rerun the "
                 f"same command to continue (the checkpoint is in {train})")
             return
-    ev = RAW / "runs" / a.tag / "eval"
+    suffix = "" if a.rom_backend == "jax" else f"_{a.rom_backend}"
+    ev = RAW / "runs" / a.tag / f"eval{suffix}"
     rc = mpmlab(["task=rom_eval", f"task.study={a.study}", f"task.data={data}",
                  f"task.weights={train / 'rom_weights.safetensors'}", f"task.samples=[{a.samples}]",
                  f"task.quadratures=[{a.quadratures}]", f"task.projections=[{a.projections}]", f"precision={a.precision}",
-                 f"hydra.run.dir={ev}", "output.overwrite=true"])
+                 f"task.rom_backend={a.rom_backend}", f"hydra.run.dir={ev}", "output.overwrite=true"])
     if rc not in (0, 3):
         raise SystemExit(f"rom_eval failed (exit {rc})")
     dst = RES / a.tag
@@ -81,10 +82,10 @@ def run(a) -> None:
     e = json.loads((ev / "summary.json").read_text())
     for row in e["rows"]:
         row.pop("z", None)
-    (dst / "eval.json").write_text(json.dumps(e, indent=1))
-    for f in (train / "training.png", ev / "rom_eval.png"):
+    (dst / f"eval{suffix}.json").write_text(json.dumps(e, indent=1))
+    for f, name in ((train / "training.png", "training.png"), (ev / "rom_eval.png", f"rom_eval{suffix}.png")):
         if f.exists():
-            shutil.copy(f, dst / f.name)
+            shutil.copy(f, dst / name)
 
 
 def pct(x) -> str:
@@ -93,21 +94,22 @@ def pct(x) -> str:
 
 def report() -> None:
     rows = []
-    for d in sorted(RES.glob("*/eval.json")) if RES.exists() else []:
+    for d in sorted(RES.glob("*/eval*.json")) if RES.exists() else []:
         e, t = json.loads(d.read_text()), json.loads((d.parent / "train.json").read_text())
         rec = t.get("reconstruction_error", {})
         for s in e["schemes"]:
-            rows.append([d.parent.name, e["study"], t["latent"], t["batch"], t["epochs"], t["lambda_F"],
+            rows.append([d.parent.name, e["study"], e["fom"].get("rom_backend", "jax"), t["latent"], t["batch"],
+                         t["epochs"], t["lambda_F"],
                          pct(rec.get("test", {}).get("E")), s["scheme"], pct(s["E"]), pct(s["E_displacement"]),
                          pct(s["E_v"]), pct(s["E_F"]), f"{s['wall_s_per_simulated_s']:.3g}",
                          f"{e['fom']['wall_s_per_simulated_s']:.3g}", f"{s['diverged']}/{s['runs']}"])
     body = ["Errors in % on the study's test runs, pooled over runs, snapshots and points (`mpmlab.rom.evaluate`): "
             "E about the initial centroid (the paper's measure; its origin is not stated in the paper), and relative "
             "to the displacement, the velocity and F - I. `recon.` is the encoder + g reconstruction of the test "
-            "snapshots (no time stepping). Wall times per simulated second, ROM and full-order model (JAX, PIC) "
-            "in the same process. Regenerate: `python benchmarks/rom.py --study ... --tag ...` (resumes), "
+            "snapshots (no time stepping). Wall times per simulated second, ROM (its backend) and full-order model "
+            "(JAX, PIC) in the same process. Regenerate: `python benchmarks/rom.py --study ... --tag ...` (resumes), "
             "`--report` rewrites this table.", "",
-            *md_table(["tag", "study", "latent", "batch", "epochs", "λ_F", "recon. E", "scheme", "E", "E disp.", "E_v",
+            *md_table(["tag", "study", "ROM backend", "latent", "batch", "epochs", "λ_F", "recon. E", "scheme", "E", "E disp.", "E_v",
                        "E_F", "ROM s/s", "FOM s/s", "diverged"], rows), "",
             f"Machine: {json.dumps(machine_info(load=True))}", ""]
     write_readme_section(MD, "rom-runs", "Runs (train + evaluate)", "\n".join(body))
@@ -130,6 +132,8 @@ def main():
     ap.add_argument("--quadratures", default="lagrangian,eulerian")
     ap.add_argument("--projections", default="linear,nonlinear")
     ap.add_argument("--tag", default="")
+    ap.add_argument("--rom-backend", dest="rom_backend", default="jax", choices=("jax", "warp"),
+                    help="the reduced model's backend (its evaluation is kept as eval_<backend>.json beside JAX's)")
     ap.add_argument("--budget-min", dest="budget_min", type=float, default=0.0,
                     help="stop training after this many minutes (checkpointed: rerun to continue); 0: no limit")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/rom.md")

@@ -44,3 +44,18 @@ def test_a_scene_of_tracers_only_is_refused():
     with pytest.raises(ConfigError, match="every body is a tracer"):
         sc.particles()
 
+
+
+def test_a_config_recorded_before_tracers_existed_still_builds():
+    """rom_eval and replay rebuild scenes from the config a trajectory.h5 recorded; one written by an
+    mpmlab without the ``tracer`` field must still build (as a body that is not a tracer)."""
+    from omegaconf import OmegaConf
+
+    from mpmlab.build import build_scene
+    from mpmlab.config import compose
+
+    cfg = OmegaConf.to_container(compose(["scene=rom_beam_2d", "scene.resolution=tiny"]), resolve=True)
+    for b in cfg["scene"]["bodies"].values():
+        del b["tracer"]
+    scene = build_scene(OmegaConf.create(cfg))
+    assert not any(b.tracer for b in scene.bodies) and scene.particles().mass.min() > 0
