@@ -16,8 +16,8 @@ x_ROM, v_ROM, F_ROM are g(X; x_hat), dg/dx_hat v_hat and dg/dX at the truth's re
 truth may be a finer full-order run of the same parameters (super-resolution, Sec. 5.2.1): ``truth``.
 
 Each run's scene is rebuilt from the config its ``trajectory.h5`` records (the same scene, resolution
-and dt as the snapshots), with the PIC transfer (Alg. 5), on the reduced model's backend (JAX or Warp). The ROM's time step defaults to the FOM's;
-another ``dt`` must divide the snapshot interval, and is not held to the FOM's CFL limit (an unstable
+and dt as the snapshots), with the PIC transfer (Alg. 5), on the reduced model's backend (JAX or Warp).
+The ROM's time step defaults to the FOM's; another ``dt`` must divide the snapshot interval, and is not held to the FOM's CFL limit (an unstable
 one ends in ``SimulationDiverged``). Wall times: the reduced rollout (after one compiled warm-up step)
 and ``fom_timing_steps`` steps of the full-order model of the same scene in the same process, both per
 simulated second.
@@ -114,8 +114,8 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
              backend: str = "jax", progress: bool | None = False, log=None) -> dict:
     """Every scheme on every run of ``snap`` (``mpmlab.rom.snapshots.load_snapshots``' result: the test
     runs). ``truth``: snapshots of the same runs to compare against (default ``snap``; e.g. a 2x finer
-    FOM). ``backend``: the reduced model's (jax: ``ReducedStepper``; warp: ``WarpReducedStepper``, which
-    has no Eulerian quadrature yet). ``progress``: a bar over the rollouts (None: when stderr is a terminal). Returns
+    FOM). ``backend``: the reduced model's (jax: ``ReducedStepper``; warp: ``WarpReducedStepper``; both
+    have every scheme). ``progress``: a bar over the rollouts (None: when stderr is a terminal). Returns
     ``{"schemes": [...], "runs": [...], "fom": {...}}`` (module doc)."""
     import jax.numpy as jnp
 
