@@ -361,9 +361,11 @@ def test_jax_and_warp_gradients_agree_in_scene_order():
         np.testing.assert_allclose(t.grad.numpy().reshape(a.shape), a, rtol=1e-9, atol=1e-12 * np.abs(a).max())
 
 
+@pytest.mark.parametrize("kind", ("particle_rigid_motion", "grid_velocity"))
 @pytest.mark.parametrize("dim", (2,))
-def test_rigid_motion_gradients_agree_with_warp_and_differences(dim):
-    """particle_velocity with an angular velocity (the torsion end): d loss / d (v0, omega, v) on JAX
+def test_rigid_motion_gradients_agree_with_warp_and_differences(dim, kind):
+    """particle_velocity with an angular velocity (the torsion end), and the grid grip grid_velocity
+    (boundary 1; its particle_velocity partner is boundary 2): d loss / d (v0, omega, v) on JAX
     equals Warp's (fp64) and a central difference in omega. (3D: Warp's central differences in
     tests/test_grad_warp.py::test_boundary_gradients use the same rigid-motion scene in 2D; the 3D
     rotation is checked against its closed form in tests/test_boundaries.py; 3D here costs ~50 s.)"""
@@ -371,7 +373,7 @@ def test_rigid_motion_gradients_agree_with_warp_and_differences(dim):
 
     from tests.test_boundaries import scene_for
 
-    scene = scene_for("particle_rigid_motion", dim)
+    scene = scene_for(kind, dim)
     obs = Lagrangian(quantity="x")
     steps = [10, 20]
     sj = build_stepper(scene, "jax", "apic", "fp64")

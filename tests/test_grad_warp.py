@@ -202,12 +202,15 @@ def test_friction_gradient(kind, transfer):
 
 
 @pytest.mark.parametrize("transfer", ("apic", "flip"))
-@pytest.mark.parametrize("kind", ("walls", "particle_velocity", "particle_rigid_motion", "particle_load", "box_obstacle"))
+@pytest.mark.parametrize("kind", ("walls", "particle_velocity", "particle_rigid_motion", "grid_velocity", "particle_load",
+                                  "box_obstacle"))
 def test_boundary_gradients(kind, transfer):
-    """Domain walls in contact (sticky x-, slip x+, separate y-), a prescribed particle velocity, a
-    particle load (active from step 21) and a box obstacle: gradients w.r.t. their data and v."""
+    """Domain walls in contact (sticky x-, slip x+, separate y-), a prescribed particle velocity, a rigid
+    grid grip (grid_velocity), a particle load (active from step 21) and a box obstacle: gradients w.r.t.
+    their data and v."""
     keys = {"walls": ("v", "x"), "particle_velocity": (("boundary", 1, "velocity"), "v"),
             "particle_rigid_motion": (("boundary", 1, "velocity"), ("boundary", 1, "angular_velocity"), "v"),
+            "grid_velocity": (("boundary", 1, "velocity"), ("boundary", 1, "angular_velocity"), "v"),
             "particle_load": (("boundary", 0, "force"), "v"), "box_obstacle": ("v",)}[kind]
     st = stepper(("boundary_scene", kind), transfer)
     steps = (20, 40) if kind in ("particle_load", "box_obstacle") else (10, 20)

@@ -60,9 +60,9 @@ def test_continual_poke_composes_at_tiny():
 
 
 # (scene, resolution, snapshot interval [s], snapshots, max boundary speed [m/s])
-TIMING = [("rom_torsion", "tiny", 1 / 300, None, 0.6 + 2 * 0.005 * math.sqrt(2)),
-          ("rom_torsion", "paper", 1 / 300, 30, 0.6 + 2 * 0.005 * math.sqrt(2)),
-          ("rom_torsion", "fine", 1 / 300, 30, 0.6 + 2 * 0.005 * math.sqrt(2)),
+TIMING = [("rom_torsion", "tiny", 1 / 1500, None, 0.6 + 2 * 0.005 * math.sqrt(2)),
+          ("rom_torsion", "paper", 1 / 1500, 30, 0.6 + 2 * 0.005 * math.sqrt(2)),
+          ("rom_torsion", "fine", 1 / 1500, 30, 0.6 + 2 * 0.005 * math.sqrt(2)),
           ("rom_poke", "tiny", 1 / 144, None, 0.048), ("rom_poke", "paper", 1 / 144, 432, 0.048),
           ("rom_tower", "tiny", 1 / 24, None, 0.08), ("rom_tower", "cpu", 1 / 24, 80, 0.08),
           ("rom_tower", "paper", 1 / 24, 80, 0.08)]
@@ -192,14 +192,14 @@ def test_torsion_end_follows_the_rigid_motion():
     i_f, i_p = fixed.select(X), pulled.select(X)
     assert len(i_f) == len(i_p) == 4 and not set(i_f) & set(i_p)
     c0 = X[i_p].mean(axis=0)
-    traj = mpmlab.simulate(scene, 28, 7, "warp", "mls", "fp64")
+    traj = mpmlab.simulate(scene, cfg.steps, 1, "warp", "mls", "fp64")
     for k, t in enumerate(traj.time):
         a = w * t
         R = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
         c = c0 + np.array([v, 0, 0]) * t
         np.testing.assert_allclose(traj.x[k, i_p], c + (X[i_p] - c0) @ R.T, rtol=0, atol=1e-12)
         np.testing.assert_allclose(traj.x[k, i_f], X[i_f], rtol=0, atol=1e-12)
-    assert traj.time[-1] == pytest.approx(2 / 300)
+    assert traj.time[-1] == pytest.approx(2 / 1500)
     # the rest of the bar moves: stretched and twisted
     free = np.setdiff1d(np.arange(len(X)), np.concatenate([i_f, i_p]))
     assert np.abs(traj.x[-1, free, 0] - X[free, 0]).max() > 1e-4
@@ -222,7 +222,7 @@ def test_two_run_study_round_trip(tiny_study):
     snap = S.load_snapshots(root, s, runs=runs)
     assert snap.x.shape == (2, 3, 40, 3) and snap.v.shape == (2, 3, 40, 3) and snap.F.shape == (2, 3, 40, 3, 3)
     np.testing.assert_allclose(snap.params, s.param_array(runs))
-    np.testing.assert_allclose(snap.time, [0, 1 / 300, 2 / 300], rtol=1e-6)
+    np.testing.assert_allclose(snap.time, [0, 1 / 1500, 2 / 1500], rtol=1e-6)
     assert snap.names == tuple(s.runs[i].name for i in runs)
     np.testing.assert_allclose(snap.X[0], snap.X[1])
     np.testing.assert_allclose(snap.F[:, 0], np.broadcast_to(np.eye(3), (2, 40, 3, 3)), atol=1e-7)

@@ -213,6 +213,38 @@ class ParticleVelocity(AbstractBoundary):
 
 
 @dataclass(frozen=True)
+class GridVelocity(ParticleVelocity):
+    """Prescribed rigid motion of the grid: the nodes inside the box ``region``, carried along by the motion,
+    take the rigid velocity v0 + omega x (y - c(t)) during [t_start, t_end) (the motion and its centre as
+    in ``ParticleVelocity``; a node y is inside when c0 + R(omega (t - t_start))^T (y - c(t)) is in the box).
+
+    A grip through the grid. A ``particle_velocity`` alone moves its particles but leaves the nodes they
+    share with the free material to the momentum balance: the material's stress pulls those nodes back,
+    the grip is soft, and a pulled end tears off within a few cells of travel (the ROM torsion bar did,
+    at every pull speed: ``tests/test_boundaries.py``). Holding the nodes makes the neighbours' positions
+    and F follow the prescribed motion alike. Pair it with a ``particle_velocity`` on the same region to
+    move the gripped particles exactly rigidly. The region must be a ``box`` (a box in the reference
+    frame is a test both backends evaluate per node and time)."""
+
+    name: ClassVar[str] = "grid_velocity"
+    implementations: ClassVar[dict] = _impl("grid_velocity")
+    gradients: ClassVar[tuple] = ("jax", "warp")
+    stage: ClassVar[str] = "grid"
+
+    def box(self, dim: int) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.region["lo"], float)[:dim], np.asarray(self.region["hi"], float)[:dim]
+
+    def validate(self, scene) -> None:
+        if self.region.get("kind") != "box" or "lo" not in self.region or "hi" not in self.region:
+            raise ConfigError(f"boundary '{self.name}': region must be {{kind: box, lo: [...], hi: [...]}}, "
+                              f"got {dict(self.region)}.")
+        lo, hi = self.box(scene.dim)
+        if len(self.region["lo"]) != scene.dim or len(self.region["hi"]) != scene.dim or np.any(hi <= lo):
+            raise ConfigError(f"boundary '{self.name}': region lo/hi need {scene.dim} components with hi > lo.")
+        super().validate(scene)
+
+
+@dataclass(frozen=True)
 class ParticleLoad(ParticleVelocity):
     """A total force ``force`` [N] on the particles inside ``region``, shared in proportion to their
     mass, during [t_start, t_end)."""

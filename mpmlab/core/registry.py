@@ -124,7 +124,7 @@ def _register_builtins() -> None:
     backends.register("warp", "mpmlab.backends.warp:WarpBackend")
     for name, cls in (("walls", "Walls"), ("friction_walls", "FrictionWalls"), ("plane", "Plane"),
                       ("box_obstacle", "BoxObstacle"), ("particle_velocity", "ParticleVelocity"),
-                      ("particle_load", "ParticleLoad")):
+                      ("grid_velocity", "GridVelocity"), ("particle_load", "ParticleLoad")):
         boundaries.register(name, f"mpmlab.boundaries:{cls}")
     boundaries.register("body_force", "mpmlab.boundaries.body_force:BodyForce")
     observations.register("lagrangian", "mpmlab.observations:Lagrangian")

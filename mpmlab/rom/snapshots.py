@@ -151,7 +151,7 @@ def gravity_study(seed: int = 0) -> Study:
 
 def torsion_study(seed: int = 0, resolution: str | None = None) -> Study:
     """Sec. 5.2: ``rom_torsion`` on the 6 x 6 full-factorial grid v in [0, 0.6] m/s x omega in [0, 2] rad/s
-    (v the slow index), 30 snapshots 1/300 s apart, split 29/7 at random."""
+    (v the slow index), 30 snapshots 1/1500 s apart, split 29/7 at random."""
     runs = []
     for i, v in enumerate(np.linspace(0.0, 0.6, 6)):
         for j, w in enumerate(np.linspace(0.0, 2.0, 6)):
@@ -160,9 +160,9 @@ def torsion_study(seed: int = 0, resolution: str | None = None) -> Study:
                             ("scene=rom_torsion", f"scene.vars.v={_num(v)}", f"scene.vars.omega={_num(w)}", *res,
                              *OUTPUT_OVERRIDES)))
     train, test = _random_split(36, 7, seed)
-    return Study("torsion", "rom_torsion", tuple(runs), train, test, ("v", "omega"), 30, 1.0 / 300.0, seed,
+    return Study("torsion", "rom_torsion", tuple(runs), train, test, ("v", "omega"), 30, 1.0 / 1500.0, seed,
                  "Deformation-map ROM paper, Sec. 5.2, Table 2",
-                 "one end fixed (implied), the other pulled and twisted rigidly; snapshot spacing 1/300 s (mpmlab's)",
+                 "one end fixed (implied), the other pulled and twisted rigidly; snapshot spacing 1/1500 s (mpmlab's)",
                  param_of=lambda cfg: _vars(cfg, "v", "omega"))
 
 

@@ -145,6 +145,32 @@ def particle_velocity(b, scene, dtype):
     return SimpleNamespace(params=params, apply_particles=apply_particles)
 
 
+def grid_velocity(b, scene, dtype):
+    """Nodes inside the moving box take the rigid velocity (``mpmlab.boundaries.GridVelocity``); the box
+    is placed at the step's start time t."""
+    dim = scene.dim
+    c0 = jnp.asarray(b.rotation_center(scene.particles().x), dtype)
+    lo, hi = (jnp.asarray(a, dtype) for a in b.box(dim))
+    params = {"velocity": jnp.asarray(b.velocity, dtype)}
+    if b.rotating:
+        params["angular_velocity"] = jnp.asarray(b.angular_velocity, dtype)
+
+    def apply(v, node_x, m, t, params):
+        tau = t - b.t_start
+        v0 = params["velocity"]
+        r = node_x - (c0 + v0 * tau)
+        if b.rotating:
+            w = params["angular_velocity"]
+            ref = c0 + r @ _rotation(w * tau, dim)            # R^T r, row-wise: back to the reference frame
+            target = v0 + _cross(w, r, dim)
+        else:
+            ref, target = c0 + r, jnp.broadcast_to(v0, v.shape)
+        inside = jnp.all((ref >= lo) & (ref <= hi), axis=-1) & (t >= b.t_start) & (t < b.t_end)
+        return jnp.where(inside[:, None], target, v)
+
+    return SimpleNamespace(params=params, apply=apply)
+
+
 def particle_load(b, scene, dtype):
     P = scene.particles()
     idx = b.select(P.x)

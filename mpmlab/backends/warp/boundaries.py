@@ -13,8 +13,8 @@ name (a plugin boundary is differentiable on Warp when its factory gives a ``tap
   ``controls()["boundary"]``), and ``param_kinds`` ``{name: "scalar" | "vec"}`` (a ``vec`` entry is
   one D-vector, passed as a ``[1]`` array of vectors);
 * ``"walls"``: ``codes`` and ``thickness``, fused into the grid update;
-* ``"grid"``: ``grid(grid_v, out, p)`` writes every node of ``out`` (out of place: the tape never
-  sees an overwrite); ``p`` holds the Warp arrays of ``params``;
+* ``"grid"``: ``grid(grid_v, out, p, t)`` writes every node of ``out`` (out of place: the tape never
+  sees an overwrite); ``p`` holds the Warp arrays of ``params``, ``t`` is the step's start time;
 * ``"particle_velocity"``: ``particles(x_in, x, v, p, t_end, dt, x_out, v_out) -> bool`` (False:
   inactive at this time, nothing written);
 * ``"particle_force"``: ``force(ext, p, t, ctl)`` adds (atomically) into the external forces;
@@ -226,7 +226,7 @@ def friction_walls(b, scene, stepper):
         index = wp.array(idx, dtype=int, device=stepper.device)
         K = _tape_kernels(stepper.dim, stepper.precision)
 
-        def grid(grid_v, out, p):
+        def grid(grid_v, out, p, t):
             wp.launch(K.friction, dim=len(idx), inputs=[grid_v, index, p["mu"], bc.n, out], device=stepper.device)
 
         return SimpleNamespace(stage="grid", params={"mu": np.asarray(b.mu, float)}, param_kinds={"mu": "scalar"},
@@ -258,7 +258,7 @@ def plane(b, scene, stepper):
         index = wp.array(behind.astype(np.int32), dtype=int, device=stepper.device)
         K = _tape_kernels(stepper.dim, stepper.precision)
 
-        def grid(grid_v, out, p):
+        def grid(grid_v, out, p, t):
             wp.launch(K.plane, dim=len(behind), inputs=[grid_v, index, T.vec(*n_in), kind, p["friction"], out],
                       device=stepper.device)
 
@@ -290,7 +290,7 @@ def box_obstacle(b, scene, stepper):
                             device=stepper.device)
         K = _tape_kernels(stepper.dim, stepper.precision)
 
-        def grid(grid_v, out, p):
+        def grid(grid_v, out, p, t):
             wp.launch(K.obstacle, dim=len(idx), inputs=[grid_v, index, normals_, out], device=stepper.device)
 
         return SimpleNamespace(stage="grid", params={}, param_kinds={}, grid=grid)
@@ -312,17 +312,13 @@ def _rigid_kernels(dim: int, precision: str):
     W = scalar if dim == 2 else vec
 
     @wp.func
-    def motion(xp: vec, v0: vec, w: W, c0: vec, tau: scalar, dt: scalar):
-        c_end = c0 + v0 * tau
-        r = xp - c_end + v0 * dt
+    def rotate(r: vec, a: W):
+        """R(a) r: by the angle a in 2D, by Rodrigues' formula for the rotation vector a in 3D."""
         if wp.static(dim == 2):
-            a = w * dt
             ca = wp.cos(a)
             sa = wp.sin(a)
-            r1 = vec(ca * r[0] - sa * r[1], sa * r[0] + ca * r[1])
-            return c_end + r1, v0 + w * vec(-r1[1], r1[0])
+            return vec(ca * r[0] - sa * r[1], sa * r[0] + ca * r[1])
         else:
-            a = w * dt
             th2 = wp.dot(a, a)
             s1 = scalar(1.0) - th2 / scalar(6.0)           # sin t / t and (1 - cos t) / t^2, series near 0
             s2 = scalar(0.5) - th2 / scalar(24.0)
@@ -331,8 +327,21 @@ def _rigid_kernels(dim: int, precision: str):
                 s1 = wp.sin(th) / th
                 s2 = (scalar(1.0) - wp.cos(th)) / th2
             ar = wp.cross(a, r)
-            r1 = r + s1 * ar + s2 * wp.cross(a, ar)
-            return c_end + r1, v0 + wp.cross(w, r1)
+            return r + s1 * ar + s2 * wp.cross(a, ar)
+
+    @wp.func
+    def spin(w: W, r: vec):
+        """omega x r (2D: omega a scalar)."""
+        if wp.static(dim == 2):
+            return w * vec(-r[1], r[0])
+        else:
+            return wp.cross(w, r)
+
+    @wp.func
+    def motion(xp: vec, v0: vec, w: W, c0: vec, tau: scalar, dt: scalar):
+        c_end = c0 + v0 * tau
+        r1 = rotate(xp - c_end + v0 * dt, w * dt)
+        return c_end + r1, v0 + spin(w, r1)
 
     @wp.kernel(module="unique")
     def fast(v: wp.array(dtype=vec), x_in: wp.array(dtype=vec), x: wp.array(dtype=vec), idx: wp.array(dtype=int),
@@ -355,7 +364,25 @@ def _rigid_kernels(dim: int, precision: str):
             v_out[p] = v[p]
             x_out[p] = x[p]
 
-    return SimpleNamespace(fast=fast, tape=tape, W=W)
+    @wp.kernel(module="unique")
+    def grid(grid_v: wp.array(dtype=vec), node_x: wp.array(dtype=vec), lo: vec, hi: vec, v0: wp.array(dtype=vec),
+             w: wp.array(dtype=W), c0: vec, tau: scalar, active: int, out: wp.array(dtype=vec)):
+        """grid_velocity: a node inside the box carried by the motion (placed at time tau) takes the rigid
+        velocity; every other node is copied (out of place, tape-safe; in place when out is grid_v)."""
+        i = wp.tid()
+        v = grid_v[i]
+        if active != 0:
+            r = node_x[i] - (c0 + v0[0] * tau)
+            ref = c0 + rotate(r, -w[0] * tau)               # back to the reference frame
+            inside = int(1)
+            for a in range(dim):
+                if ref[a] < lo[a] or ref[a] > hi[a]:
+                    inside = 0
+            if inside != 0:
+                v = v0[0] + spin(w[0], r)
+        out[i] = v
+
+    return SimpleNamespace(fast=fast, tape=tape, grid=grid, W=W)
 
 
 def particle_velocity(b, scene, stepper):
@@ -431,6 +458,47 @@ def _rigid_particle_velocity(b, scene, stepper):
                                particles=particles)
 
     bc.apply_particles = apply_particles
+    bc.tape = tape
+    return bc
+
+
+def grid_velocity(b, scene, stepper):
+    """``mpmlab.boundaries.GridVelocity``: one kernel over every node, fast (in place) and on the tape."""
+    from ..boundary_geometry import node_positions
+
+    T, dev = stepper.T, stepper.device
+    R = _rigid_kernels(stepper.dim, stepper.precision)
+    x0 = scene.particles().x
+    c0 = T.vec(*b.rotation_center(x0))
+    lo, hi = (T.vec(*a) for a in b.box(scene.dim))
+    node_x = wp.array(node_positions(scene), dtype=T.vec, device=dev)
+    G = node_x.shape[0]
+    zero_w = np.zeros(()) if stepper.dim == 2 else np.zeros(3)
+    w_host = np.asarray(b.angular_velocity, float).reshape(zero_w.shape) if b.rotating else zero_w
+    wrap_w = lambda w: wp.array(w.reshape(-1) if stepper.dim == 2 else [w], dtype=R.W, device=dev)
+    bc = SimpleNamespace(kind="grid")
+    bc.params = {"velocity": wp.array([b.velocity], dtype=T.vec, device=dev)}
+    if b.rotating:
+        bc.params["angular_velocity"] = wrap_w(w_host)
+    still = wrap_w(zero_w)        # a translation: omega = 0, not a control
+
+    def launch(grid_v, out, p, t):
+        on = int(b.t_start <= t < b.t_end)
+        wp.launch(R.grid, dim=G, inputs=[grid_v, node_x, lo, hi, p["velocity"], p.get("angular_velocity", still), c0,
+                                         T.scalar(t - b.t_start), on, out], device=dev)
+
+    def apply(grid_v, t):
+        if b.t_start <= t < b.t_end:
+            launch(grid_v, grid_v, bc.params, t)
+
+    def tape():
+        params = {"velocity": np.asarray(b.velocity, float)}
+        kinds = {"velocity": "vec"}
+        if b.rotating:
+            params["angular_velocity"], kinds["angular_velocity"] = w_host, "scalar" if stepper.dim == 2 else "vec"
+        return SimpleNamespace(stage="grid", params=params, param_kinds=kinds, grid=launch)
+
+    bc.apply = apply
     bc.tape = tape
     return bc
 

@@ -328,7 +328,7 @@ class GradPath:
             if bc.stage != "grid":
                 continue
             out = next(outs)
-            bc.grid(grid_v, out, c)
+            bc.grid(grid_v, out, c, t)
             grid_v = out
         o = SimpleNamespace(**vars(buf.state))
         for i, (g, k, ls, lo) in enumerate(zip(st.groups, self.k_g2p, s.law, o.law)):

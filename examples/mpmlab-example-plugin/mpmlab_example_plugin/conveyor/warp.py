@@ -57,7 +57,7 @@ def conveyor(b, scene, stepper):
     def tape():
         on = wp.array(mask.astype(np.int32), dtype=int, device=dev)
 
-        def grid(grid_v, out, p):
+        def grid(grid_v, out, p, t):
             wp.launch(K.tape, dim=len(mask), inputs=[grid_v, on, p["speed"], out], device=dev)
 
         return SimpleNamespace(stage="grid", params={"speed": np.asarray([b.speed], float)},
