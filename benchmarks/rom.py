@@ -7,7 +7,7 @@ and ``task=rom_eval`` of one configuration per ``--tag`` -> ``benchmarks/rom.md`
 
 Stages, each a separate ``mpmlab`` process (a killed invocation loses at most the current epoch): (1) the
 study's snapshots, ``mpmlab -m experiment=rom_snapshots_<study> scene.resolution=<res>`` (PIC, as the
-ROM; skipped when present); (2) ``task=rom_train`` in ``benchmarks/results/rom/<tag>/train`` (committed:
+ROM; skipped when present and made from the same scene and study); (2) ``task=rom_train`` in ``benchmarks/results/rom/<tag>/train`` (committed:
 checkpointed every epoch, ``--budget-min`` stops it, a rerun resumes, also from a fresh clone); (3)
 ``task=rom_eval`` on the test runs, every quadrature x projection and the sample counts given, once
 the training is complete. Snapshots and evaluation runs live in ``benchmarks/out/rom`` (not committed). The paper's own studies (gravity, torsion, poke, tower)
@@ -33,15 +33,36 @@ def mpmlab(args: list[str]) -> int:
     return subprocess.run([sys.executable, "-m", "mpmlab", *args], cwd=ROOT).returncode
 
 
+def snapshot_key(study: str) -> str:
+    """A digest of what the study's snapshots are made from (the scene's YAML, its material and the
+    study's runs): snapshots made from another version are made again, not silently reused."""
+    import hashlib
+
+    from mpmlab.rom import snapshots as S
+
+    s = S.study(study)
+    conf = ROOT / "mpmlab" / "conf"
+    scene = (conf / "scene" / f"{s.scene}.yaml").read_text()
+    text = scene + S.experiment_yaml(s) + repr(s.runs)
+    for line in scene.splitlines():                       # the material the scene selects
+        if "override /material:" in line:
+            text += (conf / "material" / f"{line.split(':')[-1].strip()}.yaml").read_text()
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 def snapshots(study: str, resolution: str, precision: str) -> Path:
     data = RAW / "data" / f"{study}_{resolution}_{precision}"
     done = data / "complete"
-    if not done.exists():
+    key = snapshot_key(study)
+    if not done.exists() or done.read_text().split() != ["ok", key]:
+        if data.exists():
+            log(f"{data}: made from another version of the {study} scene or study; making the snapshots again")
+            shutil.rmtree(data)
         rc = mpmlab(["-m", f"experiment=rom_snapshots_{study}", f"scene.resolution={resolution}", "backend=jax",
                      f"precision={precision}", "output.overwrite=true", f"hydra.sweep.dir={data}"])
         if rc != 0:
             raise SystemExit(f"snapshots of {study} failed (exit {rc})")
-        done.write_text("ok\n")
+        done.write_text(f"ok {key}\n")
     return data
 
 

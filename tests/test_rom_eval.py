@@ -168,3 +168,55 @@ def test_error_measures_of_a_uniform_offset():
     assert err["E_v"] == pytest.approx(0.0, abs=1e-12)
     assert err["E_F"] is None                                       # F = I: no deformation to be relative to
     assert per_frame["x"] == pytest.approx([30 * 0.005 ** 2] * 2, rel=1e-9)
+
+
+# ---- Tab. 4's tracer baseline ----------------------------------------------------------------------------
+def test_tracers_at_the_material_points_reproduce_the_run(torsion):
+    """With the run itself as the truth, the tracers are the coarse points again: massless, they take the
+    same G2P as the material points, so the baseline reproduces the run (E ~ 1e-15)."""
+    from mpmlab.rom import evaluate as ev
+    from mpmlab.rom.snapshots import load_snapshots
+
+    s, root, _, _, test = torsion
+    snap = load_snapshots(root / "data", s, runs=test)
+    res = ev.tracer_baseline(snap, snap, precision="fp64")
+    assert [r["run"] for r in res["runs"]] == list(snap.names) and res["runs"][0]["tracers"] == 40
+    assert res["E"] < 1e-12 and res["E_F"] < 1e-10
+
+
+def test_tracer_baseline_against_a_finer_truth(torsion, tmp_path):
+    """A 2x finer truth (tiny at dx 2 mm, its own CFL dt): the tracers are its 720 points, matched by
+    position; the baseline's error is finite and small; rom_eval reports it beside the schemes."""
+    from mpmlab.rom import evaluate as ev
+    from mpmlab.rom.snapshots import load_snapshots, run_study, study
+
+    s, root, weights, _, test = torsion
+    fine = study("torsion_fine")
+    idx = [next(j for j, r in enumerate(fine.runs) if r.params == s.runs[i].params) for i in test]
+    run_study(fine, tmp_path / "fine", runs=idx, overrides=[
+        "scene.resolution=tiny", "scene.resolutions.tiny.dx=0.002", "scene.resolutions.tiny.dt=1.1111111111111112e-04",
+        "scene.resolutions.tiny.frame_every=6", "scene.resolutions.tiny.steps=12", "backend=jax", "precision=fp64"])
+    truth = load_snapshots(tmp_path / "fine", fine, runs=idx)
+    snap = load_snapshots(root / "data", s, runs=test)
+    truth.names = snap.names
+    res = ev.tracer_baseline(snap, truth, precision="fp64")
+    assert res["runs"][0]["tracers"] == 720 and 0 < res["E"] < 0.05, res["E"]
+    out = tmp_path / "eval"
+    out.mkdir()
+    got = _task(out, "task.study=torsion", f"task.data={root / 'data'}", f"task.weights={weights}",
+                "task.quadratures=[lagrangian]", "task.projections=[linear]", "task.samples=[all]",
+                "task.truth_study=torsion_fine", f"task.truth_data={tmp_path / 'fine'}", "task.tracer_baseline=true",
+                "task.fom_timing_steps=6")
+    assert got["tracer_baseline"]["E"] == pytest.approx(res["E"], rel=1e-9)
+    assert "tracer baseline" in (out / "rom_eval.md").read_text()
+    # a truth whose points are not the coarse points refined: refused in one line
+    truth.x = truth.x + 1e-4
+    with pytest.raises(ConfigError, match="not the coarse bodies refined 2x"):
+        ev.tracer_baseline(snap, truth, precision="fp64")
+
+
+def test_tracer_baseline_needs_a_truth(torsion, tmp_path):
+    s, root, weights, _, _ = torsion
+    with pytest.raises(ConfigError, match="needs task.truth_study"):
+        _task(tmp_path, "task.study=torsion", f"task.data={root / 'data'}", f"task.weights={weights}",
+              "task.tracer_baseline=true")

@@ -40,7 +40,7 @@ class Body:
             tracer baseline of the deformation-map ROM paper, Tab. 4). A scene needs at least one body
             that is not a tracer. A tracer's law state integrates the grid's velocity gradient as a
             material point's does; where that gradient is steep (next to empty nodes, e.g. the ends of
-            the torsion cuboid at `paper` resolution) its F can fail the J > 0 check and stop the run.
+            a torn bar) its F can fail the J > 0 check and stop the run.
         options: the law's configuration (its instance fields: network widths, a weights file, ...);
             bodies with the same material and options share one law instance and its weights.
     """

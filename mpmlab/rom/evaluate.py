@@ -220,6 +220,68 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
             "snapshots": T}
 
 
+def tracer_baseline(snap, truth, *, precision: str = "fp64", backend: str = "jax", progress: bool | None = False,
+                    log=None) -> dict:
+    """Tab. 4's baseline (Sec. 5.2.1, the "tracer particle technique"): the truth's finer points advected
+    as massless tracers (``Body(tracer=True)``) through each coarse full-order run of ``snap``, scored
+    against the finer truth with the ROM's error sums. The tracers are each coarse body refined by the
+    ratio of the two scenes' cell widths per axis (regular sampling: the finer run's own points); when
+    they are not the truth's points (another sampling), a ConfigError says so. Returns ``{"E", ...,
+    "sums", "runs", "wall_s_per_simulated_s"}``."""
+    import dataclasses
+
+    from tqdm.auto import tqdm
+
+    from ..build import build_scene
+    from ..simulator import build_stepper
+
+    if tuple(truth.names) != tuple(snap.names):
+        raise ConfigError(f"tracer baseline: the truth's runs {list(truth.names)} are not the test runs {list(snap.names)}.")
+    R, T = snap.x.shape[:2]
+    interval = float(snap.time[1] - snap.time[0]) if T > 1 else 0.0
+    total, rows = None, []
+    for k in tqdm(range(R), unit="run", desc="tracers", leave=False, disable=None if progress is None else not progress):
+        cfg = run_config(snap, k)
+        coarse = build_scene(cfg)
+        fine_dx = float(run_config(truth, k).scene.dx)
+        r = coarse.dx / fine_dx
+        if abs(r - round(r)) > 1e-9 * r or round(r) < 1:
+            raise ConfigError(f"tracer baseline: the truth's cell width {fine_dx:g} m is not the coarse {coarse.dx:g} m "
+                              f"divided by an integer.")
+        r = int(round(r))
+        tracers = [dataclasses.replace(b, particles_per_cell=b.particles_per_cell * r ** coarse.dim, tracer=True,
+                                       name=f"{b.name or i}_tracers")
+                   for i, b in enumerate(coarse.bodies) if not b.tracer]
+        scene = dataclasses.replace(coarse, bodies=list(coarse.bodies) + tracers)
+        stepper = build_stepper(scene, backend, "pic", precision)
+        every = max(1, int(round(interval / float(stepper.dt)))) if interval else 1
+        t0 = time.perf_counter()
+        traj = stepper.rollout(steps=every * (T - 1), every=every, fields=("F",))
+        wall = time.perf_counter() - t0
+        mine = np.nonzero(traj.body_id >= len(coarse.bodies))[0]
+        X, Xt = traj.x[0][mine], truth.x[k, 0]
+        if len(X) != len(Xt):
+            raise ConfigError(f"tracer baseline: {len(X)} tracers, but the truth has {len(Xt)} points; its points are "
+                              f"not the coarse bodies refined {r}x per axis.")
+        from scipy.spatial import cKDTree
+
+        dist, order = cKDTree(X).query(Xt)
+        if dist.max() > 1e-9 * max(1.0, float(np.abs(Xt).max())) or len(set(order)) != len(order):
+            raise ConfigError(f"tracer baseline: the truth's points are not the coarse bodies refined {r}x per axis "
+                              f"(largest distance {dist.max():.3g} m); only regularly sampled truths are supported.")
+        idx = mine[order]
+        c = Xt.mean(axis=0)
+        _, sums = error_sums(traj.x[:, idx], traj.v[:, idx], traj.fields["F"][:, idx], truth.x[k], truth.v[k],
+                             truth.F[k], Xt, c)
+        total = sums if total is None else {key: total[key] + sums[key] for key in sums}
+        rows.append({"run": snap.names[k], "tracers": len(idx), "wall_s": wall, **errors_of(sums)})
+        if log is not None:
+            log.info("tracer baseline %s: %d tracers, E = %.3f%%", snap.names[k], len(idx), 100 * rows[-1]["E"])
+    sim = R * (T - 1) * interval
+    return {**errors_of(total), "sums": total, "runs": rows,
+            "wall_s_per_simulated_s": sum(r["wall_s"] for r in rows) / sim if sim else None}
+
+
 def _time_full_order(fom, steps, chunk):
     """Wall time of about ``steps`` steps of the full-order stepper ``fom`` (PIC), advanced ``chunk`` steps
     (one snapshot interval) per call as a rollout does, after a compiled warm-up chunk."""

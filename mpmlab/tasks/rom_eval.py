@@ -8,7 +8,8 @@ test run's initial state and compared with its full-order snapshots (``mpmlab.ro
 Errors (pooled over the test runs, snapshots and points): E about the initial centroid (the paper's,
 Tabs. 3-6), and relative to the displacement, the velocity and F - I. ``task.truth_study`` /
 ``task.truth_data`` compare against other full-order runs of the same parameters (super-resolution:
-``torsion_fine``). Outputs: ``summary.json`` (per scheme and per run, the latent trajectories, ROM and
+``torsion_fine``); ``task.tracer_baseline=true`` adds Tab. 4's baseline, the finer points advected as
+massless tracers through the coarse full-order runs. Outputs: ``summary.json`` (per scheme and per run, the latent trajectories, ROM and
 FOM wall time per simulated second from this process), ``rom_eval.md`` (the table) and
 ``rom_eval.png`` (E against time per scheme).
 """
@@ -57,6 +58,8 @@ class RomEvalConfig(TaskConfig):
     #: compare against another study's runs of the same parameters (e.g. torsion_fine), in truth_data
     truth_study: str = ""
     truth_data: str = ""
+    #: with a truth study: also Tab. 4's baseline, the truth's points advected as tracers in each coarse run
+    tracer_baseline: bool = False
     #: full-order steps timed per run (PIC, the same scene, this process), and their backend
     fom_timing_steps: int = 100
     fom_backend: str = "jax"
@@ -139,6 +142,9 @@ def run(cfg, ctx) -> dict:
             idx.append(hit[0])
         truth = load_snapshots(str(tc.truth_data or tc.data), ts, runs=idx)
         truth.names = tuple(names)
+    if tc.tracer_baseline and truth is None:
+        raise ConfigError("task.tracer_baseline=true needs task.truth_study (and task.truth_data): the finer runs "
+                          "whose points the tracers are.")
     sch = ev.schemes(list(tc.quadratures), list(tc.projections), _samples(tc.samples))
     write_config(out, cfg, True)
     log.info("rom_eval: study %s, %d test runs, %d schemes, weights %s (latent %d)", s.name, len(test_runs), len(sch),
@@ -146,6 +152,9 @@ def run(cfg, ctx) -> dict:
     res = ev.evaluate(weights, snap, sch, precision=precision, dt=None if tc.dt is None else float(tc.dt),
                       seed=int(tc.seed), truth=truth, fom_timing_steps=int(tc.fom_timing_steps),
                       fom_backend=str(tc.fom_backend), backend=str(tc.rom_backend), progress=ctx.progress, log=log)
+    if tc.tracer_baseline:
+        res["tracer_baseline"] = ev.tracer_baseline(snap, truth, precision=precision, backend=str(tc.fom_backend),
+                                                    progress=ctx.progress, log=log)
     diverged = [r for r in res["rows"] if r["status"] != "ok"]
     summary = {"task": "rom_eval", "status": "ok" if not diverged else "diverged", "study": s.name,
                "data": str(tc.data), "weights": str(tc.weights), "latent": weights.spec.latent,
@@ -188,6 +197,11 @@ def table_markdown(s: dict) -> str:
         lines.append(f"| {r['scheme']} | {_pct(r['E'])} | {_pct(r['E_displacement'])} | {_pct(r['E_v'])} | "
                      f"{_pct(r['E_F'])} | {r['wall_s_per_simulated_s']:.3g} | {'—' if sp is None else f'{sp:.2f}x'} | "
                      f"{r['diverged']}/{r['runs']} |")
+    tb = s.get("tracer_baseline")
+    if tb:
+        lines.append(f"| tracer baseline (the truth's points advected in the coarse full-order run) | {_pct(tb['E'])} | "
+                     f"{_pct(tb['E_displacement'])} | {_pct(tb['E_v'])} | {_pct(tb['E_F'])} | "
+                     f"{tb['wall_s_per_simulated_s']:.3g} | — | — |")
     lines += ["", "E = sqrt(sum |x_ROM - x_FOM|^2 / sum |x_FOM - c|^2), c the initial centroid (mpmlab.rom.evaluate)."]
     return "\n".join(lines) + "\n"
 
