@@ -358,6 +358,18 @@ def compose(overrides: list[str] | tuple[str, ...] = (), config_name: str = PRIM
         GlobalHydra.instance().clear()
 
 
+def recorded_config(text: str) -> DictConfig:
+    """A run's recorded config (the resolved YAML a trajectory.h5 keeps) completed by today's schema: a key
+    added since the run was recorded takes its default, so old runs rebuild (e.g. their scene). The task
+    section is kept as recorded (each task has its own schema)."""
+    rec = OmegaConf.create(text)
+    task = rec.pop("task", None) if isinstance(rec, DictConfig) else None
+    merged = OmegaConf.create(OmegaConf.to_container(OmegaConf.merge(OmegaConf.structured(MpmlabConfig), rec)))
+    if task is not None:
+        merged.task = task
+    return merged
+
+
 def register_search_path_plugin() -> None:
     """Register mpmlab's Hydra search-path plugin explicitly.
 

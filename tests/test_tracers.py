@@ -47,15 +47,19 @@ def test_a_scene_of_tracers_only_is_refused():
 
 
 def test_a_config_recorded_before_tracers_existed_still_builds():
-    """rom_eval and replay rebuild scenes from the config a trajectory.h5 recorded; one written by an
-    mpmlab without the ``tracer`` field must still build (as a body that is not a tracer)."""
+    """rom_eval rebuilds scenes from the config a trajectory.h5 recorded (``mpmlab.config.recorded_config``);
+    one written by an mpmlab without today's optional keys (a body's ``tracer``, ``lattice``, ``enabled``)
+    still builds, each missing key at its default."""
     from omegaconf import OmegaConf
 
     from mpmlab.build import build_scene
-    from mpmlab.config import compose
+    from mpmlab.config import compose, recorded_config
 
     cfg = OmegaConf.to_container(compose(["scene=rom_beam_2d", "scene.resolution=tiny"]), resolve=True)
     for b in cfg["scene"]["bodies"].values():
-        del b["tracer"]
-    scene = build_scene(OmegaConf.create(cfg))
+        for key in ("tracer", "lattice", "enabled"):
+            del b[key]
+    with pytest.raises(Exception):
+        build_scene(OmegaConf.create(cfg))                 # as recorded: the keys are missing
+    scene = build_scene(recorded_config(OmegaConf.to_yaml(cfg)))
     assert not any(b.tracer for b in scene.bodies) and scene.particles().mass.min() > 0

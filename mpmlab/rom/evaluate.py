@@ -63,12 +63,12 @@ def schemes(quadratures, projections, samples) -> list[Scheme]:
 
 def run_config(snap, k: int):
     """The composed config (an OmegaConf DictConfig) run ``k`` of ``snap`` recorded in its trajectory.h5."""
-    from omegaconf import OmegaConf
+    from ..config import recorded_config
 
     text = snap.attrs[k].get("config_yaml") or ""
     if not text:
         raise ConfigError(f"'{snap.paths[k]}' records no config; the ROM cannot rebuild its scene.")
-    return OmegaConf.create(text)
+    return recorded_config(text)
 
 
 def build_full_order(cfg, precision: str, dt: float | None = None, backend: str = "jax"):
