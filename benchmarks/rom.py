@@ -100,13 +100,18 @@ def run(a) -> None:
     t = json.loads((train / "summary.json").read_text())
     t.pop("history", None)                      # the loss curve is in training.png and the run's recording
     (dst / "train.json").write_text(json.dumps(t, indent=1))
-    e = json.loads((ev / "summary.json").read_text())
-    for row in e["rows"]:
-        row.pop("z", None)
-    (dst / f"eval{suffix}.json").write_text(json.dumps(e, indent=1))
+    keep_eval(ev, dst / f"eval{suffix}.json")
     for f, name in ((train / "training.png", "training.png"), (ev / "rom_eval.png", f"rom_eval{suffix}.png")):
         if f.exists():
             shutil.copy(f, dst / name)
+
+
+def keep_eval(ev: Path, dst: Path) -> None:
+    """Keep an evaluation's summary with the results, without the per-run latent trajectories."""
+    e = json.loads((ev / "summary.json").read_text())
+    for row in e["rows"]:
+        row.pop("z", None)
+    dst.write_text(json.dumps(e, indent=1))
 
 
 def superres(a) -> None:
@@ -133,10 +138,7 @@ def superres(a) -> None:
                      f"task.rom_backend={a.rom_backend}", f"hydra.run.dir={ev}", "output.overwrite=true"])
         if rc not in (0, 3):
             raise SystemExit(f"rom_eval ({name}) failed (exit {rc})")
-        e = json.loads((ev / "summary.json").read_text())
-        for row in e["rows"]:
-            row.pop("z", None)
-        (RES / a.tag / f"{name}.json").write_text(json.dumps(e, indent=1))
+        keep_eval(ev, RES / a.tag / f"{name}.json")
 
 
 def superres_report() -> list[str]:
@@ -144,8 +146,9 @@ def superres_report() -> list[str]:
     for d in sorted(RES.glob("*/superres*.json")) if RES.exists() else []:
         e = json.loads(d.read_text())
         tr = d.parent / "tracers.json"
-        tb = json.loads(tr.read_text()).get("tracer_baseline") if tr.exists() else None
-        coarse_rom = json.loads(tr.read_text())["schemes"][0] if tr.exists() else None
+        tracers = json.loads(tr.read_text()) if tr.exists() else {}
+        tb = tracers.get("tracer_baseline")
+        coarse_rom = tracers["schemes"][0] if tracers else None
         for s in e["schemes"]:
             rows.append([d.parent.name, e["fom"].get("rom_backend", "jax"), f"ROM at 2x, {s['scheme']}", pct(s["E"]),
                          pct(s["E_displacement"]), pct(s["E_F"]), f"{s['wall_s_per_simulated_s']:.3g}"])
