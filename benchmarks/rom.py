@@ -76,6 +76,8 @@ def run(a) -> None:
             f"task.seed={a.seed}", f"precision={a.precision}"]
     if a.schedule:
         opts.append(f"task.schedule={a.schedule}")
+    if a.points:
+        opts.append(f"task.points={a.points}")
     if a.budget_min:
         opts.append(f"task.stop_after_s={60.0 * a.budget_min}")
     if not (train / "summary.json").exists() or json.loads((train / "summary.json").read_text())["status"] != "ok":
@@ -206,6 +208,8 @@ def main():
     ap.add_argument("--schedule", default="", help="Adam stages as [[lr,epochs],...] (default: App. B's)")
     ap.add_argument("--lambda-F", dest="lambda_F", type=float, default=100.0)
     ap.add_argument("--lambda-v", dest="lambda_v", type=float, default=0.01)
+    ap.add_argument("--points", type=int, default=0,
+                    help="points per snapshot per batch in training (0: all; the loss is a mean over points)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--samples", default="50,all", help="comma-separated |M| values (integers or all)")
     ap.add_argument("--quadratures", default="lagrangian,eulerian")

@@ -8,13 +8,14 @@ import pytest
 import mpmlab
 from mpmlab.core.errors import ConfigError
 from mpmlab.rom import networks as N
-from mpmlab.rom.stepper import ReducedStepper
+from mpmlab.rom.stepper import _EULER_REACH, ReducedStepper, eulerian_footprint
 from mpmlab.simulator import build_stepper
 
 
-def scene(gravity=(0.0, -9.8), dim=2, law="fixed_corotated", velocity=None):
+def scene(gravity=(0.0, -9.8), dim=2, law="fixed_corotated", velocity=None, shift=0.0):
     g = list(gravity) + [0.0] * (dim - len(gravity))
-    body = mpmlab.Body(shape={"kind": "box", "lo": [0.3] * dim, "hi": [0.5] + [0.4] * (dim - 1)}, material=law,
+    lo, hi = [0.3 + shift] * dim, [0.5 + shift] + [0.4 + shift] * (dim - 1)
+    body = mpmlab.Body(shape={"kind": "box", "lo": lo, "hi": hi}, material=law,
                        params={"E": 2e4, "nu": 0.3}, density=1000.0, particles_per_cell=4 if dim == 2 else 8,
                        velocity=velocity)
     return mpmlab.Scene(dim=dim, dx=0.05, domain=([0.0] * dim, [1.0] * dim), bodies=[body], gravity=g, dt=1e-3,
@@ -59,12 +60,57 @@ def test_eulerian_quadrature_points_carry_the_body_mass():
     n = fom.particles.count
     rom = ReducedStepper(fom, translation(2), samples=n, quadrature="eulerian")
     s = rom.init()._replace(z=jnp.asarray([0.00625, -0.025]))        # no lattice point on a voxel face
-    x, v, law, prm, rows, (outside, unconverged) = rom._eulerian_points(s, jnp.arange(n))
+    x, v, law, prm, rows, (outside, unconverged, overflow) = rom._eulerian_points(s, jnp.arange(n))
     body = float(np.sum(fom.particles.mass))
     assert float(jnp.sum(prm["mass"])) == pytest.approx(body, rel=1e-12)
-    assert int(unconverged) == 0 and int(outside) > 0                 # the ring of cells around the box
+    assert int(unconverged) == 0 and int(outside) > 0 and int(overflow) == 0    # outside: the ring of cells around the box
     m = np.asarray(prm["mass"][:rom._q_size])
     assert np.allclose(m[m > 0], 1000.0 * 0.05 ** 2 / 4, rtol=1e-12)
+
+
+@pytest.mark.parametrize("dim", (2, 3))
+def test_eulerian_footprint_counts_the_lattice_points_reaching_the_body(dim):
+    """The separable dilation gives the distinct lattice points 2 base + [-3, 6]^d of a point cloud (those
+    inside the lattice), as the brute-force set does; a point near the grid's edge clips there."""
+    rng = np.random.default_rng(dim)
+    grid, dx, origin = (12,) * dim, 0.1, np.full(dim, -0.2)
+    x = origin + rng.uniform(0.05, 1.15, size=(40, dim))
+    base = np.floor((x - origin) / dx - 0.5).astype(int)
+    off = np.stack(np.meshgrid(*[_EULER_REACH] * dim, indexing="ij"), -1).reshape(-1, dim)
+    j = (2 * base[:, None, :] + off[None]).reshape(-1, dim)
+    j = j[np.all((j >= 0) & (j < 2 * np.asarray(grid)), axis=1)]
+    assert eulerian_footprint(x, origin, dx, grid) == len(np.unique(j, axis=0)) > 0
+
+
+def test_the_eulerian_point_budget_changes_no_step():
+    """The budget (1.5 x the body's footprint, far below |M| 10^d here) drops only padding: the rollout of a
+    nonlinear map is the one with every |M| 10^d slot."""
+    fom = build_stepper(scene(gravity=(0.0, -3.0)), "jax", "pic", "fp64")
+    spec = N.RomSpec(dim=2, latent=3)
+    X = np.asarray(fom.particles.x)
+    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(2), "u_std": np.full(2, 3e-3)}
+    w = N.RomWeights(N.init_params(spec, seed=3), norm, spec, 3)
+    small = ReducedStepper(fom, w, samples=20, quadrature="eulerian")
+    full = ReducedStepper(fom, w, samples=20, quadrature="eulerian", eulerian_capacity=1e9)
+    assert small._q_size < full._q_size == 20 * 10 ** 2
+    a, b = small.rollout(steps=20, every=10), full.rollout(steps=20, every=10)
+    assert np.ptp(a["z"], axis=0).max() > 1e-3 and np.array_equal(a["z"], b["z"])
+
+
+def test_a_body_that_outgrows_the_eulerian_budget_stops_the_rollout():
+    """With the budget at exactly the initial footprint, a translation that moves the body onto more lattice
+    points (from 4 x 2 base cells to 5 x 3) needs more points than it has: a one-line ConfigError, not
+    dropped mass."""
+    import jax.numpy as jnp
+
+    fom = build_stepper(scene(gravity=(0.0, 0.0), shift=0.015), "jax", "pic", "fp64")
+    rom = ReducedStepper(fom, translation(2), samples=fom.particles.count, quadrature="eulerian", eulerian_capacity=1.0)
+    s = rom.init()
+    rom.rollout(s, steps=2)                                       # in place: within the budget
+    with pytest.raises(ConfigError, match="raise eulerian_capacity"):
+        rom.rollout(s._replace(z=jnp.asarray([-0.015, -0.015])), steps=2)
+    with pytest.raises(ConfigError, match="at least 1"):
+        ReducedStepper(fom, translation(2), samples=8, quadrature="eulerian", eulerian_capacity=0.5)
 
 
 def test_refusals():

@@ -39,6 +39,18 @@ def test_a_body_at_rest_stays_at_rest(quadrature):
     assert np.max(np.abs(rom.rollout(steps=20, every=20)["z"])) == 0.0
 
 
+def test_a_body_that_outgrows_the_eulerian_budget_stops_the_rollout():
+    """As on JAX (tests/test_rom_stepper.py): a translation onto more lattice points than the budget holds."""
+    import torch
+
+    rom = reduced_stepper(build_stepper(scene(gravity=(0.0, 0.0), shift=0.015), "warp", "pic", "fp64"), translation(2),
+                          samples=32, quadrature="eulerian", eulerian_capacity=1.0)
+    s = rom.init()
+    rom.rollout(s, steps=2)
+    with pytest.raises(ConfigError, match="raise eulerian_capacity"):
+        rom.rollout(s._replace(z=torch.tensor([-0.015, -0.015], dtype=torch.float64)), steps=2)
+
+
 @pytest.fixture(scope="module")
 def beam():
     """The 2D beam at `tiny` (clamped by sticky walls) on both backends, and a random smooth map (a random

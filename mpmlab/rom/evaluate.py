@@ -111,11 +111,12 @@ def errors_of(sums: dict) -> dict:
 
 def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64", dt: float | None = None,
              seed: int = 0, truth=None, fom_timing_steps: int = 100, fom_backend: str = "jax",
-             backend: str = "jax", progress: bool | None = False, log=None) -> dict:
+             backend: str = "jax", progress: bool | None = False, log=None, eulerian_capacity: float | None = None) -> dict:
     """Every scheme on every run of ``snap`` (``mpmlab.rom.snapshots.load_snapshots``' result: the test
     runs). ``truth``: snapshots of the same runs to compare against (default ``snap``; e.g. a 2x finer
     FOM). ``backend``: the reduced model's (jax: ``ReducedStepper``; warp: ``WarpReducedStepper``; both
-    have every scheme). ``progress``: a bar over the rollouts (None: when stderr is a terminal). Returns
+    have every scheme). ``eulerian_capacity``: the Eulerian quadrature's point budget (None: the stepper's
+    default, ``mpmlab.rom.stepper.EULER_CAPACITY``). ``progress``: a bar over the rollouts (None: when stderr is a terminal). Returns
     ``{"schemes": [...], "runs": [...], "fom": {...}}`` (module doc)."""
     import jax.numpy as jnp
 
@@ -165,8 +166,9 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
         fom_rows.append(_time_full_order(timed, min(int(fom_timing_steps), steps), every))
         for sch in scheme_list:
             m = len(X0) if sch.samples == "all" else int(sch.samples)
+            more = {} if eulerian_capacity is None else {"eulerian_capacity": float(eulerian_capacity)}
             rom = reduced_stepper(fom, weights, samples=m, quadrature=sch.quadrature, projection=sch.projection,
-                                  seed=seed)
+                                  seed=seed, **more)
             s0 = rom.init()
             t0 = time.perf_counter()
             rom._np(rom.step(s0).z)                              # compile the reduced step

@@ -20,8 +20,11 @@ so P2G, the grid update, every boundary, G2P and the law's ``kirchhoff`` are the
   from g at X_q, its mass is rho_0 V_q / J_q and its reference volume V_q / J_q (so V^0 tau = V_q
   sigma). Points whose X_q lies outside the reference body (the voxels of side V_p^{1/d} of the
   material points) or whose inversion did not converge get zero mass and are counted
-  (``ReducedState.outside`` / ``unconverged``). The cost is set by |M|, not by the body. The P2G
-  and grid update still run on the scene's grid (the compact node set is not built yet).
+  (``ReducedState.outside`` / ``unconverged``). The cost is set by |M|, not by the body, up to a
+  fixed budget of min(|M| 10^d, ``eulerian_capacity`` x the body's footprint at t = 0) point slots (the
+  samples' cells overlap: at |M| = 50 most of the 50 10^d slots were padding, each costing an inverse
+  map); a step needing more stops the rollout with a ConfigError. The P2G and grid update still run
+  on the scene's grid (the compact node set is not built yet).
 * **Projection** ``linear`` (Alg. 7, Eq. 23) or ``nonlinear`` (Alg. 6, Eqs. 21-22: Gauss-Newton with
   Armijo backtracking from 2 x_hat_n - x_hat_{n-1}); ``mpmlab.rom.manifold``.
 * **Samples** M: ``samples`` points drawn anew every step, uniformly without replacement from a seeded
@@ -38,6 +41,7 @@ The Warp counterpart is ``mpmlab.rom.stepper_warp.WarpReducedStepper`` (Lagrangi
 """
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 from typing import NamedTuple
 
@@ -68,11 +72,40 @@ class ReducedState(NamedTuple):
     key: object      # PRNG key of the sample draws
     outside: object = 0       # Eulerian quadrature, last step: points outside the reference body
     unconverged: object = 0   # ... and points whose inverse map did not converge (both massless)
+    overflow: object = 0      # ... and the most quadrature points any step so far lacked room for (EULER_CAPACITY)
 
 
 #: Eulerian quadrature points per axis around a sample: on the half-cell lattice j (x = (j/2 + 1/4) dx),
 #: the points whose B-spline stencil reaches a node of base .. base + 2 have j - 2 base in [-3, 6]
 _EULER_REACH = np.arange(-3, 7)
+#: the Eulerian quadrature's fixed point budget, as a multiple of the lattice points around the whole body at
+#: t = 0 (``eulerian_footprint``): the samples' cells overlap, so |M| 10^d slots are mostly padding (torsion,
+#: |M| = 50: 9,700-10,000 distinct points of 50,000 slots), and each slot costs an inverse map. A step that
+#: needs more (the body spread) is flagged (``ReducedState.overflow``) and the rollout stops with a ConfigError.
+EULER_CAPACITY = 1.5
+
+
+def eulerian_footprint(x, origin, dx, grid_shape) -> int:
+    """The number of half-cell lattice points (Alg. 4's quadrature points) whose B-spline stencils reach a
+    node of the stencil of any point of ``x`` [N, d]: the Eulerian quadrature's size with every material point
+    a sample. A separable box dilation of the points' base cells on the lattice (no N x 10^d array)."""
+    x = np.asarray(x, float)
+    d = x.shape[1]
+    lattice = tuple(2 * int(a) for a in grid_shape)
+    base = np.floor((x - np.asarray(origin, float)) / dx - 0.5).astype(np.int64)
+    j = np.clip(2 * base, 0, np.asarray(lattice) - 1)
+    occ = np.zeros(lattice, bool)
+    occ[tuple(j.T)] = True
+    lo, hi = int(_EULER_REACH[0]), int(_EULER_REACH[-1])
+    for ax in range(d):                    # lattice point k is reached from a base at 2b in [k - hi, k - lo]
+        c = np.cumsum(occ, axis=ax, dtype=np.int64)
+        c = np.concatenate([np.zeros_like(np.take(c, [0], axis=ax)), c], axis=ax)   # c[i] = sum of occ[< i]
+        n = occ.shape[ax]
+        k = np.arange(n)
+        top = np.clip(k - lo + 1, 0, n)
+        bot = np.clip(k - hi, 0, n)
+        occ = (np.take(c, top, axis=ax) - np.take(c, bot, axis=ax)) > 0
+    return int(occ.sum())
 
 
 class _ReducedBase(AbstractStepper):
@@ -83,7 +116,7 @@ class _ReducedBase(AbstractStepper):
 
     backend_name = ""
 
-    def _check(self, fom, weights, samples, quadrature, projection, per_boundary, seed):
+    def _check(self, fom, weights, samples, quadrature, projection, per_boundary, seed, capacity=EULER_CAPACITY):
         if getattr(fom, "backend_name", "") != self.backend_name:
             raise ConfigError(f"{type(self).__name__}: the full-order stepper is on backend "
                               f"'{getattr(fom, 'backend_name', '?')}'; build it with backend '{self.backend_name}' "
@@ -123,6 +156,10 @@ class _ReducedBase(AbstractStepper):
             raise ConfigError(f"ReducedStepper: samples = {samples} is fewer than the {len(self._forced)} points the "
                               f"kinematic boundaries need ({per_boundary} each).")
         self.samples, self.seed = samples, int(seed)
+        if not float(capacity) >= 1.0:
+            raise ConfigError(f"ReducedStepper: eulerian_capacity = {capacity}; it is a multiple of the body's initial "
+                              f"footprint and must be at least 1 (default {EULER_CAPACITY}).")
+        self._capacity = float(capacity)
         self._free_np = np.setdiff1d(np.arange(n), self._forced)
         self._n_random = samples - len(self._forced)
 
@@ -149,7 +186,9 @@ class _ReducedBase(AbstractStepper):
         shape = vox.max(0) - lo + 2
         occ = np.zeros(tuple(shape), bool)
         occ[tuple((vox - lo).T)] = True
-        q_size = self.samples * len(_EULER_REACH) ** d
+        # the fixed point budget: min(|M| 10^d slots, eulerian_capacity x the body's footprint at t = 0)
+        footprint = eulerian_footprint(P.x, origin, dx, self.scene.grid_shape)
+        q_size = int(min(self.samples * len(_EULER_REACH) ** d, math.ceil(self._capacity * footprint)))
         return SimpleNamespace(
             law_row=rows[0], rho0=float(np.sum(P.mass) / np.sum(P.volume)), Vq=dx ** d / 2 ** d,
             h=h, vox_lo=lo, vox_shape=tuple(int(a) for a in shape), occupied=occ.ravel(),
@@ -171,6 +210,10 @@ class _ReducedBase(AbstractStepper):
     def _np(self, a):
         return np.asarray(a)
 
+    def _q_budget(self) -> int:
+        """The Eulerian quadrature's fixed number of point slots."""
+        raise NotImplementedError
+
     def _positions(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(g(X_p; z) [N, d], det dg/dX [N]) at the scene's material points, numpy."""
         raise NotImplementedError
@@ -189,6 +232,10 @@ class _ReducedBase(AbstractStepper):
         zs, vs, xs, ts = [], [], [], []
 
         def keep(k, s):
+            if int(s.overflow) > 0:           # a step dropped quadrature points: its result is not Alg. 4's
+                raise ConfigError(f"ReducedStepper: by step {k} the Eulerian quadrature needed {int(s.overflow)} "
+                                  f"points more than its {self._q_budget()} (eulerian_capacity = {self._capacity:g} x the "
+                                  f"body's initial footprint): the body spread; raise eulerian_capacity.")
             # the full-order guard's test at every kept frame: finite, and every point inside the domain
             z = self._np(s.z)
             n = self.fom.particles.count
@@ -230,11 +277,12 @@ class ReducedStepper(_ReducedBase):
     backend_name = "jax"
 
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
-                 projection: str = "linear", per_boundary: int = 5, seed: int = 0):
+                 projection: str = "linear", per_boundary: int = 5, seed: int = 0,
+                 eulerian_capacity: float = EULER_CAPACITY):
         import jax
         import jax.numpy as jnp
 
-        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed)
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity)
         self.dtype = dt = fom.dtype
         self.params = N.to_jax(weights.params, dt)
         self.norm = N.to_jax(weights.norm, dt)
@@ -269,7 +317,11 @@ class ReducedStepper(_ReducedBase):
         x0, v0 = jnp.asarray(P.x, self.dtype), jnp.asarray(P.v, self.dtype)
         s = Mf.initial_state(self.params, self.norm, self.X, x0, v0, self._initial_guess(x0))
         zero = jnp.zeros((), jnp.int32)
-        return ReducedState(s.z, s.zdot, s.z, jnp.asarray(0.0, self.dtype), jax.random.PRNGKey(self.seed), zero, zero)
+        return ReducedState(s.z, s.zdot, s.z, jnp.asarray(0.0, self.dtype), jax.random.PRNGKey(self.seed), zero, zero,
+                            zero)
+
+    def _q_budget(self):
+        return self._q_size
 
     def _initial_guess(self, x0):
         """Eq. 19's starting latent: the encoder's of the positions x0 when the weights have one for this
@@ -315,7 +367,7 @@ class ReducedStepper(_ReducedBase):
         prm["mass"] = prm["mass"] * quad
         prm["volume"] = prm["volume"] * quad
         none = jnp.zeros((), jnp.int32)
-        return x, v, tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), prm, M, (none, none)
+        return x, v, tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), prm, M, (none, none, none)
 
     def _eulerian_points(self, s, M, law=None, fom_params=None):
         """Alg. 4: quadrature points on the cells around the samples, then the samples (massless rows)."""
@@ -330,6 +382,8 @@ class ReducedStepper(_ReducedBase):
         sentinel = int(np.prod(self._q_lattice))
         ids = jnp.where(inside_grid, jnp.ravel_multi_index(tuple(j.T), self._q_lattice, mode="clip"), sentinel)
         uniq, first = jnp.unique(ids, size=self._q_size, fill_value=sentinel, return_index=True)
+        srt = jnp.sort(ids)                                   # how many distinct points there were: beyond the
+        distinct = jnp.sum(srt[1:] != srt[:-1]) + 1 - jnp.any(ids == sentinel)      # budget they are dropped
         real = uniq < sentinel
         jq = jnp.stack(jnp.unravel_index(jnp.where(real, uniq, 0), self._q_lattice), -1)
         xq = self._base0 + (jq.astype(self.dtype) / 2 + 0.25) * dx
@@ -358,7 +412,8 @@ class ReducedStepper(_ReducedBase):
         row = self._law_row if law is None else law[0][0]           # uniform parameters (checked at set-up)
         prm["law"] = (jnp.broadcast_to(row, (x.shape[0],) + row.shape),)
         rows = jnp.arange(self._q_size, self._q_size + n_M)
-        counts = (jnp.sum(real & ~in_body).astype(jnp.int32), jnp.sum(real & in_body & ~converged).astype(jnp.int32))
+        counts = (jnp.sum(real & ~in_body).astype(jnp.int32), jnp.sum(real & in_body & ~converged).astype(jnp.int32),
+                  jnp.maximum(distinct - self._q_size, 0).astype(jnp.int32))
         return x, v, ({"F": F},), prm, rows, counts
 
     def _kinematic_boundaries(self, M, x0, v, t_end, boundary):
@@ -380,6 +435,7 @@ class ReducedStepper(_ReducedBase):
         ``fom_params``: every step parameter of the full-order model (as ``fom.params``: masses, volumes,
         law, boundaries, gravity), e.g. from controls (``observe``); ``law`` then comes from it."""
         import jax
+        import jax.numpy as jnp
 
         key, sub = jax.random.split(s.key)
         M = self._sample(sub)
@@ -395,7 +451,7 @@ class ReducedStepper(_ReducedBase):
             new = self.fom.step_fn(state, prm, update_law=False)
             x_tr, v_tr = new["x"][rows], new["v"][rows]
         z, vhat = self._project(Mf, self.X[M], s.z, s.z_prev, x_tr, v_tr)
-        return ReducedState(z, vhat, s.z, s.t + self.dt, key, *counts)
+        return ReducedState(z, vhat, s.z, s.t + self.dt, key, counts[0], counts[1], jnp.maximum(s.overflow, counts[2]))
 
     def step(self, state):
         return self._step(state)
@@ -423,7 +479,7 @@ class ReducedStepper(_ReducedBase):
         zero = jnp.zeros((), jnp.int32)
 
         def f(z0, zdot0, law):
-            s = ReducedState(z0, zdot0, z0, jnp.zeros((), self.dtype), key0, zero, zero)
+            s = ReducedState(z0, zdot0, z0, jnp.zeros((), self.dtype), key0, zero, zero, zero)
 
             def frame(s, _):
                 s, _ = jax.lax.scan(lambda c, _: (self._step_impl(c, law), None), s, None, length=every)
@@ -498,7 +554,7 @@ class ReducedStepper(_ReducedBase):
             z0 = jax.lax.stop_gradient(Mf.initial_state(self.params, self.norm, self.X, x0, x0,
                                                         self._initial_guess(x0)).z)     # Eq. 19, as init()
             zdot0 = Mf.project_velocity(self.params, self.norm, self.X, z0, jnp.asarray(c["v"], self.dtype))
-            s = ReducedState(z0, zdot0, z0, jnp.zeros((), self.dtype), key0, zero, zero)
+            s = ReducedState(z0, zdot0, z0, jnp.zeros((), self.dtype), key0, zero, zero, zero)
 
             def run(s, n):
                 return jax.lax.scan(lambda q, _: (self._step_impl(q, fom_params=prm), None), s, None, length=n)[0]

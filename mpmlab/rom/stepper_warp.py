@@ -8,8 +8,8 @@ quadrature's masses, written into Warp arrays (zero-copy from torch where the de
 What it has of the JAX ``ReducedStepper``: both quadratures and both projections (Algs. 3-7), the seeded
 sample draws with the kinematic boundaries' forced points, Eq. 19's initial state, ``rollout`` with the
 full-order guard's test and ``to_numpy``. The Lagrangian quadrature steps the scene's own Warp stepper;
-the Eulerian one a second Warp stepper of the same scene over its fixed-size point set (|M| 10^d lattice
-points and the samples; the torch inverse map ``manifold_torch.inverse_map``), the scene's kinematic
+the Eulerian one a second Warp stepper of the same scene over its fixed-size point set (the JAX stepper's budget of
+lattice points, then the samples; the torch inverse map ``manifold_torch.inverse_map``), the scene's kinematic
 boundaries applied to the samples. Same inputs give the same steps: the conformance test replays the
 JAX stepper's draws (``draws=``) and compares the latent trajectories.
 
@@ -28,7 +28,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ..core.errors import ConfigError
-from .stepper import ReducedState, _ReducedBase
+from .stepper import EULER_CAPACITY, ReducedState, _ReducedBase
 
 
 @contextlib.contextmanager
@@ -66,13 +66,13 @@ class WarpReducedStepper(_ReducedBase):
 
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0, draws=None,
-                 torch_threads: int | None = 1):
+                 torch_threads: int | None = 1, eulerian_capacity: float = EULER_CAPACITY):
         import torch
         import warp as wp
 
         from . import networks_torch as NT
 
-        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed)
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity)
         self._threads = None if torch_threads is None or fom.device.startswith("cuda") else int(torch_threads)
         self.tdtype = torch.float64 if fom.precision == "fp64" else torch.float32
         self.tdevice = torch.device("cuda", wp.get_device(fom.device).ordinal) if fom.device.startswith("cuda") \
@@ -99,7 +99,7 @@ class WarpReducedStepper(_ReducedBase):
 
     def _setup_eulerian(self):
         """Alg. 4's fixed parts (``_eulerian_layout``) as torch tensors, and a second Warp stepper of the same
-        scene over the quadrature's fixed-size point set (|M| 10^d lattice points, then the samples): the
+        scene over the quadrature's fixed-size point set (its budget of lattice points, then the samples): the
         same kernels and walls, no particle boundaries (the step applies the scene's to the samples)."""
         import copy
 
@@ -164,7 +164,10 @@ class WarpReducedStepper(_ReducedBase):
                 guess = torch.zeros(self.weights.spec.latent, **kw)
             s = MT.initial_state(self.params, self.norm, self.X, x0, v0, guess)
         zero = torch.zeros((), dtype=torch.int32)
-        return ReducedState(s.z, s.zdot, s.z, 0.0, 0, zero, zero)
+        return ReducedState(s.z, s.zdot, s.z, 0.0, 0, zero, zero, zero)
+
+    def _q_budget(self):
+        return self._eu.q_size
 
     def _sample(self, k: int):
         """The sample rows of step ``k`` (module doc)."""
@@ -202,7 +205,7 @@ class WarpReducedStepper(_ReducedBase):
             wp.launch(k.stress, dim=g.count, inputs=[*fom._law_args(i, st), g.start, a.tau], device=fom.device)
         a.t = float(s.t)
         fom._step_into(a, self._out)              # P2G, grid update, boundaries, G2P (Alg. 5)
-        return wp.to_torch(self._out.x)[M], wp.to_torch(self._out.v)[M], (s.outside, s.unconverged)
+        return wp.to_torch(self._out.x)[M], wp.to_torch(self._out.v)[M], (s.outside, s.unconverged, 0)
 
     def _eulerian(self, s, M):
         """Alg. 4 and Alg. 5 on the quadrature's stepper (as ``ReducedStepper._eulerian_points``): lattice
@@ -228,6 +231,8 @@ class WarpReducedStepper(_ReducedBase):
         uniq, inv = torch.unique(ids, sorted=True, return_inverse=True)
         pos = torch.arange(ids.shape[0], device=dev)
         first = torch.full(uniq.shape, ids.shape[0], dtype=torch.int64, device=dev).scatter_reduce(0, inv, pos, "amin")
+        distinct = int(uniq.shape[0]) - int(bool(uniq[-1] == sentinel))
+        uniq, first = uniq[:e.q_size], first[:e.q_size]          # beyond the budget: dropped and counted
         pad = e.q_size - uniq.shape[0]
         uniq = torch.cat([uniq, torch.full((pad,), sentinel, dtype=torch.int64, device=dev)])
         first = torch.cat([first, torch.zeros(pad, dtype=torch.int64, device=dev)])
@@ -277,7 +282,8 @@ class WarpReducedStepper(_ReducedBase):
             for bc in self.fom.particle_bcs:
                 bc.apply_particles(vs, xs, xe, float(s.t) + self.dt)
             x_tr, v_tr = wp.to_torch(xe)[M], wp.to_torch(vs)[M]
-        counts = (torch.sum(real & ~in_body).to(torch.int32), torch.sum(real & in_body & ~converged).to(torch.int32))
+        counts = (torch.sum(real & ~in_body).to(torch.int32), torch.sum(real & in_body & ~converged).to(torch.int32),
+                  torch.tensor(max(distinct - e.q_size, 0), dtype=torch.int32))
         return x_tr, v_tr, counts
 
     def step(self, s: ReducedState) -> ReducedState:
@@ -290,7 +296,8 @@ class WarpReducedStepper(_ReducedBase):
             points = self._eulerian if self.quadrature == "eulerian" else self._lagrangian
             x_tr, v_tr, counts = points(s, M)
             z, vhat = self._project(MT, self.X[M], s.z, s.z_prev, x_tr, v_tr)
-        return ReducedState(z, vhat, s.z, float(s.t) + self.dt, int(s.key) + 1, *counts)
+        return ReducedState(z, vhat, s.z, float(s.t) + self.dt, int(s.key) + 1, counts[0], counts[1],
+                            torch.maximum(torch.as_tensor(s.overflow, dtype=torch.int32), torch.as_tensor(counts[2], dtype=torch.int32)))
 
     # ---- the differentiable reduced rollout (issue 16, item 7) ---------------------------------------
     @property

@@ -51,6 +51,9 @@ class RomEvalConfig(TaskConfig):
     samples: List[Any] = field(default_factory=lambda: [50, "all"])
     #: seed of the sample draws
     seed: int = 0
+    #: the Eulerian quadrature's point budget, a multiple of the body's initial footprint
+    #: (mpmlab.rom.stepper.EULER_CAPACITY); a step needing more stops with a one-line error
+    eulerian_capacity: float = 1.5
     #: the reduced model's time step (None: the full-order run's); it must divide the snapshot interval
     dt: Optional[float] = None
     #: evaluate only the first k test runs
@@ -151,7 +154,8 @@ def run(cfg, ctx) -> dict:
              tc.weights, weights.spec.latent)
     res = ev.evaluate(weights, snap, sch, precision=precision, dt=None if tc.dt is None else float(tc.dt),
                       seed=int(tc.seed), truth=truth, fom_timing_steps=int(tc.fom_timing_steps),
-                      fom_backend=str(tc.fom_backend), backend=str(tc.rom_backend), progress=ctx.progress, log=log)
+                      fom_backend=str(tc.fom_backend), backend=str(tc.rom_backend), progress=ctx.progress, log=log,
+                      eulerian_capacity=float(tc.eulerian_capacity))
     if tc.tracer_baseline:
         res["tracer_baseline"] = ev.tracer_baseline(snap, truth, precision=precision, backend=str(tc.fom_backend),
                                                     progress=ctx.progress, log=log)
