@@ -90,8 +90,7 @@ def _sums(params, norm, X, z, zdot, x, v, F, c):
     ``[T, N, ...]``."""
     import jax.numpy as jnp
 
-    xr, Fr, dxdz = N.g_jacobians(params, norm, jnp.asarray(X)[None], jnp.asarray(z)[:, None, :])
-    vr = jnp.einsum("tpdk,tk->tpd", dxdz, jnp.asarray(zdot))
+    xr, Fr, vr = N.g_state(params, norm, jnp.asarray(X)[None], jnp.asarray(z)[:, None, :], jnp.asarray(zdot)[:, None, :])
     return error_sums(np.asarray(xr), np.asarray(vr), np.asarray(Fr), x, v, F, X, c)
 
 

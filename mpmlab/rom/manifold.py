@@ -110,7 +110,7 @@ def inverse_map(params, norm, x, z, X_guess, iterations: int = 20, tol: float = 
     against the reference body). ``bounds`` (lo, hi) [d]: a point whose iterate leaves this box stops
     (it is outside the body: it gets no mass, so its exact X_q does not matter).
 
-    Batched over the points, not vmapped per point: each Newton step is one g_jacobians call on every
+    Batched over the points, not vmapped per point: each Newton step is one g_F call on every
     point and each halving one g_apply, and the loops end as soon as every point is done, converged
     or out of bounds (a vmapped per-point loop runs every point as long as its slowest one: off-body
     points, which backtrack longest, set the pace)."""
@@ -129,7 +129,7 @@ def inverse_map(params, norm, x, z, X_guess, iterations: int = 20, tol: float = 
 
     def newton(c):
         X, n0, done, k = c
-        xg, F, _ = N.g_jacobians(params, norm, X, z1)
+        xg, F = N.g_F(params, norm, X, z1)
         dX = -jnp.linalg.solve(F, (xg - x)[..., None])[..., 0]
         dX = jnp.where(done[:, None], 0.0, dX)
 

@@ -121,7 +121,7 @@ def inverse_map(params, norm, x, z, X_guess, iterations: int = 20, tol: float = 
     for _ in range(int(iterations)):
         if bool(torch.all(done)):
             break
-        xg, F, _ = NT.g_jacobians(params, norm, X, z1)
+        xg, F = NT.g_F(params, norm, X, z1)
         dX = -torch.linalg.solve_ex(F, (xg - x)[..., None])[0][..., 0]   # singular F: non-finite, not taken
         dX = torch.where(done[:, None], 0.0, dX)
         t = torch.ones_like(n)

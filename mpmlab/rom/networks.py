@@ -414,6 +414,43 @@ def g_jacobians(params, norm, X, z):
     return x, F, s * J[..., : m - d]
 
 
+def _forward(params, norm, X, z, zdot=None):
+    """(x, F[, v]) by forward mode over the tangents they need, the d directions of X (and (zdot, 0)):
+    d (+ 1) tangents instead of g_jacobians' d + d_hat (``vmap`` of ``jax.jvp`` over them, as ``jacfwd``)."""
+    X, inp = _inputs(params, norm, X, z)
+    lead, m, d = inp.shape[:-1], inp.shape[-1], X.shape[-1]
+    k = m - d
+    flat = inp.reshape(-1, m)
+    P = flat.shape[0]
+    T = jnp.broadcast_to(jnp.eye(m, dtype=flat.dtype)[k:, None, :], (d, P, m))
+    if zdot is not None:
+        zd = jnp.broadcast_to(jnp.asarray(zdot, flat.dtype), lead + (k,)).reshape(P, k)
+        T = jnp.concatenate([T, jnp.concatenate([zd, jnp.zeros((P, d), flat.dtype)], axis=-1)[None]], axis=0)
+    ut, dT = jax.vmap(lambda t: jax.jvp(lambda v: g_mlp(params, v), (flat,), (t,)), out_axes=(None, 0))(T)
+    s = norm["u_std"]
+    x = X + ut.reshape(lead + (d,)) * s + norm["u_mean"]
+    JX = jnp.moveaxis(dT[:d], 0, -1).reshape(lead + (d, d))           # [..., out i, in j]
+    F = jnp.eye(d, dtype=JX.dtype) + s[:, None] * JX / (norm["X_max"] - norm["X_min"])
+    if zdot is None:
+        return x, F
+    return x, F, dT[d].reshape(lead + (d,)) * s
+
+
+@jax.jit
+def g_F(params, norm, X, z):
+    """(x, F): positions and F = dx/dX, as ``g_jacobians`` without dx/dx_hat (d tangents, not d + d_hat:
+    the inverse map's Newton matrix)."""
+    return _forward(params, norm, X, z)
+
+
+@jax.jit
+def g_state(params, norm, X, z, zdot):
+    """(x, F, v): positions, F = dx/dX and the velocity v = (dx/dx_hat) zdot of a latent velocity ``zdot``
+    (broadcast like z), in one forward pass of d + 1 tangents: what a reduced step and Eq. 24 need of g,
+    without the [.., d, d_hat] Jacobian (``g_jacobians``' d + d_hat tangents)."""
+    return _forward(params, norm, X, z, zdot)
+
+
 @jax.jit
 def g_velocity(params, norm, X, z, zdot):
     """(x, v): positions and the velocity v = (dx/dx_hat) zdot of a latent velocity zdot (Eq. 24's

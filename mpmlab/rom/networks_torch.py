@@ -50,31 +50,66 @@ def g_apply(params, norm, X, z):
     return X + g_mlp(params, inp) * norm["u_std"] + norm["u_mean"]
 
 
-def g_jacobians(params, norm, X, z):
-    """(x, F ``[..., d, d]``, dx/dx_hat ``[..., d, d_hat]``) as ``networks.g_jacobians``.
-
-    The MLP's Jacobian is carried forward layer by layer (tangent ``[P, width, d_hat + d]``, ELU' =
-    1 above 0 and exp below): the same forward mode as ``jacfwd``, written out because
-    ``vmap(jacfwd)``'s eager dispatch costs ten times the arithmetic at the reduced model's sizes."""
-    X, inp = _inputs(norm, X, z)
-    lead, m, d = inp.shape[:-1], inp.shape[-1], X.shape[-1]
+def _carry(params, h, T0=None):
+    """The MLP on points ``h`` [P, m] and its derivative along the input tangents ``T0`` [m, t] (None: the
+    identity, the whole Jacobian), carried forward layer by layer (tangent ``[P, width, t]``, ELU' = 1
+    above 0 and exp below): the same forward mode as ``jacfwd``, written out because ``vmap(jacfwd)``'s
+    eager dispatch costs ten times the arithmetic at the reduced model's sizes. Returns (u~ [P, d],
+    du~ [P, d, t])."""
     n = _spec._n_layers(params, "g_W")
-    h = inp.reshape(-1, m)
-    J = None                                                     # d h / d inp; None: the identity
+    J = None
     for i in range(n):
         W = params[f"g_W{i}"]
         pre = tF.linear(h, W, params[f"g_b{i}"])
-        Jp = W.expand(h.shape[0], -1, -1) if J is None else torch.matmul(W, J)
+        if J is None:
+            Jp = (W if T0 is None else W @ T0).expand(h.shape[0], -1, -1)
+        else:
+            Jp = torch.matmul(W, J)
         if i == n - 1:
-            ut, J = pre, Jp
-            break
+            return pre, Jp
         h = tF.elu(pre)
         J = torch.where(pre > 0, 1.0, torch.exp(torch.clamp(pre, max=0.0)))[..., None] * Jp
+
+
+def g_jacobians(params, norm, X, z):
+    """(x, F ``[..., d, d]``, dx/dx_hat ``[..., d, d_hat]``) as ``networks.g_jacobians``."""
+    X, inp = _inputs(norm, X, z)
+    lead, m, d = inp.shape[:-1], inp.shape[-1], X.shape[-1]
+    ut, J = _carry(params, inp.reshape(-1, m))
     J, ut = J.reshape(lead + (d, m)), ut.reshape(lead + (d,))
     s = norm["u_std"][:, None]
     x = X + ut * norm["u_std"] + norm["u_mean"]
     F = torch.eye(d, dtype=J.dtype, device=J.device) + s * J[..., m - d:] / (norm["X_max"] - norm["X_min"])
     return x, F, s * J[..., : m - d]
+
+
+def _forward(params, norm, X, z, zdot=None):
+    """(x, F[, v]) as ``networks._forward``: the tangents of X's d directions (and (zdot, 0)) only."""
+    X, inp = _inputs(norm, X, z)
+    lead, m, d = inp.shape[:-1], inp.shape[-1], X.shape[-1]
+    k = m - d
+    T0 = torch.eye(m, dtype=inp.dtype, device=inp.device)[:, k:]
+    if zdot is not None:
+        T0 = torch.cat([T0, torch.cat([zdot.reshape(k, 1).to(inp.dtype),
+                                       torch.zeros(d, 1, dtype=inp.dtype, device=inp.device)])], dim=1)
+    ut, J = _carry(params, inp.reshape(-1, m), T0)
+    ut, J = ut.reshape(lead + (d,)), J.reshape(lead + J.shape[-2:])
+    x = X + ut * norm["u_std"] + norm["u_mean"]
+    s = norm["u_std"][:, None]
+    F = torch.eye(d, dtype=J.dtype, device=J.device) + s * J[..., :d] / (norm["X_max"] - norm["X_min"])
+    if zdot is None:
+        return x, F
+    return x, F, J[..., d] * norm["u_std"]
+
+
+def g_F(params, norm, X, z):
+    """(x, F) as ``networks.g_F``."""
+    return _forward(params, norm, X, z)
+
+
+def g_state(params, norm, X, z, zdot):
+    """(x, F, v) as ``networks.g_state``, for one latent velocity ``zdot`` [d_hat]."""
+    return _forward(params, norm, X, z, zdot)
 
 
 def g_velocity(params, norm, X, z, zdot):

@@ -356,8 +356,7 @@ class ReducedStepper(_ReducedBase):
         (outside, unconverged) counts), as ``_eulerian_points`` does."""
         import jax.numpy as jnp
 
-        x, F, dxdz = N.g_jacobians(self.params, self.norm, self.X, s.z[None, :])
-        v = jnp.einsum("pdk,k->pd", dxdz, s.zdot)
+        x, F, v = N.g_state(self.params, self.norm, self.X, s.z[None, :], s.zdot[None, :])
         base = jnp.floor((x - self._base0) / self.scene.dx - 0.5).astype(jnp.int32)
         near = jnp.all(jnp.abs(base[:, None, :] - base[M][None, :, :]) <= 2, axis=-1)   # [N, |M|]
         quad = jnp.any(near, axis=1).astype(self.dtype)
@@ -374,7 +373,7 @@ class ReducedStepper(_ReducedBase):
         import jax.numpy as jnp
 
         d, dx, z = self.dim, self.scene.dx, s.z
-        xM, FM, dM = N.g_jacobians(self.params, self.norm, self.X[M], z[None, :])
+        xM, FM, vM = N.g_state(self.params, self.norm, self.X[M], z[None, :], s.zdot[None, :])
         base = jnp.floor((xM - self._base0) / dx - 0.5).astype(jnp.int32)
         j = (2 * base[:, None, :] + self._q_off[None]).reshape(-1, d)                 # [|M| 10^d, d]
         lat = jnp.asarray(self._q_lattice)
@@ -397,14 +396,14 @@ class ReducedStepper(_ReducedBase):
         vox = jnp.floor((inv.X - self._base0) / h).astype(jnp.int32) - lo
         in_box = jnp.all((vox >= 0) & (vox < jnp.asarray(shape)), axis=1)
         in_body = in_box & occ[jnp.ravel_multi_index(tuple(vox.T), shape, mode="clip")]
-        _, Fq, dq = N.g_jacobians(self.params, self.norm, inv.X, z[None, :])
+        _, Fq, vq = N.g_state(self.params, self.norm, inv.X, z[None, :], s.zdot[None, :])
         Jq = jnp.linalg.det(Fq)
         converged = inv.converged & (Jq > 0)
         ok = real & in_body & converged
         V0 = jnp.where(ok, self._Vq / jnp.where(ok, Jq, 1.0), 0.0)
         n_M = M.shape[0]
         x = jnp.concatenate([xq, xM])
-        v = jnp.einsum("pdk,k->pd", jnp.concatenate([dq, dM]), s.zdot)
+        v = jnp.concatenate([vq, vM])
         F = jnp.concatenate([jnp.where(ok[:, None, None], Fq, jnp.eye(d, dtype=self.dtype)), FM])
         prm = dict(self._fom_params if fom_params is None else fom_params)
         prm["volume"] = jnp.concatenate([V0, jnp.zeros(n_M, self.dtype)])
@@ -542,8 +541,7 @@ class ReducedStepper(_ReducedBase):
             lo, hi = (jnp.asarray(a, self.dtype) for a in self.scene.inner_bounds)
 
         def seen(s):
-            x, F, dxdz = N.g_jacobians(self.params, self.norm, self.X, s.z[None, :])
-            v = jnp.einsum("pdk,k->pd", dxdz, s.zdot)
+            x, F, v = N.g_state(self.params, self.norm, self.X, s.z[None, :], s.zdot[None, :])
             law = tuple({"F": F[gr.start:gr.stop]} for gr in self.fom.groups)
             bad = ~jnp.all(jnp.isfinite(x)) | ~jnp.all(jnp.isfinite(v)) | jnp.any((x < lo) | (x >= hi))
             return impl.fn({"x": x, "v": v, "law": law, "t": s.t}), bad
@@ -578,7 +576,7 @@ class ReducedStepper(_ReducedBase):
     def _positions(self, z):
         import jax.numpy as jnp
 
-        x, F, _ = N.g_jacobians(self.params, self.norm, self.X, jnp.asarray(z)[None, :])
+        x, F = N.g_F(self.params, self.norm, self.X, jnp.asarray(z)[None, :])
         return np.asarray(x), np.asarray(jnp.linalg.det(F))
 
     def to_numpy(self, state, X=None) -> dict[str, np.ndarray]:
@@ -586,6 +584,6 @@ class ReducedStepper(_ReducedBase):
         import jax.numpy as jnp
 
         Xq = self.X if X is None else jnp.asarray(X, self.dtype)
-        x, F, dxdz = N.g_jacobians(self.params, self.norm, Xq, state.z[None, :])
-        return {"x": np.asarray(x), "F": np.asarray(F), "v": np.asarray(jnp.einsum("pdk,k->pd", dxdz, state.zdot)),
+        x, F, v = N.g_state(self.params, self.norm, Xq, state.z[None, :], state.zdot[None, :])
+        return {"x": np.asarray(x), "F": np.asarray(F), "v": np.asarray(v),
                 "z": np.asarray(state.z), "t": float(state.t)}

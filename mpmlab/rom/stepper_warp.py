@@ -189,8 +189,7 @@ class WarpReducedStepper(_ReducedBase):
         from . import networks_torch as NT
 
         fom, dx = self.fom, self.scene.dx
-        x, F, dxdz = NT.g_jacobians(self.params, self.norm, self.X, s.z[None, :])
-        v = torch.einsum("pdk,k->pd", dxdz, s.zdot)
+        x, F, v = NT.g_state(self.params, self.norm, self.X, s.z[None, :], s.zdot)
         base = torch.floor((x - self._base0) / dx - 0.5).to(torch.int64)
         near = torch.all(torch.abs(base[:, None, :] - base[M][None, :, :]) <= 2, dim=-1)
         quad = torch.any(near, dim=1).to(self.tdtype)
@@ -221,7 +220,7 @@ class WarpReducedStepper(_ReducedBase):
         e, d, dx, z = self._eu, self.dim, self.scene.dx, s.z
         dev = self.tdevice
         XM = self.X[M]
-        xM, FM, dM = NT.g_jacobians(self.params, self.norm, XM, z[None, :])
+        xM, FM, vM = NT.g_state(self.params, self.norm, XM, z[None, :], s.zdot)
         base = torch.floor((xM - self._base0) / dx - 0.5).to(torch.int64)
         j = (2 * base[:, None, :] + e.q_off[None]).reshape(-1, d)
         inside_grid = torch.all((j >= 0) & (j < e.q_lattice), dim=1)
@@ -249,13 +248,13 @@ class WarpReducedStepper(_ReducedBase):
         vstr = _row_major_strides(e.vox_shape)
         vflat = (torch.minimum(torch.clamp(vox, min=0), e.vox_shape - 1) * vstr).sum(1)
         in_body = in_box & e.occupied[vflat]
-        _, Fq, dq = NT.g_jacobians(self.params, self.norm, iv.X, z[None, :])
+        _, Fq, vq = NT.g_state(self.params, self.norm, iv.X, z[None, :], s.zdot)
         Jq = torch.linalg.det(Fq)
         converged = iv.converged & (Jq > 0)
         ok = real & in_body & converged
         V0 = torch.where(ok, e.Vq / torch.where(ok, Jq, torch.ones_like(Jq)), torch.zeros_like(Jq))
         x = torch.cat([xq, xM])
-        v = torch.einsum("pdk,k->pd", torch.cat([dq, dM]), s.zdot)
+        v = torch.cat([vq, vM])
         eye = torch.eye(d, dtype=self.tdtype, device=dev)
         F = torch.cat([torch.where(ok[:, None, None], Fq, eye), FM])
         vol = torch.cat([V0, torch.zeros(M.shape[0], dtype=self.tdtype, device=dev)])
@@ -356,8 +355,7 @@ class WarpReducedStepper(_ReducedBase):
         from . import manifold_torch as MT
         from . import networks_torch as NT
 
-        x, F, dxdz = NT.g_jacobians(self.params, self.norm, self.X, z[None, :])
-        v = torch.einsum("pdk,k->pd", dxdz, zdot)
+        x, F, v = NT.g_state(self.params, self.norm, self.X, z[None, :], zdot)
         with torch.no_grad():                      # the quadrature set: piecewise constant in x
             base = torch.floor((x - self._base0) / self.scene.dx - 0.5).to(torch.int64)
             quad = torch.any(torch.all(torch.abs(base[:, None, :] - base[M][None, :, :]) <= 2, dim=-1), dim=1)
@@ -373,7 +371,7 @@ class WarpReducedStepper(_ReducedBase):
 
         with torch.no_grad(), _torch_threads(self._threads):
             zt = torch.as_tensor(z, dtype=self.tdtype, device=self.tdevice)
-            x, F, _ = NT.g_jacobians(self.params, self.norm, self.X, zt[None, :])
+            x, F = NT.g_F(self.params, self.norm, self.X, zt[None, :])
             return self._np(x), self._np(torch.linalg.det(F))
 
     def to_numpy(self, state, X=None) -> dict[str, np.ndarray]:
@@ -384,8 +382,7 @@ class WarpReducedStepper(_ReducedBase):
 
         with torch.no_grad(), _torch_threads(self._threads):
             Xq = self.X if X is None else torch.as_tensor(np.asarray(X), dtype=self.tdtype, device=self.tdevice)
-            x, F, dxdz = NT.g_jacobians(self.params, self.norm, Xq, state.z[None, :])
-            v = torch.einsum("pdk,k->pd", dxdz, state.zdot)
+            x, F, v = NT.g_state(self.params, self.norm, Xq, state.z[None, :], state.zdot)
         return {"x": self._np(x), "F": self._np(F), "v": self._np(v), "z": self._np(state.z), "t": float(state.t)}
 
 
