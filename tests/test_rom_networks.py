@@ -148,6 +148,29 @@ def test_velocity_is_the_latent_jacobian_times_zdot():
     assert rel(vt.numpy(), v) < 1e-13 and rel(xt.numpy(), x) < 1e-15
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_g_state_is_g_jacobians_on_fewer_tangents(dim):
+    """g_F / g_state (d and d + 1 forward tangents) give g_jacobians' x and F and its dx/dz zdot, on JAX
+    (one latent for all points, and a batch of latents and latent velocities) and on torch."""
+    params, norm, X, z = _fd_case(dim)
+    zdot = np.random.default_rng(10).standard_normal(z.shape[1])
+    p, n = rn.to_jax(params, jnp.float64), rn.to_jax(norm, jnp.float64)
+    x, F, Fz = (np.asarray(a) for a in rn.g_jacobians(p, n, X, z[:1]))
+    v = np.einsum("pij,j->pi", Fz, zdot)
+    xs, Fs, vs = (np.asarray(a) for a in rn.g_state(p, n, X, z[:1], zdot[None]))
+    xf, Ff = (np.asarray(a) for a in rn.g_F(p, n, X, z[:1]))
+    assert rel(xs, x) < 1e-15 and rel(Fs, F) < 1e-15 and rel(vs, v) < 1e-14 and rel(xf, x) < 1e-15 and rel(Ff, F) < 1e-15
+    zb, zdb = z[:3, None, :], np.stack([zdot, -2 * zdot, 0 * zdot])[:, None, :]
+    _, Fb, Fzb = (np.asarray(a) for a in rn.g_jacobians(p, n, X, zb))
+    _, Fsb, vsb = (np.asarray(a) for a in rn.g_state(p, n, X, zb, zdb))
+    assert vsb.shape == (3, 6, dim) and rel(Fsb, Fb) < 1e-15
+    assert rel(vsb, np.einsum("bpij,bj->bpi", Fzb, zdb[:, 0])) < 1e-14
+    pt, nt = rt.to_torch(params, torch.float64), rt.to_torch(norm, torch.float64)
+    xt, Ft, vt = (a.numpy() for a in rt.g_state(pt, nt, torch.as_tensor(X), torch.as_tensor(z[:1]), torch.as_tensor(zdot)))
+    xtf, Ftf = (a.numpy() for a in rt.g_F(pt, nt, torch.as_tensor(X), torch.as_tensor(z[:1])))
+    assert rel(xt, x) < 1e-14 and rel(Ft, F) < 1e-13 and rel(vt, v) < 1e-13 and rel(xtf, x) < 1e-14 and rel(Ftf, F) < 1e-13
+
+
 def test_broadcast_one_latent_per_snapshot():
     """z [B, 1, d_hat] with X [N, d] -> [B, N, ...], the same as one snapshot at a time."""
     params, norm, X, z = _fd_case(3)
