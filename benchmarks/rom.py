@@ -89,7 +89,7 @@ def run(a) -> None:
             log(f"{a.tag}: training stopped at epoch {t['epochs']} of {t['epochs_planned']} (--budget-min); rerun the "
                 f"same command to continue (the checkpoint is in {train})")
             return
-    suffix = "" if a.rom_backend == "jax" else f"_{a.rom_backend}"
+    suffix = ("" if a.rom_backend == "jax" else f"_{a.rom_backend}") + (f"_{a.eval_tag}" if a.eval_tag else "")
     ev = RAW / "runs" / a.tag / f"eval{suffix}"
     rc = mpmlab(["task=rom_eval", f"task.study={a.study}", f"task.data={data}",
                  f"task.weights={train / 'rom_weights.safetensors'}", f"task.samples=[{a.samples}]",
@@ -219,6 +219,8 @@ def main():
                     help="the reduced model's backend (its evaluation is kept as eval_<backend>.json beside JAX's)")
     ap.add_argument("--budget-min", dest="budget_min", type=float, default=0.0,
                     help="stop training after this many minutes (checkpointed: rerun to continue); 0: no limit")
+    ap.add_argument("--eval-tag", dest="eval_tag", default="",
+                    help="keep this evaluation as eval_<tag>.json beside the others (e.g. another quadrature)")
     ap.add_argument("--superres", action="store_true",
                     help="Tab. 4 after a complete torsion training: the ROM at 2x resolution and the tracer baseline")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/rom.md")

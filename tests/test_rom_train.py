@@ -44,6 +44,11 @@ def test_loss_falls_reconstructs_and_resumes_the_same(tmp_path):
         other = TrainOptions(**{**dict(latent=2, batch=2, schedule=((1e-3, 30),), points=64), **changed})
         with pytest.raises(ConfigError, match=f"trained with {name} = .* this run asks for"):
             fit(data, other, ck, progress=False)
+    # ... and so is one on other snapshots (a scene changed and its snapshots were remade)
+    moved = bending()
+    moved.x[0, 1, 0, 0] += 1e-9
+    with pytest.raises(ConfigError, match="trained on other snapshots"):
+        fit(moved, opt, ck, progress=False)
 
 
 def test_schedule_is_the_papers_and_scales():

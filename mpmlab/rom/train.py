@@ -205,9 +205,14 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
     curve = {"lambda_F": float(opt.lambda_F), "lambda_v": float(opt.lambda_v), "batch": int(opt.batch),
              "schedule": [[float(lr), int(k)] for lr, k in opt.epochs()], "points": opt.points,
              "frame_stride": int(opt.frame_stride), "seed": int(opt.seed)}
+    digest = data_digest(data) if ckpt is not None else None
     if ckpt is not None and ckpt.exists():
         with open(ckpt, "rb") as f:
             saved = pickle.load(f)
+        if saved.get("data", digest) != digest:
+            raise ConfigError(f"rom_train: the checkpoint {ckpt} was trained on other snapshots (data digest "
+                              f"{saved['data'][:12]}, these are {digest[:12]}); use another run directory, or the "
+                              f"snapshots it was trained on.")
         if saved.get("spec") != (d, int(opt.latent), n):
             raise ConfigError(f"rom_train: the checkpoint {ckpt} is for (dim, latent, points) = {saved.get('spec')}, "
                               f"this run is {(d, int(opt.latent), n)}; use another run directory.")
@@ -266,7 +271,7 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
         history.append(rec)
         bar.set_postfix(loss=f"{rec['loss']:.3e}")
         if ckpt is not None:
-            _atomic_pickle(ckpt, {"epoch": epoch + 1, "spec": (d, int(opt.latent), n), "options": curve,
+            _atomic_pickle(ckpt, {"epoch": epoch + 1, "spec": (d, int(opt.latent), n), "options": curve, "data": digest,
                                   "params": jax.tree_util.tree_map(np.asarray, params),
                                   "opt_state": jax.tree_util.tree_map(
                                       lambda a: np.asarray(a) if hasattr(a, "shape") else a, state),
@@ -279,6 +284,17 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
     bar.close()
     weights = N.RomWeights({k: np.asarray(a, np.float64) for k, a in params.items()}, norm_np, spec, int(opt.seed))
     return weights, history
+
+
+def data_digest(data: TrainingSet) -> str:
+    """SHA-256 of the training snapshots (X, x, v, F, dt as float64): a resumed training must see the data
+    it started on (regenerated snapshots of a changed scene would otherwise continue it silently)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (data.X, data.x, data.v, data.F, np.asarray(data.dt)):
+        h.update(b"-" if a is None else np.ascontiguousarray(a, np.float64).tobytes())
+    return h.hexdigest()
 
 
 def reconstruction_error(weights: N.RomWeights, data: TrainingSet, origin: str = "centroid") -> dict:
