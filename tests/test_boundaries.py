@@ -276,6 +276,20 @@ def test_particle_load_impulse(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_a_load_on_a_region_without_mass_is_refused(backend):
+    """A particle_load whose region holds massless tracers only would divide its force by zero mass:
+    refused in one line when the stepper is built."""
+    import dataclasses
+
+    scene = scene_for("particle_load", 2)
+    tracers = dataclasses.replace(block(2, [0.7, 0.7], [0.8, 0.8]), tracer=True)
+    scene.bodies = [*scene.bodies, tracers]
+    scene.boundaries = [ParticleLoad(region={"kind": "box", "lo": [0.7, 0.7], "hi": [0.8, 0.8]}, force=[1.0, 0.0])]
+    with pytest.raises(mpmlab.ConfigError, match="massless points only; the force .* would act on nothing"):
+        mpmlab.build_stepper(scene, backend, "pic", "fp64")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_box_obstacle_stops_falling_block(backend):
     scene = scene_for("box_obstacle", 2)
     traj = mpmlab.simulate(scene, 400, 400, backend, "apic", "fp64")

@@ -261,6 +261,17 @@ class ParticleLoad(ParticleVelocity):
             raise ConfigError(f"boundary '{self.name}': angular_velocity and center belong to particle_velocity; "
                               f"a load takes a force only.")
 
+    def shares(self, particles):
+        """(indices of the particles in the region, their mass fractions): what both backends apply. A region
+        without mass (no particle, or massless tracers only) cannot carry a force: refused in one line."""
+        idx = np.asarray(self.select(particles.x))
+        total = float(np.sum(particles.mass[idx])) if len(idx) else 0.0
+        if not total > 0.0:
+            raise ConfigError(f"boundary '{self.name}': its region {self.region} holds "
+                              f"{'no particle' if not len(idx) else f'{len(idx)} massless points only'}; the force "
+                              f"{list(self.force)} N would act on nothing: move the region onto the body.")
+        return idx, particles.mass[idx] / total
+
 
 def make_boundary(spec: Mapping[str, Any]) -> AbstractBoundary:
     """Build a registered boundary from ``{"kind": name, **options}``."""

@@ -173,9 +173,9 @@ def grid_velocity(b, scene, dtype):
 
 def particle_load(b, scene, dtype):
     P = scene.particles()
-    idx = b.select(P.x)
+    idx, part = b.shares(P)
     share = np.zeros(P.count)
-    share[idx] = P.mass[idx] / P.mass[idx].sum()
+    share[idx] = part
     share = jnp.asarray(share, dtype)
 
     def particle_force(x, mass, t, params):

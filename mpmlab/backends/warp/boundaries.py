@@ -505,11 +505,11 @@ def grid_velocity(b, scene, stepper):
 
 def particle_load(b, scene, stepper):
     P = scene.particles()
-    idx = b.select(P.x)
+    idx, part = b.shares(P)
     bc = SimpleNamespace(kind="particle_force")
     K = _node_kernels(stepper.dim, stepper.precision)
     ia = wp.array(idx.astype(np.int32), dtype=int, device=stepper.device)
-    share = wp.array(P.mass[idx] / P.mass[idx].sum(), dtype=stepper.T.scalar, device=stepper.device)
+    share = wp.array(part, dtype=stepper.T.scalar, device=stepper.device)
     bc.params = {"force": wp.array([b.force], dtype=stepper.T.vec, device=stepper.device)}
 
     def add_force(ext, t):
