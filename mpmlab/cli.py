@@ -412,8 +412,18 @@ def _sweep_outcome() -> int:
     for j in jobs:
         counts[j.get("status", "?")] = counts.get(j.get("status", "?"), 0) + 1
     tally = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
-    parts = [f"job {j.get('job')} ({','.join(j.get('overrides', [])) or 'no overrides'}): {j.get('status')}: "
-             f"{j.get('message', '')}" for j in bad if j.get("status") != "skipped"]
+    # jobs that failed the same way are named once (a sweep refused for one reason is one reason, not 30)
+    groups: dict[tuple, list] = {}
+    for j in bad:
+        if j.get("status") != "skipped":
+            groups.setdefault((j.get("status"), j.get("message", "")), []).append(j)
+    parts = []
+    for (status, message), js in groups.items():
+        first = js[0]
+        who = f"job {first.get('job')} ({','.join(first.get('overrides', [])) or 'no overrides'})"
+        if len(js) > 1:
+            who += f" and {len(js) - 1} more (jobs {', '.join(str(j.get('job')) for j in js[1:6])}{', ...' if len(js) > 6 else ''})"
+        parts.append(f"{who}: {status}: {message}")
     stopped = any(j.get("status") in ("interrupted", "skipped") for j in bad)
     head = "the sweep was stopped" if stopped else f"{len(bad)} of {len(jobs)} jobs failed"
     print(f"mpmlab: error: {head} ({len(jobs)} jobs: {tally})" + ("; " + " | ".join(parts) if parts else "")

@@ -452,3 +452,12 @@ def test_a_sweep_closing_line_counts_every_failed_job(tmp_path, capsys):
     assert "Error executing job" not in err
     jobs = [json.loads(l) for l in (sweep / "jobs.jsonl").read_text().splitlines()]
     assert sorted((j["job"], j["status"]) for j in jobs) == [(0, "refused"), (1, "ok"), (2, "refused")]
+
+
+def test_a_sweep_refused_for_one_reason_names_it_once(tmp_path, capsys):
+    code = main(["-m", "scene=dam_break_2d", "scene.resolution=huge", "steps=2,3,4", "output=minimal",
+                 f"hydra.sweep.dir={tmp_path / 'sweep'}"])
+    last = error_lines(capsys.readouterr().err)[-1]
+    assert code == EXIT_CONFIG
+    assert "3 of 3 jobs failed" in last and "and 2 more (jobs 1, 2): failed: " in last, last
+    assert last.count("scene.resolutions.huge") == 1, last
