@@ -353,7 +353,7 @@ class ReducedStepper(_ReducedBase):
     def _lagrangian_points(self, s, M, law=None, fom_params=None):
         """Alg. 3: every material point, with its own mass and volume where it shares a node with a sample
         (else zero); the samples are rows M. Returns (x, v, law state per group, step params, sample rows,
-        (outside, unconverged) counts), as ``_eulerian_points`` does."""
+        (outside, unconverged, overflow) counts, zero here), as ``_eulerian_points`` does."""
         import jax.numpy as jnp
 
         x, F, v = N.g_state(self.params, self.norm, self.X, s.z[None, :], s.zdot[None, :])
