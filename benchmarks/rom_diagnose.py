@@ -1,0 +1,182 @@
+"""Why a trained deformation-map ROM's online error exceeds its reconstruction error (benchmarks/rom.md,
+"Why the online error is 7x the reconstruction error"): the numbers of that section, from a training of
+``benchmarks/rom.py`` and its snapshots.
+
+    python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 reconstruction v1w1,v3w3,v5w1,v0w2
+    python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 rollout v5w0,v5w1,v1w1 [--dt-scale 0.5]
+        [--start encoder] [--rcond 1e-3]
+    python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 profile v5w0
+    python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 one-interval v5w1
+
+* ``reconstruction``: encoder + g on every snapshot of a run: E, E_displacement, E_F (relative to F - I)
+  and E_v of the manifold's own tangent velocities, from the encoder's latents (finite differences in time)
+  and from the best latent velocity (least squares of the true velocity).
+* ``rollout``: the reduced model (Lagrangian quadrature, all points, linear projection unless
+  ``--projection``) from Eq. 19's initial state or the encoder's (``--start encoder``), at the full-order
+  dt times ``--dt-scale``, with the least squares optionally truncated (``--rcond``): E, E_disp, E_v, E_F.
+* ``profile``: the mean displacement along the bar in eight bins, full-order against reduced, per snapshot.
+* ``one-interval``: from an encoded snapshot, one snapshot interval of reduced steps, against the next
+  snapshot and its reconstruction (mm rms).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RES = ROOT / "benchmarks" / "results" / "rom"
+
+
+def setup(tag: str):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.snapshots import load_snapshots, study
+
+    ev = json.loads((RES / tag / "eval.json").read_text())
+    w = N.load(RES / tag / "train" / "rom_weights.safetensors")
+    s = study(ev["study"])
+    snap = load_snapshots(ev["data"], s, split=None)
+    return w, N.to_jax(w.params, jnp.float64), N.to_jax(w.norm, jnp.float64), snap
+
+
+def encoded(params, norm, x):
+    import jax.numpy as jnp
+
+    from mpmlab.rom import networks as N
+
+    return np.asarray(N.encode(params, norm, jnp.swapaxes(jnp.asarray(x), 1, 2)))
+
+
+def reconstruction(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from mpmlab.rom import networks as N
+
+    dt = float(snap.time[1] - snap.time[0])
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        X, x, v, F = snap.x[k, 0], snap.x[k], snap.v[k], snap.F[k]
+        z = encoded(params, norm, x)
+        xg, Fg, dz = (np.asarray(t) for t in N.g_jacobians(params, norm, jnp.asarray(X)[None], jnp.asarray(z)[:, None, :]))
+        c = X.mean(0)
+        vfd = np.einsum("tpdk,tk->tpd", dz[1:], (z[1:] - z[:-1]) / dt)
+        vls = np.stack([(J.reshape(-1, J.shape[-1]) @ np.linalg.lstsq(J.reshape(-1, J.shape[-1]), vt.reshape(-1),
+                                                                      rcond=None)[0]).reshape(vt.shape)
+                        for J, vt in zip(dz[1:], v[1:])])
+        rel = lambda e, ref: float(np.sqrt(np.sum(e ** 2) / np.sum(ref ** 2)))   # noqa: E731
+        print(f"{run}: E {rel(xg - x, x - c):.2%}, E_disp {rel(xg - x, x - X):.2%}, E_F {rel(Fg - F, F - np.eye(3)):.1%}, "
+              f"E_v from encoder latents {rel(vfd - v[1:], v[1:]):.1%}, best tangent velocity {rel(vls - v[1:], v[1:]):.1%}")
+
+
+def rollout(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from mpmlab.core.errors import SimulationDiverged
+    from mpmlab.rom import manifold as Mf
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import _sums, build_full_order, errors_of, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    if a.rcond:
+        def truncated(J, r):
+            U, S, Vt = jnp.linalg.svd(J, full_matrices=False)
+            return Vt.T @ (jnp.where(S > a.rcond * S[0], 1.0 / S, 0.0) * (U.T @ r))
+        Mf._lstsq = truncated
+    T = snap.x.shape[1]
+    interval = float(snap.time[1] - snap.time[0])
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        _, fom0 = build_full_order(run_config(snap, k), "fp64")
+        _, fom = build_full_order(run_config(snap, k), "fp64", float(fom0.dt) * a.dt_scale)
+        rom = reduced_stepper(fom, w, samples=len(snap.x[k, 0]), quadrature="lagrangian", projection=a.projection)
+        s = rom.init()
+        if a.start == "encoder":
+            z = jnp.asarray(encoded(params, norm, snap.x[k, :1])[0])
+            s = s._replace(z=z, z_prev=z, zdot=Mf.project_velocity(params, norm, rom.X, z, jnp.asarray(fom.particles.v)))
+        every = int(round(interval / float(fom.dt)))
+        try:
+            out = rom.rollout(s, steps=every * (T - 1), every=every)
+        except SimulationDiverged as e:
+            print(f"{run} (dt x {a.dt_scale:g}): diverged at step {e.step}")
+            continue
+        _, sums = _sums(params, norm, snap.x[k, 0], out["z"], out["zdot"], snap.x[k], snap.v[k], snap.F[k],
+                        snap.x[k, 0].mean(0))
+        e = errors_of(sums)
+        print(f"{run} (dt x {a.dt_scale:g}, start {a.start}, {a.projection}): E {e['E']:.2%}, E_disp {e['E_displacement']:.1%}, "
+              f"E_v {e['E_v']:.1%}, E_F {e['E_F']:.1%}, latent range [{out['z'].min():.2f}, {out['z'].max():.2f}]")
+
+
+def profile(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    run = a.runs[0]
+    k = list(snap.names).index(run)
+    X = snap.x[k, 0]
+    _, fom = build_full_order(run_config(snap, k), "fp64")
+    rom = reduced_stepper(fom, w, samples=len(X), quadrature="lagrangian", projection="linear")
+    every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
+    out = rom.rollout(steps=every * (snap.x.shape[1] - 1), every=every)
+    xr = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(out["z"])[:, None, :]))
+    ax = int(np.argmax(np.ptp(X, 0)))
+    bins = np.digitize(X[:, ax], np.linspace(X[:, ax].min(), X[:, ax].max(), 9)[1:-1])
+    for t in range(0, snap.x.shape[1], 2):
+        row = lambda x: " ".join(f"{1e3 * (x[bins == b, ax] - X[bins == b, ax]).mean():6.2f}" for b in range(8))   # noqa: E731
+        print(f"t = {snap.time[t] * 1e3:5.2f} ms  full-order {row(snap.x[k, t])}   reduced {row(xr[t])}  [mm]")
+
+
+def one_interval(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from mpmlab.rom import manifold as Mf
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    run = a.runs[0]
+    k = list(snap.names).index(run)
+    _, fom = build_full_order(run_config(snap, k), "fp64")
+    rom = reduced_stepper(fom, w, samples=len(snap.x[k, 0]), quadrature="lagrangian", projection="linear")
+    every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
+    z_all = encoded(params, norm, snap.x[k])
+    s0 = rom.init()
+    g = lambda z: np.asarray(N.g_apply(params, norm, rom.X, jnp.asarray(z)[None]))   # noqa: E731
+    rms = lambda e: 1e3 * float(np.sqrt(np.mean(e ** 2)))   # noqa: E731
+    print("snapshot: motion to the next | next's reconstruction error | reduced interval's error [mm rms]")
+    for t in (0, 1, 2, 4, 8, 12, 20):
+        z = jnp.asarray(z_all[t])
+        s = s0._replace(z=z, z_prev=jnp.asarray(z_all[max(t - 1, 0)]), t=jnp.asarray(snap.time[t]),
+                        zdot=Mf.project_velocity(params, norm, rom.X, z, jnp.asarray(snap.v[k, t])))
+        for _ in range(every):
+            s = rom.step(s)
+        x1 = snap.x[k, t + 1]
+        print(f"{t:3d}: {rms(x1 - snap.x[k, t]):.3f} | {rms(g(z_all[t + 1]) - x1):.3f} | {rms(g(s.z) - x1):.3f}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("what", choices=("reconstruction", "rollout", "profile", "one-interval"))
+    ap.add_argument("runs", type=lambda s: s.split(","))
+    ap.add_argument("--tag", default="torsion_grip_l7_s02")
+    ap.add_argument("--dt-scale", dest="dt_scale", type=float, default=1.0)
+    ap.add_argument("--start", choices=("eq19", "encoder"), default="eq19")
+    ap.add_argument("--rcond", type=float, default=0.0)
+    ap.add_argument("--projection", choices=("linear", "nonlinear"), default="linear")
+    a = ap.parse_args()
+    w, params, norm, snap = setup(a.tag)
+    {"reconstruction": reconstruction, "rollout": rollout, "profile": profile,
+     "one-interval": one_interval}[a.what](a, w, params, norm, snap)
+
+
+if __name__ == "__main__":
+    main()
