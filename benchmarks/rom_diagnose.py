@@ -7,6 +7,7 @@
         [--start encoder] [--rcond 1e-3]
     python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 profile v5w0
     python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 one-interval v5w1
+    python benchmarks/rom_diagnose.py --tag gravity_l4_s02 equilibrium g21,g26 [--hold 0.1]
 
 * ``reconstruction``: encoder + g on every snapshot of a run: E, E_displacement, E_F (relative to F - I)
   and E_v of the manifold's own tangent velocities, from the encoder's latents (finite differences in time)
@@ -17,6 +18,11 @@
 * ``profile``: the mean displacement along the bar in eight bins, full-order against reduced, per snapshot.
 * ``one-interval``: from an encoded snapshot, one snapshot interval of reduced steps, against the next
   snapshot and its reconstruction (mm rms).
+* ``equilibrium``: from the last snapshot (``--frame``), ``--hold`` seconds of three runs against the
+  full-order model started from that snapshot: the full-order model started from the manifold's state
+  (g, dg/dx_hat v_hat and F = dg/dX at the encoded latent), and the reduced model from the encoded latent.
+  Where the body has come to rest, the first isolates what dg/dX's error in F does to the equilibrium,
+  the second adds the restriction to the manifold (mm rms, and the mean displacement along gravity).
 """
 from __future__ import annotations
 
@@ -163,19 +169,60 @@ def one_interval(a, w, params, norm, snap):
         print(f"{t:3d}: {rms(x1 - snap.x[k, t]):.3f} | {rms(g(z_all[t + 1]) - x1):.3f} | {rms(g(s.z) - x1):.3f}")
 
 
+def equilibrium(a, w, params, norm, snap):
+    import jax
+    import jax.numpy as jnp
+
+    from mpmlab.rom import manifold as Mf
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    rms = lambda e: 1e3 * float(np.sqrt(np.mean(np.sum(e ** 2, -1))))   # noqa: E731
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        t = a.frame % snap.x.shape[1]
+        X, x, v, F = snap.x[k, 0], snap.x[k, t], snap.v[k, t], snap.F[k, t]
+        _, fom = build_full_order(run_config(snap, k), "fp64")
+        steps = int(round(a.hold / float(fom.dt)))
+        gdir = np.asarray(fom.scene.gravity) / np.linalg.norm(fom.scene.gravity)
+        prm = fom.params
+        advance = jax.jit(lambda s: jax.lax.scan(lambda c, _: (fom.step_fn(c, prm), None), s, None, length=steps)[0])
+        state = lambda x_, v_, F_: {"x": jnp.asarray(x_), "v": jnp.asarray(v_), "law": ({"F": jnp.asarray(F_)},),   # noqa: E731
+                                    "t": jnp.asarray(float(snap.time[t]))}
+        z = jnp.asarray(encoded(params, norm, snap.x[k, t:t + 1])[0])
+        zdot = Mf.project_velocity(params, norm, jnp.asarray(X), z, jnp.asarray(v))
+        xg, Fg, vg = (np.asarray(q)[0] for q in N.g_state(params, norm, jnp.asarray(X)[None], z[None, None],
+                                                              zdot[None, None]))
+        ref = np.asarray(advance(state(x, v, F))["x"])
+        fom_g = np.asarray(advance(state(xg, vg, Fg))["x"])
+        rom = reduced_stepper(fom, w, samples=len(X), quadrature="lagrangian", projection="linear")
+        s = rom.init()._replace(z=z, z_prev=z, zdot=zdot, t=jnp.asarray(float(snap.time[t])))
+        zr = rom.rollout(s, steps=steps, every=steps)["z"][-1]
+        xr = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(zr)[None]))[0]
+        sag = lambda y: 1e3 * float(np.mean((y - X) @ gdir))   # noqa: E731
+        print(f"{run}, t = {snap.time[t]:.2f} s + {a.hold:g} s: full-order moves {rms(ref - x):.3f} mm; "
+              f"E_F of dg/dX {np.sqrt(np.sum((Fg - F) ** 2) / np.sum((F - np.eye(3)) ** 2)):.1%}; "
+              f"from the manifold's state (x {rms(xg - x):.3f} mm off) the full-order model ends "
+              f"{rms(fom_g - ref):.3f} mm away, the reduced model {rms(xr - ref):.3f} mm; "
+              f"mean sag full-order {sag(ref):.3f}, full-order from the manifold {sag(fom_g):.3f}, reduced {sag(xr):.3f} mm")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=("reconstruction", "rollout", "profile", "one-interval"))
+    ap.add_argument("what", choices=("reconstruction", "rollout", "profile", "one-interval", "equilibrium"))
     ap.add_argument("runs", type=lambda s: s.split(","))
     ap.add_argument("--tag", default="torsion_grip_l7_s02")
     ap.add_argument("--dt-scale", dest="dt_scale", type=float, default=1.0)
     ap.add_argument("--start", choices=("eq19", "encoder"), default="eq19")
     ap.add_argument("--rcond", type=float, default=0.0)
+    ap.add_argument("--frame", type=int, default=-1, help="equilibrium: the snapshot to start from")
+    ap.add_argument("--hold", type=float, default=0.1, help="equilibrium: seconds to run from it")
     ap.add_argument("--projection", choices=("linear", "nonlinear"), default="linear")
     a = ap.parse_args()
     w, params, norm, snap = setup(a.tag)
     {"reconstruction": reconstruction, "rollout": rollout, "profile": profile,
-     "one-interval": one_interval}[a.what](a, w, params, norm, snap)
+     "one-interval": one_interval, "equilibrium": equilibrium}[a.what](a, w, params, norm, snap)
 
 
 if __name__ == "__main__":
