@@ -47,6 +47,31 @@ def test_training_lowers_the_loss_and_resumes_on_jax(truth, tmp_path):
     np.testing.assert_allclose([h["loss"] for h in again.history], losses, rtol=1e-10)
 
 
+def test_a_resume_on_other_data_or_options_is_refused(truth, tmp_path):
+    """The identity kept beside the checkpoint (mpmlab.core.resume): a resume on changed data or with a
+    changed option stops in one line naming it; the same identity resumes; a checkpoint without one
+    (written before the check) resumes unchecked."""
+    from mpmlab.core.resume import array_digest, identity_path
+
+    ck = tmp_path / "ck.pkl"
+    same = {"dataset": array_digest(truth["x"], truth["F"]), "nets": NETS}
+    fit = make_fit("jax", truth, steps=20, epochs=2, period=5.0)
+    opt, sch = fit.optimizer(NETS)
+    fit.run(1, opt, sch, progress=False, checkpoint=ck, checkpoint_every=1, identity=same)
+    assert fit.epoch == 1 and identity_path(ck).exists()
+    other_data = dict(same, dataset=array_digest(truth["x"] + 1e-12, truth["F"]))
+    other_lr = dict(same, nets={"elastic": {"lr": 0.5, "clip": 0.1}, "plastic": NETS["plastic"]})
+    for changed, key in ((other_data, "dataset"), (other_lr, "nets")):
+        with pytest.raises(ConfigError, match=f"was made with {key} = .*this run has .*resume with the same {key}"):
+            fit.run(2, opt, sch, progress=False, checkpoint=ck, identity=changed)
+    assert fit.epoch == 1                       # refused before any epoch ran
+    fit.run(2, opt, sch, progress=False, checkpoint=ck, identity=same)
+    assert fit.epoch == 2 and len(fit.history) == 2
+    identity_path(ck).unlink()                  # an older checkpoint: no identity recorded
+    fit.run(3, opt, sch, progress=False, checkpoint=ck, identity=other_lr)
+    assert fit.epoch == 3
+
+
 # ---- the task, from the command line -------------------------------------------------------------------------
 def mpmlab_cli(args, cwd, expect=0):
     proc = subprocess.run([sys.executable, "-m", "mpmlab", *args], cwd=cwd, capture_output=True, text=True, timeout=900)
@@ -121,6 +146,21 @@ def test_train_task_refuses_bad_datasets(dataset, truth, tmp_path):
     write_trajectory(plain, dataclasses.replace(traj, fields={}, field_particles={}))
     with pytest.raises(ConfigError, match="has no C, F"):
         load_truth(str(plain), fit.stepper, 20)
+
+
+def test_train_task_refuses_to_resume_with_other_options(dataset, tmp_path):
+    """Stopped after one epoch, the same command with another learning rate is refused (exit code 2, one
+    line naming task.nets), before a rollout runs; the checkpoint is left as it was."""
+    run = tmp_path / "r"
+    common = TRAIN + [f"task.dataset={dataset}", "task.epochs=2", "scene.steps=20", "task.teacher.start=20",
+                      "task.teacher.end=20", "output.recording=false", "output.plots=false", f"hydra.run.dir={run}"]
+    mpmlab_cli(common + ["task.stop_after_epochs=1"], tmp_path)
+    assert json.loads((run / "summary.json").read_text())["status"] == "partial"
+    before = (run / "train_checkpoint.pkl").read_bytes()
+    p = mpmlab_cli(common + ["task.nets.elastic.lr=0.5"], tmp_path, expect=2)
+    line = p.stderr.strip().splitlines()[-1]
+    assert "was made with nets = " in line and "resume with the same nets" in line, line
+    assert (run / "train_checkpoint.pkl").read_bytes() == before
 
 
 def test_train_diverging_gives_fit_diverged(dataset, tmp_path):

@@ -164,17 +164,25 @@ class Fit:
             checkpoint_every: int = 10, resume: bool = True, progress: bool | None = None,
             on_epoch: Callable[[int, float, dict], None] | None = None, tolerance: float = 0.0,
             on_checkpoint: Callable[[Any], None] | None = None, stop: Callable[[], bool] | None = None,
-            on_divergence: str = "stop", max_backoffs: int = 4) -> dict:
+            on_divergence: str = "stop", max_backoffs: int = 4, identity: dict | None = None) -> dict:
         """Optimise for ``epochs`` epochs (total, counting those done before a resume); returns the
         final trainable values. ``on_epoch(epoch, loss, values)`` runs after every epoch,
         ``on_checkpoint(raw)`` after every checkpoint written (gradient optimisers); ``stop()`` returning
         True ends the fit after the current epoch, checkpointed (a time budget: rerun to continue).
         ``on_divergence``: ``stop`` (raise ``FitDiverged``) or ``backoff`` (gradient optimisers: step back one
-        epoch and halve the updates, at most ``max_backoffs`` times; see the module docstring)."""
+        epoch and halve the updates, at most ``max_backoffs`` times; see the module docstring).
+        ``identity`` (JSON values: the data's digest, the options that shape the curve) is kept beside the
+        checkpoint, and a resume with another identity is refused (``mpmlab.core.resume``)."""
         if on_divergence not in ("stop", "backoff"):
             raise ConfigError(f"on_divergence must be 'stop' or 'backoff', not {on_divergence!r}.")
         if on_divergence == "backoff" and (not isinstance(max_backoffs, int) or max_backoffs < 1):
             raise ConfigError(f"max_backoffs must be a positive integer, not {max_backoffs!r}.")
+        if checkpoint is not None and identity is not None:
+            from ..core.resume import check_identity, read_identity, write_identity
+
+            if resume and Path(checkpoint).exists():
+                check_identity(type(self).__name__, checkpoint, read_identity(checkpoint), identity)
+            write_identity(checkpoint, identity)
         if self.reference is None:
             self.make_reference()
         from .lm import LevenbergMarquardt

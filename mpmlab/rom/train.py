@@ -289,12 +289,9 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
 def data_digest(data: TrainingSet) -> str:
     """SHA-256 of the training snapshots (X, x, v, F, dt as float64): a resumed training must see the data
     it started on (regenerated snapshots of a changed scene would otherwise continue it silently)."""
-    import hashlib
+    from ..core.resume import array_digest
 
-    h = hashlib.sha256()
-    for a in (data.X, data.x, data.v, data.F, np.asarray(data.dt)):
-        h.update(b"-" if a is None else np.ascontiguousarray(a, np.float64).tobytes())
-    return h.hexdigest()
+    return array_digest(data.X, data.x, data.v, data.F, np.asarray(data.dt))
 
 
 def reconstruction_error(weights: N.RomWeights, data: TrainingSet, origin: str = "centroid") -> dict:

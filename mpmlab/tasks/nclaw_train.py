@@ -132,6 +132,7 @@ def load_truth(path: str, stepper, steps: int) -> dict[str, np.ndarray]:
 def run(cfg, ctx) -> dict:
     from .. import __version__
     from ..core.autodiff import adapter_for_backend
+    from ..core.resume import array_digest
     from ..inverse.parameters import FitParameter
     from ..inverse.teacher import TeacherForcedFit, TeacherForcing
     from ..simulator import build_stepper
@@ -222,9 +223,18 @@ def run(cfg, ctx) -> dict:
         ran = fit.epoch - first[0]
         return ((int(tc.stop_after_epochs) > 0 and ran >= int(tc.stop_after_epochs))
                 or (float(tc.stop_after_s) > 0 and time.perf_counter() - t_run >= float(tc.stop_after_s)))
+    # what a resume must share with the run that wrote the checkpoint (mpmlab.core.resume): the data, and
+    # every option that shapes the curve (stop_after_*, checkpoint_every and progress do not)
+    identity = {"dataset": array_digest(*(truth[k] for k in sorted(truth))), "method": method,
+                "scene": scene.name, "steps": steps, "transfer": transfer.name, "precision": precision,
+                "material": _plain(cfg.material), "epochs": int(tc.epochs), "nets": {k: nets[k] for k in groups},
+                "lr_schedule": str(tc.lr_schedule),
+                "teacher": {"start": forcing.start, "end": forcing.end, "reset": list(forcing.reset)},
+                "segment_fraction": float(tc.segment_fraction), "velocity_weight": float(tc.velocity_weight),
+                "seed": int(tc.seed), "segment": int(tc.segment)}
     try:
         raw = fit.run(int(tc.epochs), optimizer, sched, checkpoint=ckpt, checkpoint_every=int(tc.checkpoint_every),
-                      resume=bool(tc.resume), progress=ctx.progress, on_epoch=on_epoch,
+                      resume=bool(tc.resume), progress=ctx.progress, on_epoch=on_epoch, identity=identity,
                       on_checkpoint=(None if method == "sysid" else lambda raw: _write_law_weights_as(out, fit, raw)),
                       stop=stop, on_divergence=str(tc.on_divergence), max_backoffs=int(tc.max_backoffs))
     finally:
