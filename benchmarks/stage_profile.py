@@ -277,7 +277,7 @@ def profile_jax(st, steps: int) -> dict:
         trace = next(Path(d).rglob("perfetto_trace.json.gz"))
         events = json.load(gzip.open(trace))
     events = events["traceEvents"] if isinstance(events, dict) else events
-    thunk = defaultdict(float)
+    thunk, ops = defaultdict(float), defaultdict(set)
     for e in events:
         a = e.get("args") or {}
         if e.get("ph") == "X" and "hlo_op" in a and str(a.get("hlo_module", "")).startswith("jit__advance_impl"):
@@ -285,6 +285,7 @@ def profile_jax(st, steps: int) -> dict:
             if instr.get(op, ("",))[0] in containers:
                 continue
             thunk[stage_of(op)] += e.get("dur", 0.0) * 1e-6
+            ops[stage_of(op)].add(op)
     # wall time without the profiler, for scaling the shares
     t0 = time.perf_counter()
     out = st._advance(state, steps)
@@ -293,6 +294,7 @@ def profile_jax(st, steps: int) -> dict:
     total = sum(thunk.values()) or 1.0
     return {"wall_per_step_s": wall / steps, "stages": {k: v / total * wall / steps for k, v in thunk.items()},
             "thunk_s_per_step": {k: v / steps for k, v in thunk.items()}, "traced_wall_s": wall_traced,
+            "ops_per_stage": {k: len(v) for k, v in ops.items()},
             "state": out, "note": "shares of XLA thunk time (concurrent thunks overlap), scaled to the wall time"}
 
 

@@ -25,6 +25,9 @@ def test_stage_split_covers_the_step(backend):
     if backend == "jax":   # the law's SVD and the walls are found in their modules
         assert stages.get("law (stress)", 0.0) + stages.get("law (update)", 0.0) > 0.0
         assert stages.get("boundaries", 0.0) > 0.0
-        assert stages.get("host / loop", 0.0) < 0.5 * total, stages
+        # most of the step's XLA ops are attributed to a stage (counted, not timed: one descheduled thunk on
+        # a loaded machine once made the unattributed time 54 % of a 0.3 ms step, 3 % when unloaded)
+        ops = res["ops_per_stage"]
+        assert ops.get("host / loop", 0) < sum(n for k, n in ops.items() if k != "host / loop"), ops
     go = P.guards_and_output(st, res["state"], reps=2)
     assert go["guard_s"] > 0 and go["frame_s"] > 0
