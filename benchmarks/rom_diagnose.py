@@ -4,17 +4,21 @@
 
     python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 reconstruction v1w1,v3w3,v5w1,v0w2
     python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 rollout v5w0,v5w1,v1w1 [--dt-scale 0.5]
-        [--start encoder] [--rcond 1e-3]
+        [--start encoder] [--rcond 1e-3] [--boundary-weight 10]
     python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 profile v5w0
     python benchmarks/rom_diagnose.py --tag torsion_grip_l7_s02 one-interval v5w1
     python benchmarks/rom_diagnose.py --tag gravity_l4_s02 equilibrium g21,g26 [--hold 0.1]
+    python benchmarks/rom_diagnose.py --tag gravity_l4_s02 consistency g02,g21,g26
+    python benchmarks/rom_diagnose.py --tag gravity_l4_s02 swing g26   # also: energy, attachment
+    python benchmarks/rom_diagnose.py --tag gravity_l4_s02 damping g26 [--transfers pic,apic,pic:2]
 
 * ``reconstruction``: encoder + g on every snapshot of a run: E, E_displacement, E_F (relative to F - I)
   and E_v of the manifold's own tangent velocities, from the encoder's latents (finite differences in time)
   and from the best latent velocity (least squares of the true velocity).
 * ``rollout``: the reduced model (Lagrangian quadrature, all points, linear projection unless
   ``--projection``) from Eq. 19's initial state or the encoder's (``--start encoder``), at the full-order
-  dt times ``--dt-scale``, with the least squares optionally truncated (``--rcond``): E, E_disp, E_v, E_F.
+  dt times ``--dt-scale``, with the least squares optionally truncated (``--rcond``) or with the held
+  points' rows weighted (``--boundary-weight``, linear projection): E, E_disp, E_v, E_F.
 * ``profile``: the mean displacement along the bar in eight bins, full-order against reduced, per snapshot.
 * ``one-interval``: from an encoded snapshot, one snapshot interval of reduced steps, against the next
   snapshot and its reconstruction (mm rms).
@@ -23,6 +27,19 @@
   (g, dg/dx_hat v_hat and F = dg/dX at the encoded latent), and the reduced model from the encoded latent.
   Where the body has come to rest, the first isolates what dg/dX's error in F does to the equilibrium,
   the second adds the restriction to the manifold (mm rms, and the mean displacement along gravity).
+* ``swing``: the mean sag of the bar's free tenth per snapshot: full-order, reconstruction, reduced (phase
+  and amplitude of the first swings).
+* ``energy``: kinetic, elastic (fixed corotated) and gravity's work per snapshot, full-order (its stored
+  x, v, F) against reduced (g, dg/dx_hat x_hat_dot and dg/dX along its rollout): where each loses energy.
+* ``damping``: the full-order model alone, by transfer and resolution (``--transfers pic,apic,pic:2``):
+  the mean sag of the bar's free tenth per snapshot (is the snapshots' slow creep physics or PIC's?).
+* ``attachment``: the rms displacement of the points a particle_velocity boundary holds (zero in the
+  full-order model) and of the two layers after them, reduced against full-order, per snapshot.
+* ``consistency``: can one map fit both the positions and F of the snapshots? Per particle, the affine
+  least-squares fit A of x over its neighbours in X (within 1.8 lattice spacings) is the snapshot's own
+  displacement gradient. E_F relative to F - I of: the stored F against A, dg/dX against A, dg/dX against
+  the stored F, and (the stencil's own error) dg/dX against the same fit of g's positions; interior
+  particles (a full neighbourhood) and all, pooled over the run's snapshots after the first.
 """
 from __future__ import annotations
 
@@ -50,6 +67,43 @@ def setup(tag: str):
     s = study(ev["study"])
     snap = load_snapshots(ev["data"], s, split=None)
     return w, N.to_jax(w.params, jnp.float64), N.to_jax(w.norm, jnp.float64), snap
+
+
+def free_tenth(X):
+    """Boolean [N]: the tenth of the points farthest along the body's long axis (the free end)."""
+    along = X[:, int(np.argmax(np.ptp(X, 0)))]
+    return along > np.percentile(along, 90)
+
+
+def held_box(fom, X):
+    """The reference bounding box [2, d] of the attachment's material points (slightly padded)."""
+    Xh = X[held_points(fom)]
+    return np.stack([Xh.min(0) - 1e-9, Xh.max(0) + 1e-9])
+
+
+def held_points(fom):
+    """Boolean [N]: the material points of the scene's particle_velocity boundaries (the attachment)."""
+    held = np.zeros(len(fom.particles.x), bool)
+    for b in fom.scene.boundaries:
+        if getattr(b, "stage", "") == "particle_velocity":
+            held[np.asarray(b.select(fom.particles.x))] = True
+    return held
+
+
+def weight_held_rows(held_X, weight):
+    """Make the velocity projection (Eqs. 21/23) a weighted least squares: the rows of sample points inside
+    the attachment's reference region ``held_X(X) -> bool [M]`` count ``weight`` times (a study, not an
+    option of the stepper: benchmarks/rom.md, "What the gravity online error is made of")."""
+    import jax.numpy as jnp
+
+    from mpmlab.rom import manifold as Mf
+    from mpmlab.rom import networks as N
+
+    def project_velocity(params, norm, X, z, v):
+        _, _, dxdz = N.g_jacobians(params, norm, X, z[None, :])
+        wt = jnp.where(held_X(X), weight, 1.0)[:, None]
+        return Mf._lstsq((wt[..., None] * dxdz).reshape(-1, dxdz.shape[-1]), (wt * v).reshape(-1))
+    Mf.project_velocity = project_velocity
 
 
 def encoded(params, norm, x):
@@ -86,7 +140,6 @@ def rollout(a, w, params, norm, snap):
 
     from mpmlab.core.errors import SimulationDiverged
     from mpmlab.rom import manifold as Mf
-    from mpmlab.rom import networks as N
     from mpmlab.rom.evaluate import _sums, build_full_order, errors_of, run_config
     from mpmlab.rom.stepper import reduced_stepper
 
@@ -101,6 +154,9 @@ def rollout(a, w, params, norm, snap):
         k = list(snap.names).index(run)
         _, fom0 = build_full_order(run_config(snap, k), "fp64")
         _, fom = build_full_order(run_config(snap, k), "fp64", float(fom0.dt) * a.dt_scale)
+        if a.boundary_weight != 1.0:
+            box = held_box(fom, snap.x[k, 0])
+            weight_held_rows(lambda X: jnp.all((X >= box[0]) & (X <= box[1]), -1), a.boundary_weight)
         rom = reduced_stepper(fom, w, samples=len(snap.x[k, 0]), quadrature="lagrangian", projection=a.projection)
         s = rom.init()
         if a.start == "encoder":
@@ -115,7 +171,8 @@ def rollout(a, w, params, norm, snap):
         _, sums = _sums(params, norm, snap.x[k, 0], out["z"], out["zdot"], snap.x[k], snap.v[k], snap.F[k],
                         snap.x[k, 0].mean(0))
         e = errors_of(sums)
-        print(f"{run} (dt x {a.dt_scale:g}, start {a.start}, {a.projection}): E {e['E']:.2%}, E_disp {e['E_displacement']:.1%}, "
+        print(f"{run} (dt x {a.dt_scale:g}, start {a.start}, {a.projection}, held rows x {a.boundary_weight:g}): "
+              f"E {e['E']:.2%}, E_disp {e['E_displacement']:.1%}, "
               f"E_v {e['E_v']:.1%}, E_F {e['E_F']:.1%}, latent range [{out['z'].min():.2f}, {out['z'].max():.2f}]")
 
 
@@ -139,6 +196,120 @@ def profile(a, w, params, norm, snap):
     for t in range(0, snap.x.shape[1], 2):
         row = lambda x: " ".join(f"{1e3 * (x[bins == b, ax] - X[bins == b, ax]).mean():6.2f}" for b in range(8))   # noqa: E731
         print(f"t = {snap.time[t] * 1e3:5.2f} ms  full-order {row(snap.x[k, t])}   reduced {row(xr[t])}  [mm]")
+
+
+def swing(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        X = snap.x[k, 0]
+        _, fom = build_full_order(run_config(snap, k), "fp64")
+        gdir = np.asarray(fom.scene.gravity) / np.linalg.norm(fom.scene.gravity)
+        rom = reduced_stepper(fom, w, samples=len(X), quadrature="lagrangian", projection=a.projection)
+        every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
+        out = rom.rollout(steps=every * (snap.x.shape[1] - 1), every=every)
+        xr = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(out["z"])[:, None, :]))
+        ze = encoded(params, norm, snap.x[k])
+        xe = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(ze)[:, None, :]))
+        sag = lambda x: 1e3 * (x - X) @ gdir                                          # noqa: E731
+        tip = free_tenth(X)
+        print(f"{run}: mean sag [mm] of the free tenth of the bar over time: full-order / reconstruction / reduced")
+        for t in range(snap.x.shape[1]):
+            f, e, r = (float(sag(y[t])[tip].mean()) for y in (snap.x[k], xe, xr))
+            print(f"  t = {snap.time[t] * 1e3:5.1f} ms  {f:7.3f} {e:7.3f} {r:7.3f}")
+
+
+def energy(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from mpmlab.laws.fixed_corotated.reference import energy as psi
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        X = snap.x[k, 0]
+        scene, fom = build_full_order(run_config(snap, k), "fp64")
+        mat = run_config(snap, k).material
+        m, V0 = np.asarray(fom.particles.mass), np.asarray(fom.particles.volume)
+        g = np.asarray(scene.gravity)
+        rom = reduced_stepper(fom, w, samples=len(X), quadrature="lagrangian", projection=a.projection)
+        every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
+        out = rom.rollout(steps=every * (snap.x.shape[1] - 1), every=every)
+        xr, Fr, vr = (np.asarray(q) for q in N.g_state(params, norm, jnp.asarray(X)[None], jnp.asarray(out["z"])[:, None, :],
+                                                        jnp.asarray(out["zdot"])[:, None, :]))
+        total = lambda x, v, F: (0.5 * np.sum(m[:, None] * v ** 2, (-1, -2)),                  # noqa: E731
+                                 np.sum(V0 * psi(F, dict(mat.params)), -1), -np.sum(m[:, None] * (x - X) * g, (-1, -2)))
+        print(f"{run}: energy [mJ] (kinetic + elastic - gravity work = total), full-order | reduced")
+        fo, re = total(snap.x[k], snap.v[k], snap.F[k]), total(xr, vr, Fr)
+        for t in range(snap.x.shape[1]):
+            row = lambda e: (" + ".join(f"{1e3 * q[t]:7.4f}" for q in e[:2])             # noqa: E731
+                             + f" - {-1e3 * e[2][t]:7.4f} = {1e3 * sum(e)[t]:8.4f}")
+            print(f"  t = {snap.time[t] * 1e3:5.1f} ms  {row(fo)} | {row(re)}")
+
+
+def damping(a, w, params, norm, snap):
+    import jax
+
+    from mpmlab.build import build_scene
+    from mpmlab.rom.evaluate import run_config
+    from mpmlab.simulator import build_stepper
+
+    for run in a.runs:
+        cfg = run_config(snap, list(snap.names).index(run))
+        print(f"{run}: mean sag [mm] of the free tenth of the bar per snapshot, full-order model by transfer and dx")
+        for spec in a.transfers:
+            transfer, refine = (spec.split(":") + ["1"])[:2]
+            refine = int(refine)
+            c = cfg.copy()
+            c.scene.dx, c.scene.dt = float(c.scene.dx) / refine, float(c.scene.dt) / refine   # same CFL number
+            scene = build_scene(c)
+            fom = build_stepper(scene, "jax", transfer, "fp64")
+            s = fom.init()
+            X = np.asarray(s["x"])
+            tip = free_tenth(X)
+            gdir = np.asarray(scene.gravity) / np.linalg.norm(scene.gravity)
+            every = int(round(float(snap.time[1] - snap.time[0]) / float(scene.dt)))
+            prm = fom.params
+            advance = jax.jit(lambda q: jax.lax.scan(lambda c_, _: (fom.step_fn(c_, prm), None), q, None, length=every)[0])
+            sag = []
+            for _ in range(snap.x.shape[1]):
+                sag.append(1e3 * float(((np.asarray(s["x"]) - X) @ gdir)[tip].mean()))
+                s = advance(s)
+            print(f"  {transfer}, dx/{refine} ({len(X)} particles): " + " ".join(f"{q:.2f}" for q in sag), flush=True)
+
+
+def attachment(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        X = snap.x[k, 0]
+        _, fom = build_full_order(run_config(snap, k), "fp64")
+        held = held_points(fom)
+        h = np.ptp(X[held], 0)[0] / max(1, len(np.unique(np.round(X[held, 0], 9))) - 1)   # layer spacing along x
+        ax = int(np.argmax(np.ptp(X, 0)))
+        nxt = ~held & (X[:, ax] <= X[held, ax].max() + 2.01 * h)                          # the next two layers
+        rom = reduced_stepper(fom, w, samples=len(X), quadrature="lagrangian", projection=a.projection)
+        every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
+        out = rom.rollout(steps=every * (snap.x.shape[1] - 1), every=every)
+        xr = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(out["z"])[:, None, :]))
+        rms = lambda y, m: 1e3 * np.sqrt(np.mean(np.sum((y - X)[:, m] ** 2, -1), -1))   # noqa: E731
+        print(f"{run}: rms displacement [mm] of the {int(held.sum())} held points (full-order: 0) and of the next "
+              f"{int(nxt.sum())} (two layers), reduced | full-order")
+        for t in range(snap.x.shape[1]):
+            print(f"  t = {snap.time[t] * 1e3:5.1f} ms  held {rms(xr, held)[t]:6.3f}   next {rms(xr, nxt)[t]:6.3f} | "
+                  f"{rms(snap.x[k], nxt)[t]:6.3f}")
 
 
 def one_interval(a, w, params, norm, snap):
@@ -208,9 +379,46 @@ def equilibrium(a, w, params, norm, snap):
               f"mean sag full-order {sag(ref):.3f}, full-order from the manifold {sag(fom_g):.3f}, reduced {sag(xr):.3f} mm")
 
 
+def affine_gradients(X, x, radius):
+    """Per particle i, the least-squares A_i with x_j - x_i ~ A_i (X_j - X_i) over its neighbours j in X
+    within ``radius``: the displacement gradient the positions x imply. Also the neighbour counts."""
+    from scipy.spatial import cKDTree
+
+    nbrs = [[j for j in js if j != i] for i, js in enumerate(cKDTree(X).query_ball_point(X, radius))]
+    A = np.stack([np.linalg.lstsq(X[js] - X[i], x[js] - x[i], rcond=None)[0].T for i, js in enumerate(nbrs)])
+    return A, np.array([len(js) for js in nbrs])
+
+
+def consistency(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from scipy.spatial import cKDTree
+
+    from mpmlab.rom import networks as N
+
+    h = float(cKDTree(snap.x[0, 0]).query(snap.x[0, 0], 2)[0][:, 1].min())     # the lattice spacing
+    I = np.eye(3)
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        X, x, F = snap.x[k, 0], snap.x[k, 1:], snap.F[k, 1:]
+        z = encoded(params, norm, snap.x[k])[1:]
+        xg, Fg, _ = (np.asarray(t) for t in N.g_jacobians(params, norm, jnp.asarray(X)[None], jnp.asarray(z)[:, None, :]))
+        A = np.stack([affine_gradients(X, xt, 1.8 * h)[0] for xt in x])
+        Ag = np.stack([affine_gradients(X, xt, 1.8 * h)[0] for xt in xg])
+        count = affine_gradients(X, X, 1.8 * h)[1]
+        full = count == count.max()
+        rel = lambda e, ref, m: float(np.sqrt(np.sum(e[:, m] ** 2) / np.sum((ref[:, m] - I) ** 2)))   # noqa: E731
+        for label, m in (("interior", full), ("all", np.ones_like(full))):
+            print(f"{run} ({label}, {int(m.sum())} particles): stored F vs affine fit {rel(F - A, A, m):.1%}; "
+                  f"dg/dX vs affine fit {rel(Fg - A, A, m):.1%}; dg/dX vs stored F {rel(Fg - F, F, m):.1%}; "
+                  f"stencil error (dg/dX vs the fit of g) {rel(Fg - Ag, Fg, m):.1%}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=("reconstruction", "rollout", "profile", "one-interval", "equilibrium"))
+    ap.add_argument("what", choices=("reconstruction", "rollout", "profile", "one-interval", "equilibrium",
+                                           "consistency", "swing", "energy", "attachment",
+                                           "damping"))
     ap.add_argument("runs", type=lambda s: s.split(","))
     ap.add_argument("--tag", default="torsion_grip_l7_s02")
     ap.add_argument("--dt-scale", dest="dt_scale", type=float, default=1.0)
@@ -219,10 +427,15 @@ def main():
     ap.add_argument("--frame", type=int, default=-1, help="equilibrium: the snapshot to start from")
     ap.add_argument("--hold", type=float, default=0.1, help="equilibrium: seconds to run from it")
     ap.add_argument("--projection", choices=("linear", "nonlinear"), default="linear")
+    ap.add_argument("--transfers", type=lambda q: q.split(","), default=["pic", "apic", "pic:2"],
+                    help="damping: full-order transfers, each optionally :k for dx/k (and dt/k)")
+    ap.add_argument("--boundary-weight", dest="boundary_weight", type=float, default=1.0,
+                    help="rollout: weight of the attachment's rows in the velocity least squares (1: Eqs. 21/23)")
     a = ap.parse_args()
     w, params, norm, snap = setup(a.tag)
     {"reconstruction": reconstruction, "rollout": rollout, "profile": profile,
-     "one-interval": one_interval, "equilibrium": equilibrium}[a.what](a, w, params, norm, snap)
+     "one-interval": one_interval, "equilibrium": equilibrium, "consistency": consistency, "swing": swing,
+     "energy": energy, "attachment": attachment, "damping": damping}[a.what](a, w, params, norm, snap)
 
 
 if __name__ == "__main__":

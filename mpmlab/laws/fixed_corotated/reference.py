@@ -29,7 +29,6 @@ def energy(F, prm):
     Vectorised: ``F`` [..., D, D] and ``prm`` [..., P] (or [P]) broadcast; the last singular value
     carries det(F)'s sign (as in ``svd_rotations``), so inverted elements are penalised.
     """
-    prm = _named(prm)
     F = np.asarray(F, dtype=float)
     prm = _named(prm)
     mu, lam = lame(prm["E"], prm["nu"])
