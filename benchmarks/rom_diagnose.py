@@ -198,21 +198,28 @@ def profile(a, w, params, norm, snap):
         print(f"t = {snap.time[t] * 1e3:5.2f} ms  full-order {row(snap.x[k, t])}   reduced {row(xr[t])}  [mm]")
 
 
+def reduced_rollout(w, snap, k, projection="linear"):
+    """(scene, full-order stepper, rollout): run ``k``'s reduced model (Lagrangian quadrature, all points)
+    from Eq. 19's state over the snapshots, kept at each snapshot."""
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    scene, fom = build_full_order(run_config(snap, k), "fp64")
+    rom = reduced_stepper(fom, w, samples=len(snap.x[k, 0]), quadrature="lagrangian", projection=projection)
+    every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
+    return scene, fom, rom.rollout(steps=every * (snap.x.shape[1] - 1), every=every)
+
+
 def swing(a, w, params, norm, snap):
     import jax.numpy as jnp
 
     from mpmlab.rom import networks as N
-    from mpmlab.rom.evaluate import build_full_order, run_config
-    from mpmlab.rom.stepper import reduced_stepper
 
     for run in a.runs:
         k = list(snap.names).index(run)
         X = snap.x[k, 0]
-        _, fom = build_full_order(run_config(snap, k), "fp64")
-        gdir = np.asarray(fom.scene.gravity) / np.linalg.norm(fom.scene.gravity)
-        rom = reduced_stepper(fom, w, samples=len(X), quadrature="lagrangian", projection=a.projection)
-        every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
-        out = rom.rollout(steps=every * (snap.x.shape[1] - 1), every=every)
+        scene, _, out = reduced_rollout(w, snap, k, a.projection)
+        gdir = np.asarray(scene.gravity) / np.linalg.norm(scene.gravity)
         xr = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(out["z"])[:, None, :]))
         ze = encoded(params, norm, snap.x[k])
         xe = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(ze)[:, None, :]))
@@ -229,19 +236,15 @@ def energy(a, w, params, norm, snap):
 
     from mpmlab.laws.fixed_corotated.reference import energy as psi
     from mpmlab.rom import networks as N
-    from mpmlab.rom.evaluate import build_full_order, run_config
-    from mpmlab.rom.stepper import reduced_stepper
+    from mpmlab.rom.evaluate import run_config
 
     for run in a.runs:
         k = list(snap.names).index(run)
         X = snap.x[k, 0]
-        scene, fom = build_full_order(run_config(snap, k), "fp64")
+        scene, fom, out = reduced_rollout(w, snap, k, a.projection)
         mat = run_config(snap, k).material
         m, V0 = np.asarray(fom.particles.mass), np.asarray(fom.particles.volume)
         g = np.asarray(scene.gravity)
-        rom = reduced_stepper(fom, w, samples=len(X), quadrature="lagrangian", projection=a.projection)
-        every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
-        out = rom.rollout(steps=every * (snap.x.shape[1] - 1), every=every)
         xr, Fr, vr = (np.asarray(q) for q in N.g_state(params, norm, jnp.asarray(X)[None], jnp.asarray(out["z"])[:, None, :],
                                                         jnp.asarray(out["zdot"])[:, None, :]))
         total = lambda x, v, F: (0.5 * np.sum(m[:, None] * v ** 2, (-1, -2)),                  # noqa: E731
@@ -289,20 +292,15 @@ def attachment(a, w, params, norm, snap):
     import jax.numpy as jnp
 
     from mpmlab.rom import networks as N
-    from mpmlab.rom.evaluate import build_full_order, run_config
-    from mpmlab.rom.stepper import reduced_stepper
 
     for run in a.runs:
         k = list(snap.names).index(run)
         X = snap.x[k, 0]
-        _, fom = build_full_order(run_config(snap, k), "fp64")
+        _, fom, out = reduced_rollout(w, snap, k, a.projection)
         held = held_points(fom)
         h = np.ptp(X[held], 0)[0] / max(1, len(np.unique(np.round(X[held, 0], 9))) - 1)   # layer spacing along x
         ax = int(np.argmax(np.ptp(X, 0)))
         nxt = ~held & (X[:, ax] <= X[held, ax].max() + 2.01 * h)                          # the next two layers
-        rom = reduced_stepper(fom, w, samples=len(X), quadrature="lagrangian", projection=a.projection)
-        every = int(round(float(snap.time[1] - snap.time[0]) / float(fom.dt)))
-        out = rom.rollout(steps=every * (snap.x.shape[1] - 1), every=every)
         xr = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(out["z"])[:, None, :]))
         rms = lambda y, m: 1e3 * np.sqrt(np.mean(np.sum((y - X)[:, m] ** 2, -1), -1))   # noqa: E731
         print(f"{run}: rms displacement [mm] of the {int(held.sum())} held points (full-order: 0) and of the next "
