@@ -4,10 +4,10 @@ gravity study's transient error (benchmarks/rom.md, "What the gravity online err
 The paper's g is X + u~(X~, x_hat) * u_std + u_mean: nothing keeps the held points at rest, and in the
 reduced model they leak (up to 0.46 mm). Here, for this study only, the map becomes
 
-    x = X + phi(X) (u~ u_std + u_mean),   phi = 1 - exp(-s / L) for s = X_a - a > 0, else 0,
+    x = X + phi(X) (u~ u_std + u_mean),   phi = 1 - exp(-s / L) for s > 0, else 0,
 
-with a the end of the scene's particle_velocity region along its long axis a and L one grid cell: the
-held points never move, for any latent. It is done by wrapping ``mpmlab.rom.networks.g_mlp`` (every
+where s is the distance along the body's long axis past the plane between the scene's particle_velocity
+(held) points and the next layer, and L one grid cell: the held points never move, for any latent. It is done by wrapping ``mpmlab.rom.networks.g_mlp`` (every
 position, F and Jacobian of g goes through it, so forward-mode derivatives stay exact), in this process
 only; the weight file does not record phi, so the weights it writes are only meaningful here. Training
 (``mpmlab.rom.train.fit``, checkpointed: rerun to resume) and the evaluation (Lagrangian quadrature, all
@@ -23,9 +23,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import rom_diagnose as D  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RES = ROOT / "benchmarks" / "results" / "rom"
@@ -71,17 +76,13 @@ def main():
     from mpmlab.rom import networks as N
     from mpmlab.rom.evaluate import _sums, build_full_order, errors_of, run_config
     from mpmlab.rom.snapshots import load_snapshots, study
-    from mpmlab.rom.stepper import reduced_stepper
     from mpmlab.rom.train import TrainingSet, TrainOptions, fit
 
     s = study("gravity")
     train = load_snapshots(a.data, s, runs=tuple(s.train))
     data = TrainingSet.from_snapshots(train)
     _, fom0 = build_full_order(run_config(train, 0), "fp64")
-    held = np.zeros(len(data.X), bool)
-    for b in fom0.scene.boundaries:
-        if getattr(b, "stage", "") == "particle_velocity":
-            held[np.asarray(b.select(fom0.particles.x))] = True
+    held = D.held_points(fom0)
     axis = int(np.argmax(np.ptp(data.X, 0)))
     end = 0.5 * (data.X[held, axis].max() + data.X[~held, axis].min())               # between the layers
     norm = N.fit_norm(data.X, data.x)
@@ -96,11 +97,6 @@ def main():
         raise SystemExit(f"stopped at epoch {len(history)} of {opt.total_epochs}; rerun to continue")
     params, nrm = N.to_jax(weights.params, jnp.float64), N.to_jax(weights.norm, jnp.float64)
     if a.diagnose:
-        import sys
-
-        sys.path.insert(0, str(ROOT / "benchmarks"))
-        import rom_diagnose as D
-
         da = argparse.Namespace(runs=a.runs.split(","), projection="linear", frame=-1, hold=0.1, dt_scale=1.0,
                                 start="eq19", rcond=0.0, boundary_weight=1.0, transfers=["pic"])
         getattr(D, a.diagnose.replace("-", "_"))(da, weights, params, nrm, load_snapshots(a.data, s, split=None))
@@ -110,11 +106,8 @@ def main():
     rows, total = [], None
     for k, name in enumerate(test.names):
         X = test.x[k, 0]
-        _, fom = build_full_order(run_config(test, k), "fp64")
-        rom = reduced_stepper(fom, weights, samples=len(X), quadrature="lagrangian", projection="linear")
-        every = int(round(float(test.time[1] - test.time[0]) / float(fom.dt)))
         try:
-            o = rom.rollout(steps=every * (test.x.shape[1] - 1), every=every)
+            _, _, o = D.reduced_rollout(weights, test, k)
         except SimulationDiverged as err:
             rows.append({"run": name, "diverged_at_step": err.step})
             print(f"{name}: diverged at step {err.step}", flush=True)
@@ -129,7 +122,8 @@ def main():
     if total is None:
         raise SystemExit(f"{a.tag}: every test run diverged")
     e = errors_of(total)
-    summary = {"tag": a.tag, "lambda_F": a.lambda_F, "seed": a.seed, "points": a.points, "epochs": opt.total_epochs,
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    summary = {"tag": a.tag, "commit": commit, "schedule": [list(st) for st in opt.epochs()], "lambda_F": a.lambda_F, "seed": a.seed, "points": a.points, "epochs": opt.total_epochs,
                "hold_end_m": end, "hold_length_m": float(fom0.scene.dx), "final_loss": history[-1]["loss"],
                "E": e["E"], "E_F": e["E_F"], "E_v": e["E_v"],
                "diverged": sum("diverged_at_step" in r for r in rows), "rows": rows}
