@@ -90,9 +90,9 @@ def held_points(fom):
     return held
 
 
-def weight_held_rows(held_X, weight):
-    """Make the velocity projection (Eqs. 21/23) a weighted least squares: the rows of sample points inside
-    the attachment's reference region ``held_X(X) -> bool [M]`` count ``weight`` times (a study, not an
+def weight_held_rows(box, weight):
+    """Make the velocity projection (Eqs. 21/23) a weighted least squares: the rows of sample points whose
+    reference position lies in ``box`` [2, d] (``held_box``) count ``weight`` times (a study, not an
     option of the stepper: benchmarks/rom.md, "What the gravity online error is made of")."""
     import jax.numpy as jnp
 
@@ -101,7 +101,7 @@ def weight_held_rows(held_X, weight):
 
     def project_velocity(params, norm, X, z, v):
         _, _, dxdz = N.g_jacobians(params, norm, X, z[None, :])
-        wt = jnp.where(held_X(X), weight, 1.0)[:, None]
+        wt = jnp.where(jnp.all((X >= box[0]) & (X <= box[1]), -1), weight, 1.0)[:, None]
         return Mf._lstsq((wt[..., None] * dxdz).reshape(-1, dxdz.shape[-1]), (wt * v).reshape(-1))
     Mf.project_velocity = project_velocity
 
@@ -155,8 +155,7 @@ def rollout(a, w, params, norm, snap):
         _, fom0 = build_full_order(run_config(snap, k), "fp64")
         _, fom = build_full_order(run_config(snap, k), "fp64", float(fom0.dt) * a.dt_scale)
         if a.boundary_weight != 1.0:
-            box = held_box(fom, snap.x[k, 0])
-            weight_held_rows(lambda X: jnp.all((X >= box[0]) & (X <= box[1]), -1), a.boundary_weight)
+            weight_held_rows(held_box(fom, snap.x[k, 0]), a.boundary_weight)
         rom = reduced_stepper(fom, w, samples=len(snap.x[k, 0]), quadrature="lagrangian", projection=a.projection)
         s = rom.init()
         if a.start == "encoder":
@@ -298,8 +297,8 @@ def attachment(a, w, params, norm, snap):
         X = snap.x[k, 0]
         _, fom, out = reduced_rollout(w, snap, k, a.projection)
         held = held_points(fom)
-        h = np.ptp(X[held], 0)[0] / max(1, len(np.unique(np.round(X[held, 0], 9))) - 1)   # layer spacing along x
-        ax = int(np.argmax(np.ptp(X, 0)))
+        ax = int(np.argmax(np.ptp(X, 0)))                                                  # the long axis
+        h = np.ptp(X[held, ax]) / max(1, len(np.unique(np.round(X[held, ax], 9))) - 1)     # layer spacing
         nxt = ~held & (X[:, ax] <= X[held, ax].max() + 2.01 * h)                          # the next two layers
         xr = np.asarray(N.g_apply(params, norm, jnp.asarray(X)[None], jnp.asarray(out["z"])[:, None, :]))
         rms = lambda y, m: 1e3 * np.sqrt(np.mean(np.sum((y - X)[:, m] ** 2, -1), -1))   # noqa: E731

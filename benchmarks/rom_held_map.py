@@ -7,9 +7,9 @@ reduced model they leak (up to 0.46 mm). Here, for this study only, the map beco
     x = X + phi(X) (u~ u_std + u_mean),   phi = 1 - exp(-s / L) for s > 0, else 0,
 
 where s is the distance along the body's long axis past the plane between the scene's particle_velocity
-(held) points and the next layer, and L one grid cell: the held points never move, for any latent. It is done by wrapping ``mpmlab.rom.networks.g_mlp`` (every
-position, F and Jacobian of g goes through it, so forward-mode derivatives stay exact), in this process
-only; the weight file does not record phi, so the weights it writes are only meaningful here. Training
+(held) points and the next layer, and L one grid cell: the held points never move, for any latent. It is
+done by wrapping ``mpmlab.rom.networks.g_mlp`` (every position, F and Jacobian of g goes through it, so
+forward-mode derivatives stay exact), in this process only; the weight file does not record phi, so the weights it writes are only meaningful here. Training
 (``mpmlab.rom.train.fit``, checkpointed: rerun to resume) and the evaluation (Lagrangian quadrature, all
 points, linear projection, the test runs, E pooled as ``rom_eval``'s) run in this one process.
 
@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
 import rom_diagnose as D  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 RES = ROOT / "benchmarks" / "results" / "rom"
 DATA = ROOT / "benchmarks" / "out" / "rom" / "data" / "gravity_default_fp64"
 
@@ -123,7 +123,8 @@ def main():
         raise SystemExit(f"{a.tag}: every test run diverged")
     e = errors_of(total)
     commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    summary = {"tag": a.tag, "commit": commit, "schedule": [list(st) for st in opt.epochs()], "lambda_F": a.lambda_F, "seed": a.seed, "points": a.points, "epochs": opt.total_epochs,
+    summary = {"tag": a.tag, "commit": commit, "schedule": [list(st) for st in opt.epochs()], "lambda_F": a.lambda_F,
+               "seed": a.seed, "points": a.points, "epochs": opt.total_epochs,
                "hold_end_m": end, "hold_length_m": float(fom0.scene.dx), "final_loss": history[-1]["loss"],
                "E": e["E"], "E_F": e["E_F"], "E_v": e["E_v"],
                "diverged": sum("diverged_at_step" in r for r in rows), "rows": rows}
