@@ -94,7 +94,8 @@ def run(a) -> None:
     rc = mpmlab(["task=rom_eval", f"task.study={a.study}", f"task.data={data}",
                  f"task.weights={train / 'rom_weights.safetensors'}", f"task.samples=[{a.samples}]",
                  f"task.quadratures=[{a.quadratures}]", f"task.projections=[{a.projections}]", f"precision={a.precision}",
-                 f"task.rom_backend={a.rom_backend}", f"hydra.run.dir={ev}", "output.overwrite=true"])
+                 f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"hydra.run.dir={ev}",
+                 "output.overwrite=true"])
     if rc not in (0, 3):
         raise SystemExit(f"rom_eval failed (exit {rc})")
     dst = RES / a.tag
@@ -137,7 +138,8 @@ def superres(a) -> None:
     for name, opts in jobs.items():
         ev = RAW / "runs" / a.tag / name
         rc = mpmlab(["task=rom_eval", *opts, f"task.weights={weights}", f"precision={a.precision}",
-                     f"task.rom_backend={a.rom_backend}", f"hydra.run.dir={ev}", "output.overwrite=true"])
+                     f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"hydra.run.dir={ev}",
+                     "output.overwrite=true"])
         if rc not in (0, 3):
             raise SystemExit(f"rom_eval ({name}) failed (exit {rc})")
         keep_eval(ev, RES / a.tag / f"{name}.json")
@@ -181,12 +183,15 @@ def report() -> None:
         for s in e["schemes"]:
             rows.append([d.parent.name, e["study"], e["fom"].get("rom_backend", "jax"), t["latent"], t["batch"],
                          t["epochs"], t["lambda_F"],
-                         pct(rec.get("test", {}).get("E")), s["scheme"], pct(s["E"]), pct(s["E_displacement"]),
+                         pct(rec.get("test", {}).get("E")), f"{s['scheme']}, {e.get('tangent', 'current')}",
+                         pct(s["E"]), pct(s["E_displacement"]),
                          pct(s["E_v"]), pct(s["E_F"]), f"{s['wall_s_per_simulated_s']:.3g}",
                          f"{e['fom']['wall_s_per_simulated_s']:.3g}", f"{s['diverged']}/{s['runs']}"])
     body = ["Errors in % on the study's test runs, pooled over runs, snapshots and points (`mpmlab.rom.evaluate`): "
             "E about the initial centroid (the paper's measure; its origin is not stated in the paper), and relative "
-            "to the displacement, the velocity and F - I. `recon.` is the encoder + g reconstruction of the test "
+            "to the displacement, the velocity and F - I. The scheme ends with the velocity fit's tangent (`next`: "
+            "dg/dx_hat at the new latent, the default since session 23; `current`: the paper's explicit one, every "
+            "evaluation before it). `recon.` is the encoder + g reconstruction of the test "
             "snapshots (no time stepping). Wall times per simulated second, ROM (its backend) and full-order model "
             "(JAX, PIC) in the same process. Regenerate: `python benchmarks/rom.py --study ... --tag ...` (resumes), "
             "`--report` rewrites this table.", "",
@@ -219,6 +224,9 @@ def main():
                     help="the reduced model's backend (its evaluation is kept as eval_<backend>.json beside JAX's)")
     ap.add_argument("--budget-min", dest="budget_min", type=float, default=0.0,
                     help="stop training after this many minutes (checkpointed: rerun to continue); 0: no limit")
+    ap.add_argument("--tangent", default="next", choices=("next", "current"),
+                    help="where the velocity least squares takes dg/dx_hat: x_hat_(n+1), or x_hat_n as the paper "
+                         "(mpmlab.rom.stepper)")
     ap.add_argument("--eval-tag", dest="eval_tag", default="",
                     help="keep this evaluation as eval_<tag>.json beside the others (e.g. another quadrature)")
     ap.add_argument("--superres", action="store_true",

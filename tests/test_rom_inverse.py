@@ -21,7 +21,10 @@ def test_levenberg_marquardt_recovers_young_modulus_through_the_reduced_model(be
 
     fom, w = beam
     scene = fom.scene
-    rom = ReducedStepper(fom, w, samples=30)
+    # the paper's explicit tangent: on this random (untrained) map the default tangent's misfit is rough in E
+    # (not monotone between 0.98 and 0.99 E0, measured; gradients still match central differences), so LM
+    # from 0.9 E0 stalls there. The fit through a trained map with the default is benchmarks/rom_inverse.py.
+    rom = ReducedStepper(fom, w, samples=30, tangent="current")
     E0 = float(scene.bodies[0].params["E"])
     p = FitParameter(name="E", target="law", param="E", init=0.9 * E0, truth=E0, transform="exp").bind(scene, rom, ["walls"])
     fit = Fit(rom, scene, [p], Lagrangian(quantity="x", particles=20), ObservationSchedule(steps=tuple(range(10, 101, 10))))

@@ -27,6 +27,15 @@ so P2G, the grid update, every boundary, G2P and the law's ``kirchhoff`` are the
   on the scene's grid (the compact node set is not built yet).
 * **Projection** ``linear`` (Alg. 7, Eq. 23) or ``nonlinear`` (Alg. 6, Eqs. 21-22: Gauss-Newton with
   Armijo backtracking from 2 x_hat_n - x_hat_{n-1}); ``mpmlab.rom.manifold``.
+* **Tangent** of the velocity least squares: ``next`` (default) fits v_hat_{n+1} with dg/dx_hat at the
+  new latent x_hat_{n+1}, the tangent space in which the next step evaluates v = dg/dx_hat v_hat (as
+  RATTLE projects a constrained velocity at the new position); ``current`` uses dg/dx_hat(x_hat_n) as the
+  paper's Eqs. 21 and 23 write it ("the discretization of the Jacobian is explicit"). With the explicit
+  Jacobian the carried velocity changes by (dg/dx_hat(x_hat_{n+1}) - dg/dx_hat(x_hat_n)) v_hat each step
+  with no force doing it: the reduced Euler-Lagrange equation's -M_hat^-1 J^T M J_dot x_hat_dot term is
+  missing, so on a curved manifold the kinetic energy drifts by an amount that does not shrink with dt
+  (benchmarks/rom.md, "The explicit Jacobian gains energy"). The linear projection still steps
+  x_hat_{n+1} = x_hat_n + dt v_hat with the explicit fit (Alg. 7), then refits v_hat at x_hat_{n+1}.
 * **Samples** M: ``samples`` points drawn anew every step, uniformly without replacement from a seeded
   key, plus at least ``per_boundary`` (5) points of each particle_velocity region (a kinematic
   boundary, Sec. 3.3).
@@ -62,6 +71,9 @@ CAPABILITIES = {"lagrangian": {"jax": "reverse", "warp": "reverse"},
 #: the Eulerian quadrature's inverse map: Newton iterations and backtracking halvings per iteration
 INVERSE_ITERATIONS, INVERSE_HALVINGS = 8, 10
 PROJECTIONS = ("linear", "nonlinear")
+#: where the velocity least squares (Eqs. 21/23) takes its Jacobian dg/dx_hat: at the new latent x_hat_{n+1}
+#: ("next", the default) or at x_hat_n ("current", the paper's explicit Jacobian); module doc
+TANGENTS = ("next", "current")
 
 
 class ReducedState(NamedTuple):
@@ -116,7 +128,8 @@ class _ReducedBase(AbstractStepper):
 
     backend_name = ""
 
-    def _check(self, fom, weights, samples, quadrature, projection, per_boundary, seed, capacity=EULER_CAPACITY):
+    def _check(self, fom, weights, samples, quadrature, projection, per_boundary, seed, capacity=EULER_CAPACITY,
+               tangent="next"):
         if getattr(fom, "backend_name", "") != self.backend_name:
             raise ConfigError(f"{type(self).__name__}: the full-order stepper is on backend "
                               f"'{getattr(fom, 'backend_name', '?')}'; build it with backend '{self.backend_name}' "
@@ -133,6 +146,9 @@ class _ReducedBase(AbstractStepper):
             raise ConfigError(f"ReducedStepper: quadrature '{quadrature}'; choose {' or '.join(QUADRATURES)}.")
         if projection not in PROJECTIONS:
             raise ConfigError(f"ReducedStepper: projection '{projection}'; choose {' or '.join(PROJECTIONS)}.")
+        if tangent not in TANGENTS:
+            raise ConfigError(f"ReducedStepper: tangent '{tangent}'; choose {' or '.join(TANGENTS)} (where the velocity "
+                              f"least squares takes dg/dx_hat: at x_hat_(n+1) or, as the paper, at x_hat_n).")
         spec = weights.spec
         P = fom.particles
         n, d = P.x.shape
@@ -143,7 +159,7 @@ class _ReducedBase(AbstractStepper):
             raise ConfigError(f"ReducedStepper: samples = {samples}; it must be at least the latent size {spec.latent} "
                               f"and at most the {n} material points.")
         self.fom, self.weights, self.scene = fom, weights, fom.scene
-        self.quadrature, self.projection = quadrature, projection
+        self.quadrature, self.projection, self.tangent = quadrature, projection, tangent
         self.dim, self.dt = d, float(fom.dt)
         # kinematic boundaries: at least per_boundary samples each (Sec. 3.3)
         forced = []
@@ -200,12 +216,18 @@ class _ReducedBase(AbstractStepper):
 
     def _project(self, mf, XM, z, z_prev, x_tr, v_tr):
         """The samples' trial state back onto the manifold with the backend's ``mf`` (``manifold`` or
-        ``manifold_torch``): v_hat by Eqs. 21/23, then x_hat by Alg. 7 (linear) or Alg. 6 / Eq. 22
-        (nonlinear, from 2 z - z_prev). Returns (x_hat_{n+1}, v_hat_{n+1})."""
-        vhat = mf.project_velocity(self.params, self.norm, XM, z, v_tr)
+        ``manifold_torch``): x_hat by Alg. 7 (linear: x_hat_n + dt v_hat, v_hat fitted with dg/dx_hat at
+        x_hat_n) or Alg. 6 / Eq. 22 (nonlinear, from 2 z - z_prev), and v_hat by Eqs. 21/23 with dg/dx_hat
+        at x_hat_{n+1} (``tangent`` "next") or x_hat_n ("current"). Returns (x_hat_{n+1}, v_hat_{n+1})."""
         if self.projection == "linear":
-            return mf.project_linear(z, vhat, self.dt), vhat
-        return mf.project_nonlinear(self.params, self.norm, XM, x_tr, z, z_prev), vhat
+            vhat = mf.project_velocity(self.params, self.norm, XM, z, v_tr)
+            z1 = mf.project_linear(z, vhat, self.dt)
+        else:
+            z1 = mf.project_nonlinear(self.params, self.norm, XM, x_tr, z, z_prev)
+            vhat = None
+        if self.tangent == "next":
+            return z1, mf.project_velocity(self.params, self.norm, XM, z1, v_tr)
+        return z1, mf.project_velocity(self.params, self.norm, XM, z, v_tr) if vhat is None else vhat
 
     def _np(self, a):
         return np.asarray(a)
@@ -278,11 +300,11 @@ class ReducedStepper(_ReducedBase):
 
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0,
-                 eulerian_capacity: float = EULER_CAPACITY):
+                 eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next"):
         import jax
         import jax.numpy as jnp
 
-        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity)
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent)
         self.dtype = dt = fom.dtype
         self.params = N.to_jax(weights.params, dt)
         self.norm = N.to_jax(weights.norm, dt)

@@ -66,13 +66,13 @@ class WarpReducedStepper(_ReducedBase):
 
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0, draws=None,
-                 torch_threads: int | None = 1, eulerian_capacity: float = EULER_CAPACITY):
+                 torch_threads: int | None = 1, eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next"):
         import torch
         import warp as wp
 
         from . import networks_torch as NT
 
-        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity)
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent)
         self._threads = None if torch_threads is None or fom.device.startswith("cuda") else int(torch_threads)
         self.tdtype = torch.float64 if fom.precision == "fp64" else torch.float32
         self.tdevice = torch.device("cuda", wp.get_device(fom.device).ordinal) if fom.device.startswith("cuda") \
