@@ -80,7 +80,10 @@ def run(a) -> None:
         opts.append(f"task.points={a.points}")
     if a.budget_min:
         opts.append(f"task.stop_after_s={60.0 * a.budget_min}")
-    if not (train / "summary.json").exists() or json.loads((train / "summary.json").read_text())["status"] != "ok":
+    complete = (train / "summary.json").exists() and json.loads((train / "summary.json").read_text())["status"] == "ok"
+    if a.eval_only and not complete:
+        raise SystemExit(f"--eval-only: {a.tag} has no complete training in {train}")
+    if not complete:
         rc = mpmlab(["task=rom_train", *opts, f"hydra.run.dir={train}", "output.overwrite=true"])
         if rc != 0:
             raise SystemExit(f"rom_train failed (exit {rc})")
@@ -229,6 +232,8 @@ def main():
                          "(mpmlab.rom.stepper)")
     ap.add_argument("--eval-tag", dest="eval_tag", default="",
                     help="keep this evaluation as eval_<tag>.json beside the others (e.g. another quadrature)")
+    ap.add_argument("--eval-only", dest="eval_only", action="store_true",
+                    help="evaluate the tag's complete training again (its training options need not be given)")
     ap.add_argument("--superres", action="store_true",
                     help="Tab. 4 after a complete torsion training: the ROM at 2x resolution and the tracer baseline")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/rom.md")

@@ -11,6 +11,7 @@
     python benchmarks/rom_diagnose.py --tag gravity_l4_s02 consistency g02,g21,g26
     python benchmarks/rom_diagnose.py --tag gravity_l4_s02 swing g26   # also: energy, attachment
     python benchmarks/rom_diagnose.py --tag gravity_l4_s02 damping g26 [--transfers pic,apic,pic:2]
+    python benchmarks/rom_diagnose.py --tag gravity_lf100_p480_e85 accounting g26 [--tangent current] [--dt-scale 0.5]
 
 * ``reconstruction``: encoder + g on every snapshot of a run: E, E_displacement, E_F (relative to F - I)
   and E_v of the manifold's own tangent velocities, from the encoder's latents (finite differences in time)
@@ -35,6 +36,13 @@
   the mean sag of the bar's free tenth per snapshot (is the snapshots' slow creep physics or PIC's?).
 * ``attachment``: the rms displacement of the points a particle_velocity boundary holds (zero in the
   full-order model) and of the two layers after them, reduced against full-order, per snapshot.
+* ``accounting``: the exact energy balance of each reduced step (Lagrangian quadrature, all points, linear
+  projection, ``--tangent``), cumulative over the first 60 ms: E_{n+1} - E_n (kinetic + elastic - gravity's
+  work, of every material point) is the sum of the MPM step's change of each (the trial x, v and the
+  grid's F = (I + dt grad v) F_n), the kinetic energy the velocity fit removes (v_trial onto the tangent
+  at x_hat_n), the kinetic energy's change from evaluating v_hat_{n+1} in the tangent at x_hat_{n+1}
+  instead, and the elastic and gravity energies' change from the trial state to the manifold's (F = dg/dX,
+  g). With the paper's tangent the fourth term is a gain no force makes (benchmarks/rom.md).
 * ``consistency``: can one map fit both the positions and F of the snapshots? Per particle, the affine
   least-squares fit A of x over its neighbours in X (within 1.8 lattice spacings) is the snapshot's own
   displacement gradient. E_F relative to F - I of: the stored F against A, dg/dX against A, dg/dX against
@@ -376,6 +384,61 @@ def equilibrium(a, w, params, norm, snap):
               f"mean sag full-order {sag(ref):.3f}, full-order from the manifold {sag(fom_g):.3f}, reduced {sag(xr):.3f} mm")
 
 
+def accounting(a, w, params, norm, snap):
+    import jax
+    import jax.numpy as jnp
+
+    from mpmlab.laws.fixed_corotated.reference import energy as psi
+    from mpmlab.rom import manifold as Mf
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import ReducedState, ReducedStepper
+
+    names = ("MPM kinetic", "MPM elastic", "MPM gravity", "velocity fit", "tangent at n+1", "elastic to g",
+             "gravity to g")
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        cfg = run_config(snap, k)
+        _, fom0 = build_full_order(cfg, "fp64")
+        scene, fom = build_full_order(cfg, "fp64", float(fom0.dt) * a.dt_scale)
+        rom = ReducedStepper(fom, w, samples=fom.particles.count, quadrature="lagrangian", projection="linear",
+                             tangent=a.tangent)
+        X, m, V0 = rom.X, np.asarray(fom.particles.mass), np.asarray(fom.particles.volume)
+        g, mat = np.asarray(scene.gravity), dict(cfg.material.params)
+
+        @jax.jit
+        def step(s):
+            key, sub = jax.random.split(s.key)
+            M = rom._sample(sub)
+            x, v, law, prm, rows, _ = rom._lagrangian_points(s, M)
+            new = fom.step_fn({"x": x, "v": v, "law": law, "t": s.t}, prm)          # the grid's F updated
+            z, vhat = rom._project(Mf, X[M], s.z, s.z_prev, new["x"][rows], new["v"][rows])
+            fit = Mf.project_velocity(rom.params, rom.norm, X[M], s.z, new["v"][rows])
+            _, v_fit = N.g_velocity(rom.params, rom.norm, X, s.z[None, :], fit[None, :])   # tangent at n
+            _, v_old = N.g_velocity(rom.params, rom.norm, X, s.z[None, :], vhat[None, :])
+            x1, F1, v1 = N.g_state(rom.params, rom.norm, X, z[None, :], vhat[None, :])
+            return (ReducedState(z, vhat, s.z, s.t + rom.dt, key, s.outside, s.unconverged, s.overflow),
+                    (x, v, law[0]["F"]), (new["x"], new["v"], new["law"][0]["F"]), v_fit, v_old, (x1, v1, F1))
+
+        def parts(x, v, F):
+            return (0.5 * np.sum(m[:, None] * v ** 2), float(np.sum(V0 * psi(np.asarray(F), mat))),
+                    -float(np.sum(m[:, None] * (np.asarray(x) - np.asarray(X)) * g)))
+
+        ke = lambda v: 0.5 * float(np.sum(m[:, None] * np.asarray(v) ** 2))               # noqa: E731
+        s, acc = rom.init(), np.zeros(len(names))
+        every = max(1, int(round(0.005 / float(fom.dt))))
+        print(f"{run} (tangent {a.tangent}, dt x {a.dt_scale:g}): energy [mJ] and its changes summed from t = 0")
+        for n in range(1, 12 * every + 1):
+            s, e0, et, v_fit, v_old, e1 = step(s)
+            p0, pt, p1 = parts(*e0), parts(*et), parts(*e1)
+            # the fit's loss, then (tangent next) the refit at n+1 against the fit at n, then n -> n+1
+            acc += 1e3 * np.array([pt[0] - p0[0], pt[1] - p0[1], pt[2] - p0[2], ke(v_fit) - pt[0],
+                                   ke(v_old) - ke(v_fit) + p1[0] - ke(v_old), p1[1] - pt[1], p1[2] - pt[2]])
+            if n % every == 0:
+                print(f"  t {1e3 * n * float(fom.dt):5.1f} ms  E {1e3 * sum(p1):8.4f}  |  "
+                      + ", ".join(f"{q} {c:+.4f}" for q, c in zip(names, acc)), flush=True)
+
+
 def affine_gradients(X, x, radius):
     """Per particle i, the least-squares A_i with x_j - x_i ~ A_i (X_j - X_i) over its neighbours j in X
     within ``radius``: the displacement gradient the positions x imply. Also the neighbour counts."""
@@ -415,7 +478,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=("reconstruction", "rollout", "profile", "one-interval", "equilibrium",
                                            "consistency", "swing", "energy", "attachment",
-                                           "damping"))
+                                           "damping", "accounting"))
     ap.add_argument("runs", type=lambda s: s.split(","))
     ap.add_argument("--tag", default="torsion_grip_l7_s02")
     ap.add_argument("--dt-scale", dest="dt_scale", type=float, default=1.0)
@@ -426,13 +489,16 @@ def main():
     ap.add_argument("--projection", choices=("linear", "nonlinear"), default="linear")
     ap.add_argument("--transfers", type=lambda q: q.split(","), default=["pic", "apic", "pic:2"],
                     help="damping: full-order transfers, each optionally :k for dx/k (and dt/k)")
+    ap.add_argument("--tangent", choices=("next", "current"), default="next",
+                    help="accounting: where the velocity fit takes dg/dx_hat (mpmlab.rom.stepper)")
     ap.add_argument("--boundary-weight", dest="boundary_weight", type=float, default=1.0,
                     help="rollout: weight of the attachment's rows in the velocity least squares (1: Eqs. 21/23)")
     a = ap.parse_args()
     w, params, norm, snap = setup(a.tag)
     {"reconstruction": reconstruction, "rollout": rollout, "profile": profile,
      "one-interval": one_interval, "equilibrium": equilibrium, "consistency": consistency, "swing": swing,
-     "energy": energy, "attachment": attachment, "damping": damping}[a.what](a, w, params, norm, snap)
+     "energy": energy, "attachment": attachment, "damping": damping,
+     "accounting": accounting}[a.what](a, w, params, norm, snap)
 
 
 if __name__ == "__main__":

@@ -32,9 +32,9 @@ so P2G, the grid update, every boundary, G2P and the law's ``kirchhoff`` are the
   RATTLE projects a constrained velocity at the new position); ``current`` uses dg/dx_hat(x_hat_n) as the
   paper's Eqs. 21 and 23 write it ("the discretization of the Jacobian is explicit"). With the explicit
   Jacobian the carried velocity changes by (dg/dx_hat(x_hat_{n+1}) - dg/dx_hat(x_hat_n)) v_hat each step
-  with no force doing it: the reduced Euler-Lagrange equation's -M_hat^-1 J^T M J_dot x_hat_dot term is
-  missing, so on a curved manifold the kinetic energy drifts by an amount that does not shrink with dt
-  (benchmarks/rom.md, "The explicit Jacobian gains energy"). The linear projection still steps
+  with no force doing it: as dt -> 0 the scheme tends to x_hat_ddot = J^+ a, without the -J^+ J_dot
+  x_hat_dot term of the reduced Euler-Lagrange equation, so on a curved manifold it gains or loses
+  kinetic energy at any dt (benchmarks/rom.md, "The explicit Jacobian gains energy"). The linear projection still steps
   x_hat_{n+1} = x_hat_n + dt v_hat with the explicit fit (Alg. 7), then refits v_hat at x_hat_{n+1}.
 * **Samples** M: ``samples`` points drawn anew every step, uniformly without replacement from a seeded
   key, plus at least ``per_boundary`` (5) points of each particle_velocity region (a kinematic
