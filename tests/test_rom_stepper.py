@@ -155,14 +155,14 @@ def curved_translation(dim, c=-0.5):
     """g(X; x_hat) = X + phi(x_hat) - phi(0) per component, phi = ELU applied depth times to x_hat + c: a
     rigid translation whose dg/dx_hat = diag(phi'(x_hat)) changes along the manifold (c < 0 puts x_hat
     near 0 in ELU's curved branch); F = I everywhere."""
-    spec = N.RomSpec(dim=dim, latent=dim)
-    p = N.linear_params(spec, np.zeros((dim, dim)), np.eye(dim))
+    spec, offset = N.RomSpec(dim=dim, latent=dim), 10.0
+    p = N.linear_params(spec, np.zeros((dim, dim)), np.eye(dim), offset)
     p["g_b0"][:dim] = c
     h = np.full(dim, c)
     for _ in range(spec.depth):
         h = np.where(h > 0, h, np.expm1(h))
     last = spec.depth
-    p[f"g_b{last}"][:] += p[f"g_W{last}"][:, :dim] @ (np.full(dim, 10.0) - h)    # u = 0 at x_hat = 0
+    p[f"g_b{last}"][:] += p[f"g_W{last}"][:, :dim] @ (np.full(dim, offset) - h)    # u = 0 at x_hat = 0
     return N.RomWeights(p, N.identity_norm(dim), spec, 0)
 
 

@@ -219,15 +219,15 @@ class _ReducedBase(AbstractStepper):
         ``manifold_torch``): x_hat by Alg. 7 (linear: x_hat_n + dt v_hat, v_hat fitted with dg/dx_hat at
         x_hat_n) or Alg. 6 / Eq. 22 (nonlinear, from 2 z - z_prev), and v_hat by Eqs. 21/23 with dg/dx_hat
         at x_hat_{n+1} (``tangent`` "next") or x_hat_n ("current"). Returns (x_hat_{n+1}, v_hat_{n+1})."""
+        def fit(at):                          # Eqs. 21/23 with dg/dx_hat at the latent ``at``
+            return mf.project_velocity(self.params, self.norm, XM, at, v_tr)
+
         if self.projection == "linear":
-            vhat = mf.project_velocity(self.params, self.norm, XM, z, v_tr)
+            vhat = fit(z)
             z1 = mf.project_linear(z, vhat, self.dt)
-        else:
-            z1 = mf.project_nonlinear(self.params, self.norm, XM, x_tr, z, z_prev)
-            vhat = None
-        if self.tangent == "next":
-            return z1, mf.project_velocity(self.params, self.norm, XM, z1, v_tr)
-        return z1, mf.project_velocity(self.params, self.norm, XM, z, v_tr) if vhat is None else vhat
+            return z1, fit(z1) if self.tangent == "next" else vhat
+        z1 = mf.project_nonlinear(self.params, self.norm, XM, x_tr, z, z_prev)
+        return z1, fit(z1 if self.tangent == "next" else z)
 
     def _np(self, a):
         return np.asarray(a)

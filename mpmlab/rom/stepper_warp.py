@@ -5,7 +5,7 @@ its P2G, grid update, walls, grid and particle boundaries and G2P, and the law's
 for tau), fed with the pseudo-particles g(X; x_hat), dg/dx_hat v_hat, F = dg/dX and the Lagrangian
 quadrature's masses, written into Warp arrays (zero-copy from torch where the device allows).
 
-What it has of the JAX ``ReducedStepper``: both quadratures and both projections (Algs. 3-7), the seeded
+What it has of the JAX ``ReducedStepper``: both quadratures, both projections (Algs. 3-7) and both tangents, the seeded
 sample draws with the kinematic boundaries' forced points, Eq. 19's initial state, ``rollout`` with the
 full-order guard's test and ``to_numpy``. The Lagrangian quadrature steps the scene's own Warp stepper;
 the Eulerian one a second Warp stepper of the same scene over its fixed-size point set (the JAX stepper's budget of
