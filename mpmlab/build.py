@@ -83,7 +83,7 @@ def _body(cfg: DictConfig, name: str, b: DictConfig):
         velocity=_plain(b.velocity), angular_velocity=_plain(b.angular_velocity),
         particles_per_cell=int(b.particles_per_cell), sampling=b.sampling, count=b.count,
         particle_volume=b.particle_volume, name=name, options=dict(mat.get("options") or {}),
-        lattice=_plain(b.lattice), tracer=bool(b.tracer),
+        lattice=_plain(b.lattice), tracer=bool(b.tracer), F=_plain(b.F), C=_plain(b.C),
     )
 
 

@@ -121,10 +121,16 @@ class BodyConfig:
 
     shape: ShapeConfig = MISSING
     material: Optional[MaterialConfig] = None
-    #: initial linear velocity [m/s]
-    velocity: Optional[List[float]] = None
+    #: initial velocity [m/s]: D numbers, or D entries that may be expression strings in the position
+    #: x[k] and pi (``["0.1 * sin(pi * x[0])", 0]``; mpmlab.core.initial_fields)
+    velocity: Optional[List[Any]] = None
     #: initial angular velocity about the body's centroid [rad/s]: a number in 2D, a 3-vector in 3D
     angular_velocity: Optional[Any] = None
+    #: initial deformation gradient, D rows of D numbers or expressions in x[k] (default: identity); sets
+    #: the law's F, or J = det F for a law whose state has J but no F
+    F: Optional[List[Any]] = None
+    #: initial affine velocity C [1/s], D rows of D numbers or expressions (apic, mls, tpic only)
+    C: Optional[List[Any]] = None
     particles_per_cell: int = 1
     #: ``regular``, ``jittered``, ``random`` (with ``count``) or ``lattice`` (with ``lattice``)
     sampling: str = "regular"
@@ -179,7 +185,12 @@ class BoundaryConfig:
     center: Optional[List[float]] = None
     t_start: Optional[float] = None
     t_end: Optional[float] = None
-    extra: Dict[str, Any] = field(default_factory=dict)
+    # body_force: a registered field (uniform, mms_axis_aligned, expression, or a plugin's) and its
+    # options, e.g. field: expression, values: {b: ['a * t', '0'], constants: {a: 2.0}}
+    field: Optional[str] = None
+    values: Optional[Dict[str, Any]] = None
+    # (dataclasses.field: the option ``field`` above shadows the name in this class body)
+    extra: Dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 @dataclass

@@ -4,7 +4,8 @@ Every plugin kind has one registry keyed by a stable snake_case name (the name a
 HDF5 and rerun metadata). Built-ins are registered as ``"module:attr"`` strings and imported only
 when asked for, so importing mpmlab never imports JAX or Warp. Third-party packages add plugins
 through the entry-point groups ``mpmlab.laws``, ``mpmlab.transfers``, ``mpmlab.boundaries``,
-``mpmlab.observations``, ``mpmlab.backends`` and ``mpmlab.scenes``.
+``mpmlab.body_forces`` (fields of the ``body_force`` boundary), ``mpmlab.observations``,
+``mpmlab.backends`` and ``mpmlab.scenes``.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ KINDS = {
     "law": "mpmlab.laws",
     "transfer": "mpmlab.transfers",
     "boundary": "mpmlab.boundaries",
+    "body_force_field": "mpmlab.body_forces",
     "observation": "mpmlab.observations",
     "backend": "mpmlab.backends",
     "scene": "mpmlab.scenes",
@@ -105,6 +107,7 @@ REGISTRIES = {kind: Registry(kind) for kind in KINDS}
 laws = REGISTRIES["law"]
 transfers = REGISTRIES["transfer"]
 boundaries = REGISTRIES["boundary"]
+body_forces = REGISTRIES["body_force_field"]
 observations = REGISTRIES["observation"]
 backends = REGISTRIES["backend"]
 scenes = REGISTRIES["scene"]
@@ -127,6 +130,9 @@ def _register_builtins() -> None:
                       ("grid_velocity", "GridVelocity"), ("particle_load", "ParticleLoad")):
         boundaries.register(name, f"mpmlab.boundaries:{cls}")
     boundaries.register("body_force", "mpmlab.boundaries.body_force:BodyForce")
+    for name, cls in (("uniform", "UniformField"), ("mms_axis_aligned", "MMSAxisAligned"),
+                      ("expression", "ExpressionField")):
+        body_forces.register(name, f"mpmlab.boundaries.body_force:{cls}")
     observations.register("lagrangian", "mpmlab.observations:Lagrangian")
     observations.register("particle_state", "mpmlab.observations:ParticleState")
     observations.register("eulerian", "mpmlab.observations:Eulerian")

@@ -16,6 +16,7 @@ import numpy as np
 from . import registry
 from .errors import ConfigError, TimeStepError
 from .geometry import make_shape, sample
+from .initial_fields import check_F, law_state_from_F, resolve
 
 
 @dataclass
@@ -27,9 +28,17 @@ class Body:
         material: registered law name (e.g. ``"fixed_corotated"``).
         params: law parameters by name (units as declared by the law); missing ones take defaults.
         density: rest density [kg/m^3].
-        velocity: initial linear velocity [m/s], length D.
+        velocity: initial velocity [m/s]: a D-vector (uniform), or per particle: an array [N, D], a
+            function of the sampled positions ``f(x [N, D]) -> [N, D]``, or D expression strings in
+            ``x[k]`` (``mpmlab.core.initial_fields``).
         angular_velocity: initial angular velocity [rad/s] about the body's centroid (scalar in 2D,
-            3-vector in 3D).
+            3-vector in 3D), added to ``velocity``.
+        F: initial deformation gradient, in the same forms as ``velocity`` with shape [D, D] (None:
+            F = I). It sets the law's state F (the elastic part for a plastic law); a law whose state
+            has J but no F gets J = det F; a law with neither refuses it. det F > 0 is required. The
+            positions stay the sampled ones: F is a prestrain of the body as sampled.
+        C: initial affine velocity field C [1/s] (APIC/MLS/TPIC; [D, D] forms as for F; None: 0). A
+            transfer that stores no C (PIC, FLIP) refuses it when the stepper is built.
         particles_per_cell: k^D points per cell (regular / jittered sampling).
         sampling: ``regular``, ``jittered``, ``random`` (then ``count`` particles) or ``lattice`` (a box
             only: ``lattice`` = points per axis, ``np.linspace(lo, hi, n)`` with the faces included,
@@ -59,6 +68,8 @@ class Body:
     lattice: Sequence[int] | None = None
     options: Mapping[str, Any] = field(default_factory=dict)
     tracer: bool = False
+    F: Any = None
+    C: Any = None
 
     def __post_init__(self):
         if isinstance(self.shape, Mapping):
@@ -76,10 +87,18 @@ class MaterialGroup:
     stop: int
     params: np.ndarray
     weights: dict = field(default_factory=dict)
+    #: initial values of law-state fields that differ from the law's declared ones (``{"F": [n, D, D]}``
+    #: or ``{"J": [n]}`` from the bodies' initial F); the others start at the declared value
+    state: dict = field(default_factory=dict)
 
     @property
     def count(self) -> int:
         return self.stop - self.start
+
+    def initial_state(self, dim: int) -> dict[str, np.ndarray]:
+        """The group's law state at t = 0: the law's ``initial_state`` with the bodies' initial F applied
+        (what every stepper starts from)."""
+        return {**self.law.initial_state(self.count, dim), **{k: np.array(a) for k, a in self.state.items()}}
 
 
 @dataclass
@@ -91,6 +110,7 @@ class ParticleSet:
     body_id: np.ndarray     # [N] int
     material_id: np.ndarray  # [N] int, index into groups
     groups: list[MaterialGroup]
+    C: np.ndarray | None = None   # [N, D, D] initial affine field (None: zero)
 
     @property
     def count(self) -> int:
@@ -182,6 +202,7 @@ class Scene:
     @cached_property
     def _particles(self) -> ParticleSet:
         xs, vs, ms, vols, bids, law_names, params = [], [], [], [], [], [], []
+        Fs, Cs = [], []       # per body: the initial-F law state ({"F": ...} / {"J": ...}) and C, or None
         instances = {}
         for b, body in enumerate(self.bodies):
             where = self._where(b)
@@ -203,12 +224,16 @@ class Scene:
                     f"{where}: particle {outside[0]} at {np.round(x[outside[0]], 6).tolist()} lies outside the "
                     f"domain interior [{lo.tolist()}, {hi.tolist()}); move the body or enlarge the domain."
                 )
+            D = self.dim
             v = np.zeros_like(x)
             if body.velocity is not None:
-                lin = np.asarray(body.velocity, float)
-                if lin.shape != (self.dim,):
-                    raise ConfigError(f"{where}: velocity must have {self.dim} components.")
-                v += lin
+                v += resolve(body.velocity, x, (D,), "velocity", where)
+            F = resolve(body.F, x, (D, D), "F", where)
+            if F is not None:
+                check_F(F, x, where)
+                F = law_state_from_F(law, F, where)
+            Fs.append(F)
+            Cs.append(resolve(body.C, x, (D, D), "C", where))
             if body.angular_velocity is not None:
                 c = x.mean(axis=0)
                 r = x - c
@@ -241,10 +266,23 @@ class Scene:
             weights = {k: np.asarray(a, dtype=float) for k, a in inst.initial_weights(self.dim).items()}
             inst.check_weights(weights, self.dim, instances[inst])
             rows = inst.particle_params(np.concatenate([params[b] for b in idx]), np.concatenate([xs[b] for b in idx]))
-            groups.append(MaterialGroup(inst, start, start + n, rows, weights))
+            state = {}
+            if any(Fs[b] is not None for b in idx):   # bodies without an initial F keep the declared one
+                rest = inst.initial_state(n, self.dim)
+                for k in {k for b in idx if Fs[b] is not None for k in Fs[b]}:
+                    parts, at = [], 0
+                    for b in idx:
+                        m = len(xs[b])
+                        parts.append(Fs[b][k] if Fs[b] is not None else rest[k][at:at + m])
+                        at += m
+                    state[k] = np.concatenate(parts)
+            groups.append(MaterialGroup(inst, start, start + n, rows, weights, state))
             blocks.extend(idx); mat_id.append(np.full(n, g)); start += n
         cat = lambda arrs: np.concatenate([arrs[b] for b in blocks])
-        return ParticleSet(cat(xs), cat(vs), cat(ms), cat(vols), cat(bids), np.concatenate(mat_id), groups)
+        C = None
+        if any(c is not None for c in Cs):
+            C = cat([c if c is not None else np.zeros((len(x), self.dim, self.dim)) for c, x in zip(Cs, xs)])
+        return ParticleSet(cat(xs), cat(vs), cat(ms), cat(vols), cat(bids), np.concatenate(mat_id), groups, C)
 
     def particles(self) -> ParticleSet:
         return self._particles

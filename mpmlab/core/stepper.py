@@ -47,6 +47,10 @@ class BaseStepper(AbstractStepper):
         self._dt0 = self.dt            # build-time dt: fixed-dt runs and gradient rollouts (observe) use it
         self.particles = scene.particles()
         self.groups = self.particles.groups
+        if self.particles.C is not None and not transfer.needs_affine:
+            with_C = [b.name or str(i) for i, b in enumerate(scene.bodies) if b.C is not None]
+            raise ConfigError(f"scene '{scene.name}': body {', '.join(with_C)} sets an initial C, but transfer "
+                              f"'{transfer.name}' stores no C; use apic, mls or tpic, or remove C.")
         self.check_every = check_every
         self.compile_time_s = 0.0
         #: every law state field of the scene (declared by its laws), in order of first appearance
@@ -67,6 +71,11 @@ class BaseStepper(AbstractStepper):
 
     def step(self, state):
         return self._advance(state, 1)
+
+    def initial_C(self) -> np.ndarray:
+        """The affine field C at t = 0 [N, D, D] (the bodies' initial C; zero where none is given)."""
+        C = self.particles.C
+        return np.zeros((self.particles.count, self.dim, self.dim)) if C is None else C
 
     # ---- dt: auto recomputed during a rollout (issue #5 item 4) ---------------------------------
     def _max_speed(self, state) -> float:

@@ -28,6 +28,7 @@ quadratic B-splines need (``>= origin + dx / 2``).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -53,18 +54,29 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class ProfiledScene(Scene):
-    """A ``Scene`` whose initial particle velocities are ``velocity_profile(x) -> [N, D]`` (added to the
-    bodies' uniform velocities). ``Body`` only takes a uniform or rigid-rotation velocity; the bar's
-    first mode needs v0 sin(beta1 x)."""
+    """A ``Scene`` whose initial particle velocities get ``velocity_profile(x) -> [N, D]`` added to every
+    body's own velocity (the bar's first mode v0 sin(beta1 x)). Kept for its callers: a ``Body`` takes a
+    velocity function (or an array, or expressions) itself, and this is what the profile becomes --
+    each body's ``velocity`` replaced by its own plus the profile."""
 
     velocity_profile: Callable[[np.ndarray], np.ndarray] | None = None
 
-    def particles(self):
-        P = self._particles
-        if self.velocity_profile is not None and not getattr(self, "_profile_applied", False):
-            P.v = P.v + np.asarray(self.velocity_profile(P.x), float).reshape(P.v.shape)
-            self._profile_applied = True
-        return P
+    def __post_init__(self):
+        super().__post_init__()
+        if self.velocity_profile is not None:
+            self.bodies = [dataclasses.replace(b, velocity=_with_profile(b.velocity, self.velocity_profile, self.dim,
+                                                                         f"scene '{self.name}', body {b.name or i}"))
+                           for i, b in enumerate(self.bodies)]
+
+
+def _with_profile(own: Any, profile: Callable, dim: int, where: str) -> Callable:
+    from ..core.initial_fields import resolve
+
+    def velocity(x):
+        v = np.asarray(profile(x), float).reshape(x.shape)
+        return v if own is None else v + resolve(own, x, (dim,), "velocity", where)
+
+    return velocity
 
 
 def _walls(dim: int, faces: dict[str, str], thickness: int) -> Walls:

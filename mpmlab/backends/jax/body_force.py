@@ -1,5 +1,6 @@
 """JAX implementation of ``body_force`` (``mpmlab.boundaries.body_force``): the field's closed form
-evaluated with ``jax.numpy`` at the particles' reference positions, times the particle mass.
+evaluated with ``jax.numpy`` at the particles' reference positions (or, for a field that declares
+``position = "current"``, at their positions at the start of the step), times the particle mass.
 
 The field parameters are a differentiable array in ``params["boundary"]``; the reference positions
 are a constant of the compiled step (they never change)."""
@@ -15,11 +16,12 @@ def body_force(b, scene, dtype):
     D = scene.dim
     X0 = jnp.asarray(P.x, dtype)
     field, options = b.field_impl, b.options
+    current = b.position == "current"
     mask = None if b.bodies is None else jnp.asarray(b.mask(scene), dtype)[:, None]
     t0, t1 = b.t_start, b.t_end
 
     def particle_force(x, mass, t, params):
-        f = mass[:, None] * field.evaluate(jnp, X0, t, params["field"], D, options).astype(dtype)
+        f = mass[:, None] * field.evaluate(jnp, x if current else X0, t, params["field"], D, options).astype(dtype)
         if mask is not None:
             f = f * mask
         if t0 > 0 or t1 < float("inf"):

@@ -36,7 +36,7 @@ def controls(stepper) -> dict[str, Any]:
            "law_state": law_state, "boundary": tuple(scene_order),
            "gravity": prm["gravity"], "mass": prm["mass"], "volume": prm["volume"]}
     if stepper.transfer.needs_affine:
-        out["C"] = jnp.zeros((P.count, stepper.dim, stepper.dim), dt)
+        out["C"] = jnp.asarray(stepper.initial_C(), dt)
     return out
 
 
@@ -65,7 +65,7 @@ def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
     state = {"x": jnp.asarray(c["x"], dt), "v": jnp.asarray(c["v"], dt), "law": law_states, "t": jnp.asarray(0.0, dt)}
     if stepper.transfer.needs_affine:
         state["C"] = (jnp.asarray(c["C"], dt) if "C" in c
-                      else jnp.zeros((stepper.particles.count, stepper.dim, stepper.dim), dt))
+                      else jnp.asarray(stepper.initial_C(), dt))
     if len(c["boundary"]) != len(stepper._bc_order):
         raise ConfigError(f"controls have {len(c['boundary'])} boundary entries; the scene has {len(stepper._bc_order)}.")
     weights = tuple(c["law_weights"]) if "law_weights" in c else stepper.default_params()["law_weights"]

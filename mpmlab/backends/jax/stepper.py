@@ -101,12 +101,12 @@ class JaxStepper(BaseStepper):
         dt = self.dtype
         law_states = []
         for g in self.groups:
-            st = g.law.initial_state(g.count, self.dim)
+            st = g.initial_state(self.dim)         # the law's rest state, with the bodies' initial F
             law_states.append({k: jnp.asarray(v, dtype=dt) for k, v in st.items()})
         state = {"x": jnp.asarray(P.x, dt), "v": jnp.asarray(P.v, dt), "law": tuple(law_states),
                  "t": jnp.asarray(0.0, dt)}
         if self.transfer.needs_affine:
-            state["C"] = jnp.zeros((P.count, self.dim, self.dim), dt)
+            state["C"] = jnp.asarray(self.initial_C(), dt)
         return state
 
     def default_params(self):

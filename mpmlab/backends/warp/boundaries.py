@@ -17,8 +17,10 @@ name (a plugin boundary is differentiable on Warp when its factory gives a ``tap
   sees an overwrite); ``p`` holds the Warp arrays of ``params``, ``t`` is the step's start time;
 * ``"particle_velocity"``: ``particles(x_in, x, v, p, t_end, dt, x_out, v_out) -> bool`` (False:
   inactive at this time, nothing written);
-* ``"particle_force"``: ``force(ext, p, t, ctl)`` adds (atomically) into the external forces;
-  ``ctl`` gives the differentiable controls (``ctl.mass``, ...).
+* ``"particle_force"``: ``force(ext, p, t, ctl, x)`` adds (atomically) into the external forces;
+  ``ctl`` gives the differentiable controls (``ctl.mass``, ...), ``x`` the particles' positions at
+  the start of the step (a force of the current position reads them: ``body_force``). The fast
+  path's ``add_force(ext, t, x)`` gets the same ``x``.
 """
 
 from functools import lru_cache
@@ -512,7 +514,7 @@ def particle_load(b, scene, stepper):
     share = wp.array(part, dtype=stepper.T.scalar, device=stepper.device)
     bc.params = {"force": wp.array([b.force], dtype=stepper.T.vec, device=stepper.device)}
 
-    def add_force(ext, t):
+    def add_force(ext, t, x=None):
         if b.t_start <= t < b.t_end:
             wp.launch(K.add_force, dim=len(idx), inputs=[ext, ia, share, bc.params["force"]], device=stepper.device)
             return True
@@ -521,7 +523,7 @@ def particle_load(b, scene, stepper):
     def tape():
         TK = _tape_kernels(stepper.dim, stepper.precision)
 
-        def force(ext, p, t, ctl):
+        def force(ext, p, t, ctl, x=None):
             if b.t_start <= t < b.t_end and len(idx):
                 wp.launch(TK.add_force, dim=len(idx), inputs=[ext, ia, share, p["force"]], device=stepper.device)
 

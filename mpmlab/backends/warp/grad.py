@@ -136,16 +136,17 @@ class GradPath:
         t = lambda a: torch.tensor(np.asarray(a, float), dtype=dt, device=dev)
         out = {"x": t(P.x), "v": t(P.v), "law": tuple(t(g.params) for g in st.groups),
                "law_weights": tuple({k: t(a) for k, a in g.weights.items()} for g in st.groups),
-               "law_state": tuple({k: t(a) for k, a in g.law.initial_state(g.count, st.dim).items()} for g in st.groups),
+               "law_state": tuple({k: t(a) for k, a in g.initial_state(st.dim).items()} for g in st.groups),
                "boundary": tuple({k: t(a) for k, a in bc.params.items()} for bc in self.bcs),
                "gravity": t(st.scene.gravity), "mass": t(P.mass), "volume": t(P.volume)}
         if self.affine:
-            out["C"] = t(np.zeros((P.count, st.dim, st.dim)))
+            out["C"] = t(st.initial_C())
         return out
 
     def flatten(self, c):
         """Control tensors in a fixed order, with their names (for errors) and shapes. ``law_weights``,
-        ``law_state`` and ``C`` are optional: missing ones take the laws' weights and the rest state."""
+        ``law_state`` and ``C`` are optional: missing ones take the laws' weights and the scene's initial
+        state (the bodies' initial F and C; else F = I, C = 0)."""
         missing = {"x", "v", "law", "boundary", "gravity", "mass", "volume"} - set(c)
         if missing:
             raise ConfigError(f"controls lack {sorted(missing)}; start from stepper.controls() and replace entries.")
@@ -314,7 +315,7 @@ class GradPath:
             ext = buf.ext
             for bc, c in zip(self.bcs, ctl.bc):
                 if bc.stage == "particle_force":
-                    bc.force(ext, c, t, ctl)
+                    bc.force(ext, c, t, ctl, s.x)
         grid_mm, grid_f = buf.grid_mm, buf.grid_f
         wp.launch(self.k_p2g, dim=N, inputs=[s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.origin, st.dx_s,
                                              st.dt_s, st.transfer_scalars, st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0], device=dev)

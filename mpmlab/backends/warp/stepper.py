@@ -219,8 +219,10 @@ class WarpStepper(BaseStepper):
         s = self._alloc()
         s.x.assign(wp.array(P.x, dtype=T.vec, device=dev))
         s.v.assign(wp.array(P.v, dtype=T.vec, device=dev))
+        if self.transfer.needs_affine:
+            s.C.assign(wp.array(self.initial_C(), dtype=T.mat, device=dev))
         for i, (g, st, k) in enumerate(zip(self.groups, s.law, self.k_laws)):
-            for name, a in g.law.initial_state(g.count, self.dim).items():
+            for name, a in g.initial_state(self.dim).items():
                 st[name].assign(wp.array(a, dtype=st[name].dtype, device=dev))
             wp.launch(k.stress, dim=g.count, inputs=[*self._law_args(i, st), g.start, s.tau], device=dev)
         s.order, s.age = self._base_order, (self.sort_every or 0)     # sorted at the first step
@@ -330,7 +332,7 @@ class WarpStepper(BaseStepper):
         if self.force_bcs:
             self.ext.zero_()
             for bc in self.force_bcs:
-                bc.add_force(self.ext, s.t)
+                bc.add_force(self.ext, s.t, s.x)
         # P2G, one private grid copy per thread ----------------------------------------------------------
         bb = self._bbox_np
         if bb is not None:
