@@ -21,6 +21,8 @@ import re
 import sys
 from pathlib import Path
 
+from .io.sweep_summary import JOBS_FILE   # <sweep dir>/jobs.jsonl: every job's outcome
+
 EXIT_INTERNAL = 1
 EXIT_CONFIG = 2
 EXIT_DIVERGED = 3
@@ -43,7 +45,7 @@ class _Abort(BaseException):
 
 #: The sweep directory of a multirun started in this process (set by ``SweepRecorder``).
 _sweep_dir: Path | None = None
-JOBS_FILE = "jobs.jsonl"
+_sweep_on_slurm = False   # its jobs run on a Slurm cluster, where they outlive this process
 STOP_FILE = ".mpmlab-stop"   # a stopped parallel sweep: jobs that start after the signal do not run
 
 
@@ -58,8 +60,9 @@ class SweepRecorder(_HydraCallback):
     process that launches the sweep, so ``main`` can read every job's outcome from ``jobs.jsonl``."""
 
     def on_multirun_start(self, config, **kwargs) -> None:
-        global _sweep_dir
+        global _sweep_dir, _sweep_on_slurm
         _sweep_dir = Path(str(config.hydra.sweep.dir))
+        _sweep_on_slurm = str(config.hydra.launcher.get("_target_", "")).endswith("SlurmLauncher")
         (_sweep_dir / STOP_FILE).unlink(missing_ok=True)
         if _parallel_launcher(config.hydra.launcher):
             from .core.signals import forward_to
@@ -144,7 +147,8 @@ def _run_job(cfg, ctx, hc, multirun: bool, job: dict) -> dict:
     from .io.files import OutputExistsError, handle_stale_temps
     from .tasks import run_task
 
-    with handle_stop_signals():   # a sweep worker process gets its own handlers
+    # a sweep worker process gets its own handlers
+    with handle_stop_signals(_job_stop_signals(hc) if multirun else ()):
         if multirun and (Path(hc.sweep.dir) / STOP_FILE).exists():
             reason = (Path(hc.sweep.dir) / STOP_FILE).read_text().strip()
             _record_job(Path(hc.sweep.dir), {**job, "status": "skipped", "exit_code": 0,
@@ -187,6 +191,20 @@ def _run_job(cfg, ctx, hc, multirun: bool, job: dict) -> dict:
                 traceback.print_exception(exc)
             # the sweep goes on; main() reads jobs.jsonl and reports every failed job at the end
             return {"status": status, "exit_code": code, "error": message}
+
+
+def _submitit_launcher(launcher_cfg) -> bool:
+    """submitit's launchers (``slurm``, ``submitit_slurm``, ``submitit_local``): each job is a process that
+    submitit starts and signals before the time limit."""
+    return "hydra_submitit_launcher" in str(launcher_cfg.get("_target_", ""))
+
+
+def _job_stop_signals(hc) -> tuple[int, ...]:
+    """Stop signals of a sweep job besides SIGINT and SIGTERM: submitit's warning before the time limit."""
+    from .core.signals import submitit_warning_signal
+
+    sig = submitit_warning_signal() if _submitit_launcher(hc.launcher) else None
+    return (sig,) if sig is not None else ()
 
 
 def _status_of(exc: BaseException) -> str:
@@ -298,7 +316,8 @@ def describe_error(exc: BaseException) -> tuple[int, str]:
     if isinstance(exc, HydraException):
         msg = _composition_message(exc)
         if "hydra/launcher" in msg or "hydra/sweeper" in msg:
-            msg += " Launchers come as extras: pip install 'mpmlab[joblib]' (parallel) or 'mpmlab[slurm]' (slurm)."
+            msg += (" Launchers come as extras: pip install 'mpmlab[joblib]' (parallel), 'mpmlab[slurm]' "
+                    "(slurm, submitit_local) or 'mpmlab[ray]' (ray).")
         return EXIT_CONFIG, msg
     if isinstance(exc, OmegaConfBaseException):
         return EXIT_CONFIG, f"invalid configuration: {_omegaconf_detail(exc)}; fix the value (`mpmlab --cfg job` shows the options)."
@@ -323,6 +342,8 @@ def _hydra_app():
 def main(argv: list[str] | None = None) -> int:
     """Console entry point. Returns (and exits with) the process exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["sweep-summary"]:   # a command of its own, which Hydra never sees
+        return _sweep_summary([a for a in argv[1:] if a != "--debug"], _debug_env() or "--debug" in argv)
     debug = _debug_env() or "--debug" in argv or any(a in _DEBUG_TOKENS for a in argv)
     if "--debug" in argv:
         argv.remove("--debug")
@@ -384,27 +405,39 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
-def _read_jobs() -> list[dict]:
-    import json
+def _sweep_summary(args: list[str], debug: bool) -> int:
+    """``mpmlab sweep-summary DIR [--metric KEY] [--out DIR]`` (mpmlab.io.sweep_summary)."""
+    from .io.sweep_summary import cli
 
-    path = _sweep_dir / JOBS_FILE
-    if not path.is_file():
-        return []
-    jobs = {}
-    for line in path.read_text().splitlines():
-        try:
-            entry = json.loads(line)
-        except ValueError:
-            continue
-        jobs[entry.get("job")] = entry   # a requeued job's last word counts
-    return [jobs[k] for k in sorted(jobs, key=lambda k: (k is None, k))]
+    try:
+        return cli(args)
+    except SystemExit as exc:   # --help
+        return exc.code if isinstance(exc.code, int) else 0
+    except BaseException as exc:  # noqa: BLE001 - the command's single error exit
+        code, message = describe_error(exc)
+        if debug:
+            import traceback
+
+            traceback.print_exception(exc)
+        print(f"mpmlab: error: {message}", file=sys.stderr)
+        return code
+
+
+def _read_jobs() -> list[dict]:
+    from .io.sweep_summary import read_jobs
+
+    return read_jobs(_sweep_dir)
 
 
 def _sweep_outcome() -> int:
     """After a sweep: one closing line that counts every job by how it ended and names each one that
     did not complete (exit code: that of the first such job)."""
     jobs = _read_jobs()
-    (_sweep_dir / STOP_FILE).unlink(missing_ok=True)
+    stop_file = _sweep_dir / STOP_FILE
+    # "stopped" when the sweep's own process got the stop signal; a job that its scheduler stopped
+    # (time limit, preemption) is one job that did not complete
+    stopped = stop_file.exists() or any(j.get("status") == "skipped" for j in jobs)
+    stop_file.unlink(missing_ok=True)
     bad = [j for j in jobs if j.get("status") != "ok"]
     if not bad:
         return 0
@@ -424,7 +457,6 @@ def _sweep_outcome() -> int:
         if len(js) > 1:
             who += f" and {len(js) - 1} more (jobs {', '.join(str(j.get('job')) for j in js[1:6])}{', ...' if len(js) > 6 else ''})"
         parts.append(f"{who}: {status}: {message}")
-    stopped = any(j.get("status") in ("interrupted", "skipped") for j in bad)
     head = "the sweep was stopped" if stopped else f"{len(bad)} of {len(jobs)} jobs failed"
     print(f"mpmlab: error: {head} ({len(jobs)} jobs: {tally})" + ("; " + " | ".join(parts) if parts else "")
           + f" (every job's outcome: {_sweep_dir / JOBS_FILE}).", file=sys.stderr)
@@ -438,6 +470,9 @@ def _sweep_interrupted_note() -> str:
     for j in jobs:
         counts[j.get("status", "?")] = counts.get(j.get("status", "?"), 0) + 1
     done = ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) or "no job had recorded its end"
+    if _sweep_on_slurm:
+        return (f"Sweep {_sweep_dir}: {done}; the Slurm jobs go on without this process (scancel stops them, "
+                f"each keeping its frames); `mpmlab sweep-summary {_sweep_dir}` reads their outcomes.")
     return (f"Sweep {_sweep_dir}: {done}; an interrupted job's trajectory.h5 keeps its frames so far, marked "
             f"incomplete (every job's outcome: {_sweep_dir / JOBS_FILE}).")
 

@@ -12,6 +12,9 @@ A second signal while the first is being handled (outputs being closed) is repor
 ignored, so the files being finished are not cut in half; a third one kills the process at once.
 The process that runs a parallel sweep instead passes the first signal on to its job processes
 (:func:`forward_to`) and waits for them to close their files; a second signal stops it at once.
+
+A job of a submitit (Slurm) sweep also stops this way on submitit's warning signal (SIGUSR2, sent
+``signal_delay_s`` before the time limit or on a preemption; :func:`submitit_warning_signal`).
 """
 from __future__ import annotations
 
@@ -41,6 +44,9 @@ class RunInterrupted(KeyboardInterrupt):
 
     @property
     def reason(self) -> str:
+        if self.signum == submitit_warning_signal():
+            return (f"stopped by {self.signal_name} (the scheduler's warning before the job's time limit, or a "
+                    f"preemption; sent by submitit)")
         return {signal.SIGINT: "interrupted by SIGINT (Ctrl-C)",
                 signal.SIGTERM: "terminated by SIGTERM (kill, a scheduler's time limit or a container stop)"
                 }.get(self.signum, f"stopped by {self.signal_name}")
@@ -51,6 +57,14 @@ class RunInterrupted(KeyboardInterrupt):
 
     def __reduce__(self):          # crosses a sweep launcher's process boundary
         return (RunInterrupted, (self.signum,))
+
+
+def submitit_warning_signal() -> int | None:
+    """The signal submitit sends a job before its time limit and on a preemption: SIGUSR2, or the one
+    named by ``SUBMITIT_PREEMPT_SIGNAL`` (submitit's own setting). Submitit's handler for it checkpoints
+    and requeues the job to start over, which an mpmlab run cannot resume: a sweep job stops on it
+    instead, its frames kept and marked, like on SIGTERM."""
+    return getattr(signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2"), None)
 
 
 def stop_reason(exc: BaseException) -> str:
@@ -128,15 +142,16 @@ def reset() -> None:
 
 
 @contextlib.contextmanager
-def handle_stop_signals():
-    """Within the block, SIGINT and SIGTERM raise :class:`RunInterrupted` (main thread only; elsewhere
-    the block runs with the handlers it found)."""
+def handle_stop_signals(extra: tuple[int, ...] = ()):
+    """Within the block, SIGINT, SIGTERM and the ``extra`` signals raise :class:`RunInterrupted` (main
+    thread only; elsewhere the block runs with the handlers it found)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    signals = STOP_SIGNALS + tuple(s for s in extra if s not in STOP_SIGNALS)
+    previous = {s: signal.getsignal(s) for s in signals}
     reset()
-    for s in STOP_SIGNALS:
+    for s in signals:
         signal.signal(s, _handler)
     try:
         yield

@@ -1,0 +1,153 @@
+"""Issue 20, scale-out: sweeps through submitit (Slurm) and Ray, without a cluster.
+
+* ``hydra/launcher=slurm`` (mpmlab's Slurm config) submits to a Slurm stand-in (``fake_slurm.py``:
+  ``sbatch``/``srun``/``sacct`` on this machine), ``submitit_local`` runs submitit's local executor
+  (Slurm's code path minus ``sbatch``), ``ray`` a local Ray instance. Each runs a real two-job sweep
+  in which job 1 diverges: the closing line and exit code are those of the local launchers, job 0's
+  outputs are all there and read back, job 1 keeps its frames marked incomplete, ``jobs.jsonl`` and
+  ``mpmlab sweep-summary`` see both.
+* The time limit: submitit's warning signal (SIGUSR2, ``signal_delay_s`` before ``timeout_min``) stops
+  the job like SIGTERM, its frames kept and marked, its summary "interrupted", and no requeue.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mpmlab.cli import EXIT_DIVERGED, main
+
+from . import fake_slurm
+from .test_cli import OUTPUTS, error_lines
+from .test_run_endings import LONG, _temps
+
+SUBMITIT = "hydra_plugins.hydra_submitit_launcher"
+RAY = "hydra_plugins.hydra_ray_launcher"
+# job 0 runs its 40 steps; job 1 (dt 50x larger, CFL check relaxed) diverges at step 4
+SWEEP = ["scene=dam_break_2d", "scene.resolution=tiny", "scene.cfl_limit=100", "scene.dt=0.0002,0.01", "steps=40",
+         "frame_every=10"]
+
+
+def mpmlab(args, cwd: Path, env: dict | None = None, timeout: float = 300) -> tuple[subprocess.CompletedProcess, int]:
+    """``python -m mpmlab`` with this interpreter (the launcher plugins are those of its environment);
+    returns the finished process and its pid (the sweep's own process)."""
+    import os
+
+    proc = subprocess.Popen([sys.executable, "-m", "mpmlab", *args], cwd=cwd, env=dict(os.environ, **(env or {})),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        raise AssertionError(f"mpmlab {' '.join(args)} ran over {timeout} s:\n{err[-3000:]}") from None
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err), proc.pid
+
+
+def _launcher(name: str, tmp_path: Path) -> tuple[list[str], dict]:
+    """The overrides and environment that run a sweep through ``name``."""
+    pytest.importorskip(RAY if name == "ray" else SUBMITIT, reason=f"install mpmlab[{'ray' if name == 'ray' else 'slurm'}]")
+    if name == "slurm":
+        return ["hydra/launcher=slurm"], fake_slurm.install(tmp_path / "bin", tmp_path / "slurm")
+    if name == "ray":   # a local instance of two CPUs, no dashboard (faster to start)
+        return ["hydra/launcher=ray", "+hydra.launcher.ray.init.num_cpus=2",
+                "+hydra.launcher.ray.init.include_dashboard=false"], {"RAY_AUTH_MODE": "disabled"}
+    return [f"hydra/launcher={name}"], {}
+
+
+def _summary(run: Path) -> dict:
+    return json.loads((run / "summary.json").read_text())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("launcher", ["submitit_local", "slurm", "ray"])
+def test_a_two_job_sweep_keeps_the_good_job_and_reports_the_diverged_one(tmp_path, capsys, launcher):
+    from mpmlab.io.h5 import read_attrs, read_trajectory
+
+    overrides, env = _launcher(launcher, tmp_path)
+    sweep = tmp_path / "sweep"
+    proc, pid = mpmlab(["-m", *overrides, *SWEEP, f"hydra.sweep.dir={sweep}"], tmp_path, env)
+    if launcher == "slurm":
+        states = fake_slurm.wait_until_idle(tmp_path / "slurm")
+        assert states == {"4200_0": "COMPLETED", "4200_1": "COMPLETED"}, states   # one array job, two tasks
+    assert proc.returncode == EXIT_DIVERGED, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    last = error_lines(proc.stderr)[-1]
+    assert last.startswith("mpmlab: error: 1 of 2 jobs failed (2 jobs: 1 diverged, 1 ok); job 1 ("), last
+    assert "scene.dt=0.01" in last and "diverged at step 4" in last and str(sweep / "jobs.jsonl") in last
+
+    good, bad = _summary(sweep / "0"), _summary(sweep / "1")
+    assert (good["status"], good["steps_done"], good["frames"], good["dt"]) == ("ok", 40, 5, 0.0002)
+    for name in OUTPUTS:
+        assert (sweep / "0" / name).is_file(), name
+    traj = read_trajectory(sweep / "0" / "trajectory.h5")
+    assert traj.frame_count == 5 and list(traj.step) == [0, 10, 20, 30, 40]
+    assert bad["status"] == "diverged" and bad["diverged_step"] == 4
+    attrs = read_attrs(sweep / "1" / "trajectory.h5")
+    assert attrs["complete"] is False and attrs["frame_count"] >= 1
+    jobs = [json.loads(line) for line in (sweep / "jobs.jsonl").read_text().splitlines()]
+    assert sorted((j["job"], j["status"], j["exit_code"]) for j in jobs) == [(0, "ok", 0), (1, "diverged", EXIT_DIVERGED)]
+    # the jobs ran in processes of the launcher, not in the sweep's own
+    assert good["pid"] != pid and bad["pid"] != pid
+    if launcher == "slurm":   # what mpmlab's slurm.yaml asks of Slurm
+        script = (tmp_path / "slurm" / "4200.sbatch").read_text()
+        for flag in ("--array=0-1%2", "--time=240", "--signal=USR2@120", "--gpus-per-node=1", "--cpus-per-task=8"):
+            assert f"#SBATCH {flag}\n" in script, flag
+    if launcher in ("slurm", "submitit_local"):
+        assert len(list((sweep / ".submitit").rglob("*_result.pkl"))) == 2
+    if launcher == "ray":
+        assert "Ray Launcher is launching 2 jobs" in proc.stdout + proc.stderr
+
+    # the same sweep in one table
+    assert main(["sweep-summary", str(sweep), "--metric", "particle_steps_per_second"]) == 0
+    out = capsys.readouterr().out
+    assert "2 jobs (1 diverged, 1 ok); swept: scene.dt" in out
+    rows = list(csv.DictReader((sweep / "sweep_summary.csv").open()))
+    assert [(r["job"], r["status"], r["scene.dt"]) for r in rows] == [("0", "ok", "0.0002"), ("1", "diverged", "0.01")]
+    assert float(rows[0]["particle_steps_per_second"]) == pytest.approx(good["particle_steps_per_second"])
+    assert rows[1]["particle_steps_per_second"] == "" and "diverged at step 4" in rows[1]["message"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("launcher", ["slurm", "submitit_local"])
+def test_the_time_limit_warning_stops_the_job_and_keeps_its_frames(tmp_path, launcher):
+    """timeout_min=1: SIGUSR2 signal_delay_s before it (Slurm's ``--signal``: 40 s, so 20 s after the job
+    starts; submitit's local controller: its fixed 30 s), SIGTERM at the limit. The job stops at the warning."""
+    from mpmlab.io.h5 import read_attrs, read_trajectory
+
+    overrides, env = _launcher(launcher, tmp_path)
+    if launcher == "slurm":
+        overrides.append("hydra.launcher.signal_delay_s=40")
+    sweep = tmp_path / "sweep"
+    proc, _ = mpmlab(["-m", *overrides, "hydra.launcher.timeout_min=1", *LONG, f"hydra.sweep.dir={sweep}"], tmp_path,
+                     env, timeout=180)
+    if launcher == "slurm":
+        assert "#SBATCH --signal=USR2@40\n" in (tmp_path / "slurm" / "4200.sbatch").read_text()
+        # ended by the job itself, before the limit's SIGTERM
+        assert fake_slurm.wait_until_idle(tmp_path / "slurm") == {"4200": "COMPLETED"}
+    assert proc.returncode == 128 + signal.SIGUSR2, proc.stderr[-3000:]
+    last = error_lines(proc.stderr)[-1]
+    assert last.startswith("mpmlab: error: 1 of 1 jobs failed (1 jobs: 1 interrupted); job 0 ("), last
+    assert "stopped by SIGUSR2 (the scheduler's warning before the job's time limit" in last
+    assert "marked incomplete" in last
+    run = sweep / "0"
+    assert _temps(run) == []
+    attrs = read_attrs(run / "trajectory.h5")
+    assert attrs["complete"] is False and "SIGUSR2" in attrs["error"], attrs
+    with pytest.warns(UserWarning, match="incomplete"):
+        traj = read_trajectory(run / "trajectory.h5")
+    assert traj.frame_count >= 2 and traj.step[-1] % 20 == 0
+    s = _summary(run)
+    assert s["status"] == "interrupted" and "SIGUSR2" in s["error"] and s["steps_done"] < 1_000_000
+    assert s["last_frame"]["step"] == int(traj.step[-1]) and s["frames"] == traj.frame_count
+    assert "run stopped by SIGUSR2" in (run / "mpmlab.log").read_text()
+    jobs = [json.loads(line) for line in (sweep / "jobs.jsonl").read_text().splitlines()]
+    assert [(j["job"], j["status"], j["exit_code"]) for j in jobs] == [(0, "interrupted", 128 + signal.SIGUSR2)]
+    # mpmlab's handler took the signal: submitit did not checkpoint and requeue the job to start over
+    logs = "".join(p.read_text() for p in (sweep / ".submitit").rglob("*_log.*"))
+    assert "Caught signal" not in logs and "requeue" not in logs.lower(), logs[-2000:]
