@@ -16,7 +16,7 @@ generic objects (optimisers, networks) that later tasks instantiate.
 
 Layout of the composed config::
 
-    backend:   {name, check_every, device}            # config group backend/ (jax, warp)
+    backend:   {name, check_every, device, devices}   # config group backend/ (jax, warp)
     transfer:  {name, flip_ratio}                      # transfer/ (pic, flip, apic, mls, tpic)
     precision: {name}                                  # precision/ (fp32, fp64)
     material:  {law, params, density, label}           # material/: the default material of the scene
@@ -65,6 +65,8 @@ class BackendConfig:
     check_every: Optional[int] = None
     #: Warp device (``cpu``, ``cuda:0``); None = the backend's default
     device: Optional[str] = None
+    #: JAX: shard one simulation's particles over this many devices (None or 1: one device)
+    devices: Optional[int] = None
 
 
 @dataclass
@@ -608,6 +610,14 @@ def check_run_options(cfg: DictConfig) -> None:
         from .backends.warp import check_device
 
         check_device(str(cfg.backend.device), "backend.device")
+    if cfg.backend.get("devices") not in (None, 1):
+        from .simulator import check_devices_option
+
+        check_devices_option(cfg.backend.name, cfg.backend.devices)
+        if cfg.task.name != "simulate":
+            raise ConfigError(f"backend.devices = {cfg.backend.devices} applies to task=simulate (and to the Python "
+                              f"API: build_stepper(..., devices=N)); task={cfg.task.name} runs on one device, so "
+                              f"leave backend.devices unset.")
 
 
 # ---------------------------------------------------------------------------------------------

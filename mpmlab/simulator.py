@@ -23,6 +23,17 @@ def check_capabilities(scene: Scene, backend: str, transfer: AbstractTransfer) -
             raise MissingImplementationError("boundary", b.name, backend, list(b.implementations))
 
 
+def check_devices_option(backend: str, devices) -> None:
+    """Refuse ``devices`` > 1 on a backend that does not shard one simulation (``ConfigError``, one line)."""
+    if devices is None or devices == 1:
+        return
+    if "devices" not in getattr(registry.backends.get(backend), "build_options", ()):
+        takes = [n for n in registry.backends.names() if "devices" in getattr(registry.backends.get(n), "build_options", ())]
+        raise ConfigError(f"backend.devices = {devices}: the {backend} backend does not shard one simulation over "
+                          f"several devices; use backend={'|'.join(takes) or 'jax'} backend.devices={devices}, or "
+                          f"backend.devices=1.")
+
+
 def build_stepper(scene: Scene, backend: str = "jax", transfer: Any = "mls", precision: str = "fp32", **options):
     """Build a compiled stepper.
 
@@ -31,7 +42,8 @@ def build_stepper(scene: Scene, backend: str = "jax", transfer: Any = "mls", pre
         backend: registered backend name (``jax`` or ``warp``).
         transfer: a registered transfer name (``pic``, ``flip``, ``apic``, ``mls``, ``tpic``) or a transfer object.
         precision: ``fp32`` or ``fp64``.
-        **options: backend options (``check_every``: guard cadence in steps).
+        **options: backend options (``check_every``: guard cadence in steps; JAX ``devices``: shard the
+            particles of one simulation over that many devices, ``mpmlab.backends.jax.sharding``).
     """
     if isinstance(transfer, str):
         transfer = make_transfer(transfer)
@@ -39,6 +51,10 @@ def build_stepper(scene: Scene, backend: str = "jax", transfer: Any = "mls", pre
         raise ConfigError(f"precision '{precision}' unknown; use 'fp32' or 'fp64'.")
     transfer.check()     # an inconsistent (plugin) transfer is refused here, not during tracing
     check_capabilities(scene, backend, transfer)
+    if "devices" in options:
+        check_devices_option(backend, options["devices"])
+        if options["devices"] in (None, 1) and "devices" not in getattr(registry.backends.get(backend), "build_options", ()):
+            options.pop("devices")      # one device is every backend's default
     return registry.backends.get(backend)().build(scene, transfer, precision, **options)
 
 

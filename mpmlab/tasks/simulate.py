@@ -119,6 +119,11 @@ def run(cfg, ctx) -> dict:
             raise ConfigError(f"backend.device = '{cfg.backend.device}' applies to backend={'|'.join(takes) or 'none'} "
                               f"only; {getattr(backend_cls, 'device_note', 'this backend picks its device itself.')}")
         options["device"] = cfg.backend.device
+    if cfg.backend.get("devices") not in (None, 1):   # a backend that does not shard: check_run_options refused it
+        from ..core.registry import backends
+
+        # before anything is written: more devices than this machine has is refused here
+        options["devices"] = backends.get(backend).check_devices(cfg.backend.devices)
     if cfg.debug and hasattr(backend_cls, "debug_output"):
         backend_cls.debug_output()      # e.g. Warp's module compile/load lines (quiet by default)
 
@@ -225,6 +230,7 @@ def run(cfg, ctx) -> dict:
         "scene": scene.name,
         "resolution": str(cfg.scene.resolution),
         "backend": backend,
+        **({"devices": options["devices"]} if "devices" in options else {}),   # one run sharded over N devices
         "transfer": transfer.name,
         "transfer_options": transfer.options(),
         "precision": precision,

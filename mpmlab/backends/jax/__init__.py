@@ -8,11 +8,23 @@ class JaxBackend(AbstractBackend):
     name = "jax"
     #: the differentiable workflows' seam to this backend's arrays (mpmlab.core.autodiff)
     autodiff_adapter = "mpmlab.backends.jax.adapter:JaxAdapter"
-    #: the options ``build`` takes beyond the precision (task=simulate refuses ``backend.device`` here)
-    build_options = ("check_every",)
+    #: the options ``build`` takes beyond the precision (task=simulate refuses ``backend.device`` here);
+    #: ``devices``: shard one simulation's particles over that many devices (backends/jax/sharding.py)
+    build_options = ("check_every", "devices")
     device_note = "JAX picks its device itself (JAX_PLATFORMS=cpu|cuda)."
 
-    def build(self, scene, transfer, precision="fp32", **options):
+    @staticmethod
+    def check_devices(devices) -> int:
+        """``devices`` if this machine has that many JAX devices, else ``ConfigError`` (one line)."""
+        from .sharding import check_devices
+
+        return check_devices(devices)
+
+    def build(self, scene, transfer, precision="fp32", devices=None, **options):
+        if devices is not None and devices != 1:
+            from .sharding import ShardedJaxStepper
+
+            return ShardedJaxStepper(scene, transfer, precision, devices=devices, **options)
         from .stepper import JaxStepper
 
         return JaxStepper(scene, transfer, precision, **options)

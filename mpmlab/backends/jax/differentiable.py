@@ -31,7 +31,7 @@ def controls(stepper) -> dict[str, Any]:
     scene_order = [None] * len(stepper._bc_order)
     for k, i in enumerate(stepper._bc_order):
         scene_order[i] = prm["boundary"][k]
-    law_state = stepper.init()["law"]        # the rest state (F = I, J = 1, ...), as a rollout starts
+    law_state = stepper.to_scene_order(stepper.init())["law"]   # the rest state (F = I, J = 1, ...)
     out = {"x": jnp.asarray(P.x, dt), "v": jnp.asarray(P.v, dt), "law": prm["law"], "law_weights": prm["law_weights"],
            "law_state": law_state, "boundary": tuple(scene_order),
            "gravity": prm["gravity"], "mass": prm["mass"], "volume": prm["volume"]}
@@ -44,9 +44,9 @@ REQUIRED = ("x", "v", "law", "boundary", "gravity", "mass", "volume")
 
 
 def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
-    """(initial state, step parameters) from controls. ``law_state`` and ``C`` are optional: without
-    them the rollout starts at rest (F = I, J = 1, ..., C = 0); ``law_weights`` defaults to the laws'
-    own weights."""
+    """(initial state, step parameters) from controls, in the layout ``stepper.step_fn`` works on (a
+    sharded stepper's: ``to_layout``). ``law_state`` and ``C`` are optional: without them the rollout
+    starts at rest (F = I, J = 1, ..., C = 0); ``law_weights`` defaults to the laws' own weights."""
     missing = set(REQUIRED) - set(c)
     if missing:
         raise ConfigError(f"controls lack {sorted(missing)}; start from stepper.controls() and replace entries.")
@@ -61,7 +61,7 @@ def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
                 raise ConfigError(f"controls['law_state'] for law '{g.law.name}' has fields {sorted(st)}; the law "
                                   f"declares {sorted(g.law.state_fields)}.")
     else:
-        law_states = stepper.init()["law"]
+        law_states = stepper.to_scene_order(stepper.init())["law"]
     state = {"x": jnp.asarray(c["x"], dt), "v": jnp.asarray(c["v"], dt), "law": law_states, "t": jnp.asarray(0.0, dt)}
     if stepper.transfer.needs_affine:
         state["C"] = (jnp.asarray(c["C"], dt) if "C" in c
@@ -71,7 +71,7 @@ def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
     weights = tuple(c["law_weights"]) if "law_weights" in c else stepper.default_params()["law_weights"]
     params = {"law": tuple(c["law"]), "law_weights": weights, "mass": c["mass"], "volume": c["volume"],
               "gravity": c["gravity"], "boundary": tuple(c["boundary"][i] for i in stepper._bc_order)}   # scene -> stepper order
-    return state, params
+    return stepper.to_layout(state, params)
 
 
 def advance(stepper, state, params, n: int, segment: int):
@@ -127,7 +127,7 @@ def observe_fn(stepper, observation, steps, segment: int | None = None, health: 
     def fn(c):
         state, params = split_controls(stepper, c)
         state = advance(stepper, state, params, first, segment)
-        y0 = impl.fn(state)
+        y0 = impl.fn(stepper.to_scene_order(state))
         bad0 = _invalid(stepper, state)
         if count == 1:
             return (y0[None], bad0) if health else y0[None]
@@ -135,7 +135,7 @@ def observe_fn(stepper, observation, steps, segment: int | None = None, health: 
         @jax.checkpoint
         def interval(s, _):
             s = advance(stepper, s, params, g, segment)
-            return s, (impl.fn(s), _invalid(stepper, s))
+            return s, (impl.fn(stepper.to_scene_order(s)), _invalid(stepper, s))
 
         _, (ys, bad) = jax.lax.scan(interval, state, None, length=count - 1)
         ys = jnp.concatenate([y0[None], ys], axis=0)
@@ -175,8 +175,9 @@ def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment
         def body(carry, tgt):
             s, val, bad = carry
             s = step(s, params)
+            seen = stepper.to_scene_order(s)
             for (impl, w), t in zip(impls, tgt):
-                r = impl.fn(s) - t
+                r = impl.fn(seen) - t
                 val = val + w * jnp.sum(r * r) / r.size
             return (s, val, bad | _invalid(stepper, s)), None
         zero = jnp.zeros((), stepper.dtype)
@@ -257,7 +258,9 @@ def locate_nan_gradient(stepper, c, observation, steps, obs_cotangent, segment: 
     backwards from the end, i.e. the order in which reverse mode runs) whose adjoint is non-finite.
 
     ``obs_cotangent``: dL/d(observations) [T, L, d]. States are recomputed from saved segment starts,
-    so memory stays O(steps / segment + segment) here too."""
+    so memory stays O(steps / segment + segment) here too. A sharded stepper replays on one device
+    (its ``unsharded`` twin): the same step and particle, in scene order."""
+    stepper = getattr(stepper, "unsharded", stepper)
     impl = observation.implementation("jax", "observation")(observation, stepper)
     s = np.asarray(steps, dtype=np.int64).reshape(-1)
     segment = int(segment or DEFAULT_SEGMENT)

@@ -92,6 +92,9 @@ class JaxStepper(BaseStepper):
                           for i, s_ in enumerate(stages) if s_ == st]
         node_idx = np.stack(np.meshgrid(*[np.arange(n) for n in self.grid_shape], indexing="ij"), -1).reshape(-1, D)
         self._node_x = jnp.asarray(scene.origin + node_idx * scene.dx, dtype=dtype)
+        #: each material group's rows of the per-particle arrays step_fn sees (a sharded stepper's
+        #: step_fn sees one device's block: backends/jax/sharding.py)
+        self._group_slices = [slice(g.start, g.stop) for g in self.groups]
         self._jit_advance = jax.jit(self._advance_impl, static_argnums=2)
         self._jit_bad = jax.jit(self._bad_impl)
 
@@ -120,6 +123,19 @@ class JaxStepper(BaseStepper):
             "gravity": jnp.asarray(self.scene.gravity, self.dtype),
             "boundary": tuple(b.params for b in self._grid_bcs + self._particle_bcs + self._force_bcs),
         }
+
+    # ---- the state's layout (identity here; a sharded stepper reorders and pads particles) ---------
+    def to_layout(self, state=None, params=None):
+        """(state, params) in scene order -> the layout ``step_fn`` works on (either may be None)."""
+        return state, params
+
+    def to_scene_order(self, state):
+        """A state of ``step_fn``'s layout -> scene order (what observations and ``to_numpy`` read)."""
+        return state
+
+    def _sum_grid(self, grid):
+        """The P2G sums of the particles this program holds -> the sums over all particles."""
+        return grid
 
     # ---- differentiable entry points (AbstractStepper contract; backends/jax/differentiable.py) ----
     def controls(self):
@@ -241,7 +257,7 @@ class JaxStepper(BaseStepper):
         K = vals.shape[-1]
         dn = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, D + 2)), inserted_window_dims=(),
                                              scatter_dims_to_operand_dims=tuple(range(D)))
-        grid = jax.lax.scatter_add(jnp.zeros(gshape + (K,), dtype), base, vals, dn)
+        grid = self._sum_grid(jax.lax.scatter_add(jnp.zeros(gshape + (K,), dtype), base, vals, dn))
         grid = grid.reshape(-1, K)
         grid_mv, grid_m = grid[:, :D], grid[:, D]
 
@@ -311,8 +327,9 @@ class JaxStepper(BaseStepper):
 
         # law update per material block ------------------------------------------------------------------------
         laws = []
-        for g, law, st, prm, w in zip(self.groups, self._laws, state["law"], params["law"], params["law_weights"]):
-            gv = grad_v[g.start:g.stop]
+        for rows, law, st, prm, w in zip(self._group_slices, self._laws, state["law"], params["law"],
+                                         params["law_weights"]):
+            gv = grad_v[rows]
             upd = jax.vmap(law.update, in_axes=(0, 0, None, 0, None))(st, gv, dt, prm, w)
             # a law (or a plugin's law) may build constants in float64: keep the state in the stepper's precision
             laws.append({k: a.astype(dtype) for k, a in upd.items()})
