@@ -30,7 +30,7 @@ def scene(**over):
                  F=F_of, C=C_SOLID, name="solid")
     fluid = dict(shape={"kind": "box", "lo": [0.6, 0.3], "hi": [0.8, 0.5]}, material="weakly_compressible",
                  params={"bulk_modulus": 1e4}, particles_per_cell=4, velocity=[0.0, 0.1], F=F_FLUID,
-                 C=[["0.1 * x[0]", 0], [0, "-0.1"]], name="fluid")
+                 C=[["0.1 * x[0]", "0.2 * x[1]"], [0, "-0.1"]], name="fluid")
     solid.update(over.pop("solid", {}))
     fluid.update(over.pop("fluid", {}))
     return mpmlab.Scene(dim=2, dx=0.1, domain=([0, 0], [1, 1]), gravity=[0, -1.0], dt=1e-3,
@@ -46,7 +46,7 @@ def expected(sc):
     v[f, 1] = 0.1
     C = np.zeros((len(x), 2, 2))
     C[s] = C_SOLID
-    C[f, 0, 0], C[f, 1, 1] = 0.1 * x[f, 0], -0.1
+    C[f, 0, 0], C[f, 0, 1], C[f, 1, 1] = 0.1 * x[f, 0], 0.2 * x[f, 1], -0.1
     return {"x": x, "v": v, "C": C, "F": F_of(x[s]), "J": np.full(f.sum(), np.linalg.det(F_FLUID))}
 
 

@@ -43,7 +43,8 @@ def resolve(value: Any, x: np.ndarray, shape: tuple[int, ...], name: str, where:
         exprs = parse_components(value, shape, f"{where}: {name}", vectors=("x", "X"), scalars=(), constants=(),
                                  dim=dim)
         env = {"x": x, "X": x}
-        ev = lambda e: np.stack([ev(c) for c in e], axis=-1) if isinstance(e, list) else e.evaluate(np, env, n)
+        # nested lists -> [N, D] or [N, D, D]: entry [i][j] lands at [:, i, j]
+        ev = lambda e: np.stack([ev(c) for c in e], axis=1) if isinstance(e, list) else e.evaluate(np, env, n)
         a = ev(exprs)
     else:
         a = value
