@@ -51,7 +51,7 @@ def capabilities() -> list[dict]:
 
 
 def markdown(builtin_only: bool = False) -> str:
-    """The law x transfer x backend matrix and the boundary x backend table, as Markdown
+    """The law x transfer x backend matrix and the boundary, body-force field and observation tables, as Markdown
     (``builtin_only``: leave out plugins installed in this environment, as the README does)."""
     backends = registry.backends.names()
     transfers = _transfers(builtin_only)
@@ -91,6 +91,18 @@ def markdown(builtin_only: bool = False) -> str:
         cells += ["✓" if be in getattr(b, "implementations", {}) and be in getattr(b, "gradients", ()) else "–"
                   for be in backends]
         lines.append("| " + " | ".join([f"`{name}`"] + cells + [registry.boundaries.provenance(name)]) + " |")
+    # the fields of the body_force boundary (registry body_forces): JAX runs every field's evaluate; Warp
+    # (fast and tape path) the ones with a warp_func
+    lines += ["", "| body_force field | b of | " + " | ".join(backends) + f" | {grad_head} | from |",
+              "|---|---|" + "---|" * (2 * len(backends) + 1)]
+    for name in registry.body_forces.names():
+        if builtin_only and registry.body_forces.provenance(name) != "mpmlab":
+            continue
+        f = registry.body_forces.get(name)
+        runs = {"jax": True, "warp": getattr(f, "warp_func", None) is not None}
+        cells = ["✓" if runs.get(be, False) else "–" for be in backends] * 2
+        pos = getattr(f, "position_label", {"reference": "X (reference)", "current": "x (current)"}.get(f.position))
+        lines.append("| " + " | ".join([f"`{name}`", pos] + cells + [registry.body_forces.provenance(name)]) + " |")
     lines += ["", "| observation | " + " | ".join(backends) + f" | {grad_head} | from |",
               "|---|" + "---|" * (2 * len(backends) + 1)]
     for name in registry.observations.names():
