@@ -323,12 +323,35 @@ def describe_error(exc: BaseException) -> tuple[int, str]:
         return EXIT_CONFIG, f"invalid configuration: {_omegaconf_detail(exc)}; fix the value (`mpmlab --cfg job` shows the options)."
     if isinstance(exc, ValueError) and "can be specified" in str(exc):  # Hydra's flag conflicts
         return EXIT_CONFIG, f"{_first_line(str(exc))} (e.g. `mpmlab --cfg job scene=...`, without -m)."
+    if (lost := _lost_job_message(exc)) is not None:
+        return EXIT_INTERNAL, lost
     if isinstance(exc, OSError) and exc.filename:
         what = (exc.strerror or type(exc).__name__).lower()
         return EXIT_OUTPUT, (f"cannot write '{exc.filename}' ({what}); choose a writable output directory with "
                              f"hydra.run.dir=PATH (sweeps: hydra.sweep.dir=PATH).")
     return EXIT_INTERNAL, (f"internal error: {type(exc).__name__}: {_first_line(str(exc))} "
                            f"(run again with MPMLAB_DEBUG=1 for the traceback, and please report it).")
+
+
+def _lost_job_message(exc: BaseException) -> str | None:
+    """submitit's error for a sweep job that left no result, as one line: the job was killed (out of
+    memory, SIGKILL when its time limit's grace ran out) or failed outside the run (Hydra's job set-up).
+    submitit raises it at the first such job; the others go on."""
+    if not type(exc).__module__.startswith("submitit") or not isinstance(exc, RuntimeError):
+        return None
+    text = str(exc)
+    where = f"; every job's outcome: `mpmlab sweep-summary {_sweep_dir}`" if _sweep_dir is not None else ""
+    killed = re.search(r"Job (\S+) \(task: \d+\) with path (\S+)_result\.pkl\s+has not produced any output "
+                       r"\(state: ([^)]*)\)", text)
+    if killed:
+        job, stem, state = killed.groups()
+        return (f"sweep job {job} ended without a result (state {state}: killed, e.g. out of memory or past its "
+                f"time limit; the next run into its folder recovers its streamed frames); its log: "
+                f"{stem}_log.err{where} (the other jobs go on).")
+    lines = [l.strip() for l in text.split("-" * 22)[1].splitlines() if l.strip()] if "-" * 22 in text else []
+    log_path = re.search(r"paths:\s+- (\S+)", text)
+    return (f"a sweep job failed outside its run: {lines[-1] if lines else _first_line(text)}"
+            + (f"; its log: {log_path.group(1)}" if log_path else "") + f"{where} (the other jobs go on).")
 
 
 def _hydra_app():

@@ -46,6 +46,22 @@ def wait_until_idle(state_dir: Path, timeout: float = 60.0) -> dict[str, str]:
         time.sleep(0.2)
 
 
+def stop_all(state_dir: Path) -> None:
+    """Kill whatever the stand-in still runs (a test that failed half-way leaves no job behind): the
+    processes it recorded that still carry its FAKE_SLURM_DIR (a pid may have been reused since)."""
+    import psutil
+
+    if not state_dir.is_dir():
+        return
+    for pid_file in state_dir.glob("*.pid"):
+        try:
+            proc = psutil.Process(int(pid_file.read_text()))
+            if proc.environ().get("FAKE_SLURM_DIR") == str(state_dir):
+                proc.kill()
+        except (psutil.Error, ValueError):
+            pass
+
+
 def _state() -> Path:
     return Path(os.environ["FAKE_SLURM_DIR"])
 
@@ -57,8 +73,9 @@ def sbatch(script: str) -> None:
     kept.write_text(Path(script).read_text())
     log = open(state / f"{job_id}.array.log", "w")
     # the array runs on after sbatch returns, like a queued job
-    subprocess.Popen([sys.executable, __file__, "_array", str(kept), job_id], stdout=log, stderr=subprocess.STDOUT,
-                     start_new_session=True)
+    array = subprocess.Popen([sys.executable, __file__, "_array", str(kept), job_id], stdout=log,
+                             stderr=subprocess.STDOUT, start_new_session=True)
+    (state / f"{job_id}.array.pid").write_text(str(array.pid))
     print(f"Submitted batch job {job_id}", flush=True)
 
 
@@ -101,6 +118,7 @@ def _task(script: str, job_id: str, task: str) -> None:
 
     (state / name).write_text("RUNNING")
     proc = subprocess.Popen(["bash", script], env=env, stdout=log("output"), stderr=log("error"))
+    (state / f"{name}.batch.pid").write_text(str(proc.pid))
     limit = 60 * float(flags.get("time", "5"))
     sig_name, _, delay = flags.get("signal", "USR2@0").partition("@")
     warn_at, t0, warned, outcome = limit - float(delay), time.time(), False, None

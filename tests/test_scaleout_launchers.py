@@ -6,14 +6,14 @@
   in which job 1 diverges: the closing line and exit code are those of the local launchers, job 0's
   outputs are all there and read back, job 1 keeps its frames marked incomplete, ``jobs.jsonl`` and
   ``mpmlab sweep-summary`` see both.
-* The time limit: submitit's warning signal (SIGUSR2, ``signal_delay_s`` before ``timeout_min``) stops
-  the job like SIGTERM, its frames kept and marked, its summary "interrupted", and no requeue.
+
+The time limit and killed jobs: tests/test_scaleout_time_limits.py.
 """
 from __future__ import annotations
 
 import csv
 import json
-import signal
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -24,7 +24,6 @@ from mpmlab.cli import EXIT_DIVERGED, main
 
 from . import fake_slurm
 from .test_cli import OUTPUTS, error_lines
-from .test_run_endings import LONG, _temps
 
 SUBMITIT = "hydra_plugins.hydra_submitit_launcher"
 RAY = "hydra_plugins.hydra_ray_launcher"
@@ -36,8 +35,6 @@ SWEEP = ["scene=dam_break_2d", "scene.resolution=tiny", "scene.cfl_limit=100", "
 def mpmlab(args, cwd: Path, env: dict | None = None, timeout: float = 300) -> tuple[subprocess.CompletedProcess, int]:
     """``python -m mpmlab`` with this interpreter (the launcher plugins are those of its environment);
     returns the finished process and its pid (the sweep's own process)."""
-    import os
-
     proc = subprocess.Popen([sys.executable, "-m", "mpmlab", *args], cwd=cwd, env=dict(os.environ, **(env or {})),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -49,12 +46,18 @@ def mpmlab(args, cwd: Path, env: dict | None = None, timeout: float = 300) -> tu
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err), proc.pid
 
 
+@pytest.fixture(autouse=True)
+def _no_job_left_behind(tmp_path):
+    yield
+    fake_slurm.stop_all(tmp_path / "slurm")
+
+
 def _launcher(name: str, tmp_path: Path) -> tuple[list[str], dict]:
     """The overrides and environment that run a sweep through ``name``."""
     pytest.importorskip(RAY if name == "ray" else SUBMITIT, reason=f"install mpmlab[{'ray' if name == 'ray' else 'slurm'}]")
     if name == "slurm":
         return ["hydra/launcher=slurm"], fake_slurm.install(tmp_path / "bin", tmp_path / "slurm")
-    if name == "ray":   # a local instance of two CPUs, no dashboard (faster to start)
+    if name == "ray":   # a local instance of two CPUs, no dashboard (faster to start), no token in ~/.ray
         return ["hydra/launcher=ray", "+hydra.launcher.ray.init.num_cpus=2",
                 "+hydra.launcher.ray.init.include_dashboard=false"], {"RAY_AUTH_MODE": "disabled"}
     return [f"hydra/launcher={name}"], {}
@@ -113,41 +116,8 @@ def test_a_two_job_sweep_keeps_the_good_job_and_reports_the_diverged_one(tmp_pat
     assert rows[1]["particle_steps_per_second"] == "" and "diverged at step 4" in rows[1]["message"]
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("launcher", ["slurm", "submitit_local"])
-def test_the_time_limit_warning_stops_the_job_and_keeps_its_frames(tmp_path, launcher):
-    """timeout_min=1: SIGUSR2 signal_delay_s before it (Slurm's ``--signal``: 40 s, so 20 s after the job
-    starts; submitit's local controller: its fixed 30 s), SIGTERM at the limit. The job stops at the warning."""
-    from mpmlab.io.h5 import read_attrs, read_trajectory
-
-    overrides, env = _launcher(launcher, tmp_path)
-    if launcher == "slurm":
-        overrides.append("hydra.launcher.signal_delay_s=40")
-    sweep = tmp_path / "sweep"
-    proc, _ = mpmlab(["-m", *overrides, "hydra.launcher.timeout_min=1", *LONG, f"hydra.sweep.dir={sweep}"], tmp_path,
-                     env, timeout=180)
-    if launcher == "slurm":
-        assert "#SBATCH --signal=USR2@40\n" in (tmp_path / "slurm" / "4200.sbatch").read_text()
-        # ended by the job itself, before the limit's SIGTERM
-        assert fake_slurm.wait_until_idle(tmp_path / "slurm") == {"4200": "COMPLETED"}
-    assert proc.returncode == 128 + signal.SIGUSR2, proc.stderr[-3000:]
-    last = error_lines(proc.stderr)[-1]
-    assert last.startswith("mpmlab: error: 1 of 1 jobs failed (1 jobs: 1 interrupted); job 0 ("), last
-    assert "stopped by SIGUSR2 (the scheduler's warning before the job's time limit" in last
-    assert "marked incomplete" in last
-    run = sweep / "0"
-    assert _temps(run) == []
-    attrs = read_attrs(run / "trajectory.h5")
-    assert attrs["complete"] is False and "SIGUSR2" in attrs["error"], attrs
-    with pytest.warns(UserWarning, match="incomplete"):
-        traj = read_trajectory(run / "trajectory.h5")
-    assert traj.frame_count >= 2 and traj.step[-1] % 20 == 0
-    s = _summary(run)
-    assert s["status"] == "interrupted" and "SIGUSR2" in s["error"] and s["steps_done"] < 1_000_000
-    assert s["last_frame"]["step"] == int(traj.step[-1]) and s["frames"] == traj.frame_count
-    assert "run stopped by SIGUSR2" in (run / "mpmlab.log").read_text()
-    jobs = [json.loads(line) for line in (sweep / "jobs.jsonl").read_text().splitlines()]
-    assert [(j["job"], j["status"], j["exit_code"]) for j in jobs] == [(0, "interrupted", 128 + signal.SIGUSR2)]
-    # mpmlab's handler took the signal: submitit did not checkpoint and requeue the job to start over
-    logs = "".join(p.read_text() for p in (sweep / ".submitit").rglob("*_log.*"))
-    assert "Caught signal" not in logs and "requeue" not in logs.lower(), logs[-2000:]
+def test_a_launcher_that_is_not_installed_names_its_extra(tmp_path, capsys):
+    code = main(["-m", "hydra/launcher=nope", "steps=1", f"hydra.sweep.dir={tmp_path / 'sweep'}"])
+    (line,) = error_lines(capsys.readouterr().err)
+    assert code == 2 and "available options in 'hydra/launcher'" in line
+    assert "'mpmlab[slurm]' (slurm, submitit_local) or 'mpmlab[ray]' (ray)" in line, line

@@ -3,10 +3,11 @@
     mpmlab sweep-summary multirun/2026-12-06/10-00-00                       # wall_time_s per job
     mpmlab sweep-summary DIR --metric particle_steps_per_second --out report/
 
-Reads each job's ``summary.json`` (its numbers, its status, the overrides that made it) and the
+Reads each job's ``summary.json`` (its numbers, its status, the overrides that made it), the
 sweep's ``jobs.jsonl`` (how every job ended, also the ones that wrote no summary: refused, failed
-before their first step), finds the swept keys (the overrides whose value differs between jobs) and
-writes, next to the jobs unless ``--out`` says otherwise:
+before their first step) and its ``multirun.yaml`` (every job the sweep made, with its overrides, also
+the ones that left nothing), finds the swept keys (the overrides whose value differs between jobs)
+and writes, next to the jobs unless ``--out`` says otherwise:
 
 * ``sweep_summary.csv``: one row per job: job, status, the swept keys, the metric, then every number
   and word of its summary (nested entries as ``a.b``), its directory and its error message;
@@ -15,8 +16,8 @@ writes, next to the jobs unless ``--out`` says otherwise:
   line per combination of the other swept keys; a job without a value (diverged, failed, never
   ended) is a red cross on the x axis.
 
-A job folder with neither a summary nor a record is listed as ``no outcome`` (still running, or
-killed before it could record anything: out of memory, SIGKILL at a time limit).
+A job with neither a summary nor a record is listed as ``no outcome``: still running, killed before
+it could record anything (out of memory, SIGKILL at a time limit), or, without a folder, not started.
 """
 from __future__ import annotations
 
@@ -44,7 +45,7 @@ class Job:
     num: int | None
     dir: Path | None
     status: str
-    overrides: dict[str, str] = field(default_factory=dict)   # key -> value as typed on the command line
+    overrides: dict[str, str] = field(default_factory=dict)   # key -> value, as Hydra gave them to the job
     values: dict[str, object] = field(default_factory=dict)   # the flattened summary.json
     message: str = ""
 
@@ -62,6 +63,27 @@ def read_jobs(sweep_dir: Path) -> list[dict]:
             continue
         jobs[entry.get("job")] = entry
     return [jobs[k] for k in sorted(jobs, key=lambda k: (k is None, k))]
+
+
+def planned_overrides(sweep_dir: Path) -> list[list[str]]:
+    """Every job's overrides as Hydra's basic sweeper made them from the sweep's ``multirun.yaml`` (job
+    number = position): a job killed before it recorded anything, or never started, keeps its place
+    and its swept values. Empty for other sweepers or an unreadable file."""
+    try:
+        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+        from omegaconf import OmegaConf
+
+        hydra = OmegaConf.load(Path(sweep_dir) / "multirun.yaml").hydra
+        if not str(hydra.sweeper.get("_target_", "")).endswith("BasicSweeper"):
+            return []
+        params = hydra.sweeper.get("params") or {}
+        # what BasicSweeper.sweep does: the sweeper's params, then the command line's overrides
+        args = [f"{k}={v}" for k, v in params.items()] + list(hydra.overrides.task)
+        batches = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(args), None)
+        return [list(job) for batch in batches for job in batch]
+    except Exception:  # noqa: BLE001 - no plan: the jobs' own records still list them
+        return []
 
 
 def _parse_overrides(items) -> dict[str, str]:
@@ -98,13 +120,14 @@ def _read_summary(path: Path) -> dict | None:
 
 
 def gather(sweep_dir: str | Path) -> list[Job]:
-    """Every job of a multirun folder: the ones ``jobs.jsonl`` records and every sub-folder with a
-    ``summary.json`` or named by a job number."""
+    """Every job of a multirun folder: the ones ``multirun.yaml`` plans, the ones ``jobs.jsonl`` records
+    and every sub-folder with a ``summary.json`` or named by a job number."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise ConfigError(f"sweep-summary: '{sweep_dir}' is not a folder; give the multirun folder of a sweep "
                           f"(hydra.sweep.dir, e.g. multirun/<date>/<time>).")
     records = {r.get("job"): r for r in read_jobs(sweep_dir)}
+    planned = dict(enumerate(planned_overrides(sweep_dir)))
     dirs: dict[object, Path] = {}
     for num, record in records.items():
         if record.get("dir"):
@@ -118,16 +141,19 @@ def gather(sweep_dir: str | Path) -> list[Job]:
             continue   # recorded already, or not a job folder
         dirs.setdefault(int(sub.name) if sub.name.isdigit() else sub.name, sub)
     jobs = []
-    for num in sorted(set(dirs) | set(records), key=lambda k: (0, k, "") if isinstance(k, int) else (1, 0, str(k))):
+    for num in sorted(set(dirs) | set(records) | set(planned),
+                      key=lambda k: (0, k, "") if isinstance(k, int) else (1, 0, str(k))):
         record, folder = records.get(num, {}), dirs.get(num)
         summary = (_read_summary(folder / SUMMARY) if folder is not None else None) or {}
         # the record is the job's last word (a refused rerun leaves the earlier run's summary in place)
         status = record.get("status") or summary.get("status") or NO_OUTCOME
-        if status == NO_OUTCOME:
+        if status == NO_OUTCOME and folder is not None:
             message = f"no {SUMMARY} and no record in {JOBS_FILE}: still running, or killed (out of memory, SIGKILL)"
+        elif status == NO_OUTCOME:
+            message = "no folder: not started (still queued, or the sweep stopped before it)"
         else:
             message = record.get("message") or (summary.get("error") if status != "ok" else "") or ""
-        overrides = _parse_overrides(summary.get("overrides") or record.get("overrides"))
+        overrides = _parse_overrides(summary.get("overrides") or record.get("overrides") or planned.get(num))
         jobs.append(Job(num if isinstance(num, int) else None, folder, str(status), overrides, _flatten(summary),
                         str(message)))
     if not jobs and (sweep_dir / SUMMARY).is_file():
@@ -214,7 +240,7 @@ def tally(jobs: list[Job]) -> str:
 
 
 def to_markdown(jobs: list[Job], keys: list[str], metric: str, sweep_dir: Path) -> str:
-    columns = ["job", "status", *keys, metric, "message"]
+    columns = ["job", "status", *keys, metric] + (["message"] if any(job.message for job in jobs) else [])
     lines = [f"Sweep `{sweep_dir}`: {len(jobs)} jobs ({tally(jobs)}); swept: {', '.join(keys) or 'nothing'}.", "",
              "| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
     for job in jobs:
