@@ -348,6 +348,7 @@ def _lost_job_message(exc: BaseException) -> str | None:
         return (f"sweep job {job} ended without a result (state {state}: killed, e.g. out of memory or past its "
                 f"time limit; the next run into its folder recovers its streamed frames); its log: "
                 f"{stem}_log.err{where} (the other jobs go on).")
+    # FailedJobError: the job's traceback between two rules of 22 dashes; its last line says what failed
     lines = [l.strip() for l in text.split("-" * 22)[1].splitlines() if l.strip()] if "-" * 22 in text else []
     log_path = re.search(r"paths:\s+- (\S+)", text)
     return (f"a sweep job failed outside its run: {lines[-1] if lines else _first_line(text)}"

@@ -121,3 +121,26 @@ def test_a_launcher_that_is_not_installed_names_its_extra(tmp_path, capsys):
     (line,) = error_lines(capsys.readouterr().err)
     assert code == 2 and "available options in 'hydra/launcher'" in line
     assert "'mpmlab[slurm]' (slurm, submitit_local) or 'mpmlab[ray]' (ray)" in line, line
+
+
+def test_a_submitit_job_that_failed_outside_its_run_reads_as_one_line(monkeypatch):
+    """What submitit raises for a job that left no result (the SIGKILL case runs for real in
+    test_scaleout_time_limits.py); not an "internal error, please report it"."""
+    from mpmlab import cli
+    from mpmlab.cli import describe_error
+
+    monkeypatch.setattr(cli, "_sweep_dir", None)   # no sweep of this process to point at
+    utils = pytest.importorskip("submitit.core.utils")
+    failed = utils.FailedJobError(
+        "Job (task=0) failed during processing with trace:\n----------------------\nTraceback (most recent call "
+        "last):\n  File \"x.py\", line 1\nAttributeError: Can't get attribute 'MpmlabConfig'\n"
+        "----------------------\nYou can check full logs with 'job.stderr(0)' and 'job.stdout(0)'or at paths:\n"
+        "  - /s/.submitit/7_0/7_0_0_log.err\n  - /s/.submitit/7_0/7_0_0_log.out")
+    assert describe_error(failed) == (1, "a sweep job failed outside its run: AttributeError: Can't get attribute "
+                                         "'MpmlabConfig'; its log: /s/.submitit/7_0/7_0_0_log.err (the other jobs go on).")
+    killed = utils.UncompletedJobError("Job 7_1 (task: 0) with path /s/.submitit/7_1/7_1_0_result.pkl\nhas not "
+                                       "produced any output (state: OUT_OF_MEMORY)\nError stream produced:\n----\nx")
+    code, line = describe_error(killed)
+    assert code == 1 and line.startswith("sweep job 7_1 ended without a result (state OUT_OF_MEMORY: killed")
+    assert "its log: /s/.submitit/7_1/7_1_0_log.err (the other jobs go on)." in line
+
