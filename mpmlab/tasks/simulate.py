@@ -123,7 +123,8 @@ def run(cfg, ctx) -> dict:
         from ..core.registry import backends
 
         # before anything is written: more devices than this machine has is refused here
-        options["devices"] = backends.get(backend).check_devices(cfg.backend.devices)
+        sizes = [g.count for g in scene.particles().groups]
+        options["devices"] = backends.get(backend).check_devices(cfg.backend.devices, sizes)
     if cfg.debug and hasattr(backend_cls, "debug_output"):
         backend_cls.debug_output()      # e.g. Warp's module compile/load lines (quiet by default)
 

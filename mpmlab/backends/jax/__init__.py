@@ -14,11 +14,13 @@ class JaxBackend(AbstractBackend):
     device_note = "JAX picks its device itself (JAX_PLATFORMS=cpu|cuda)."
 
     @staticmethod
-    def check_devices(devices) -> int:
-        """``devices`` if this machine has that many JAX devices, else ``ConfigError`` (one line)."""
+    def check_devices(devices, group_sizes=()) -> int:
+        """``devices`` if this machine has that many JAX devices, else ``ConfigError`` (one line);
+        ``group_sizes``: the particles per material group (on forced host devices they size XLA's CPU
+        thread pool, ``sharding.cpu_threads_needed``)."""
         from .sharding import check_devices
 
-        return check_devices(devices)
+        return check_devices(devices, group_sizes)
 
     def build(self, scene, transfer, precision="fp32", devices=None, **options):
         if devices is not None and devices != 1:

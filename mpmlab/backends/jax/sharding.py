@@ -24,6 +24,8 @@ scene order (``differentiable.split_controls`` calls ``to_layout``; observations
 """
 from __future__ import annotations
 
+import logging
+import os
 from functools import cached_property
 
 import jax
@@ -35,15 +37,51 @@ from jax.sharding import PartitionSpec as P
 from ...core.errors import ConfigError
 from .stepper import JaxStepper
 
+log = logging.getLogger("mpmlab")
 AXIS = "p"
 FORCE_FLAG = "--xla_force_host_platform_device_count"
+POOL_ENV = ("PJRT_NPROC", "NPROC")       # what XLA's CPU client sizes its thread pool by (else the cores)
 
 
-def check_devices(devices) -> int:
-    """The number of devices to shard over; ``ConfigError`` (one sentence) for an impossible request."""
+def cpu_pool_threads() -> int:
+    """The threads of XLA's CPU thread pool (read by the CPU client when JAX starts)."""
+    for key in POOL_ENV:
+        if os.environ.get(key, "").isdigit():
+            return int(os.environ[key])
+    return len(os.sched_getaffinity(0))
+
+
+#: a batched LAPACK call on fewer matrices than this runs in its own thread (jaxlib splits a batch only
+#: when it holds >= 2e5 FLOP: >= ~1000 3x3 SVDs; a margin below that)
+SPLIT_MIN = 256
+_WARNED: set = set()
+
+
+def cpu_threads_needed(devices: int, group_sizes=()) -> int:
+    """Forced host devices share one thread pool. jaxlib's batched LAPACK calls (the SVD of the F-based
+    laws) split a large batch into tasks on that pool and block their thread until the tasks are done;
+    when every thread of the pool is so blocked (each device can run one such call per material group
+    at once) nothing runs the tasks: a deadlock (seen: 2 devices on a 2-thread pool, 33k particles per
+    device). One thread more than the calls that can wait at once prevents it."""
+    large = sum(1 for c in group_sizes if -(-c // devices) >= SPLIT_MIN)
+    return devices * large + 1
+
+
+def check_devices(devices, group_sizes=()) -> int:
+    """The number of devices to shard over; ``ConfigError`` (one sentence) for an impossible request.
+
+    On forced host devices, before JAX's CPU client exists, it sizes the client's thread pool
+    (``PJRT_NPROC``, unless set) to :func:`cpu_threads_needed`; afterwards it can only warn."""
     if isinstance(devices, bool) or not isinstance(devices, (int, np.integer)) or devices < 1:
         raise ConfigError(f"backend.devices = {devices!r} must be a whole number >= 1 (1: one device, "
                           f"as without it).")
+    need = cpu_threads_needed(int(devices), group_sizes)
+    from jax._src import xla_bridge
+
+    started = bool(getattr(xla_bridge, "_backends", None))
+    if (FORCE_FLAG in os.environ.get("XLA_FLAGS", "") and not started and cpu_pool_threads() < need
+            and not any(k in os.environ for k in POOL_ENV)):
+        os.environ["PJRT_NPROC"] = str(need)
     found = jax.devices()
     if devices > len(found):
         kind = found[0].platform
@@ -51,6 +89,11 @@ def check_devices(devices) -> int:
                 f"host devices" if kind == "cpu" else f"use a machine with {devices} {kind.upper()} devices")
         raise ConfigError(f"backend.devices = {devices} but JAX sees {len(found)} {kind} device(s); "
                           f"{hint}, or set backend.devices <= {len(found)}.")
+    if devices > 1 and found[0].platform == "cpu" and cpu_pool_threads() < need and need not in _WARNED:
+        _WARNED.add(need)
+        log.warning("backend.devices = %d: XLA's CPU thread pool has %d threads, fewer than the %d that keep "
+                    "batched LAPACK calls (the laws' SVDs) from deadlocking on %d host devices; start Python "
+                    "with PJRT_NPROC=%d.", devices, cpu_pool_threads(), need, devices, need)
     return int(devices)
 
 
@@ -58,7 +101,7 @@ class ShardedJaxStepper(JaxStepper):
     """``JaxStepper`` whose particles are split over ``devices`` devices (the module docstring)."""
 
     def __init__(self, scene, transfer, precision="fp32", check_every=None, devices=2):
-        n = check_devices(devices)
+        n = check_devices(devices, [g.count for g in scene.particles().groups])
         by_index = [b.name for b in scene.boundaries if b.stage != "grid"]
         if by_index:
             raise ConfigError(f"backend.devices = {n}: boundary '{by_index[0]}' acts on particles by index, "
