@@ -55,6 +55,25 @@ def test_sharded_gradients_match_one_device(report):
     assert max(g.values()) <= GRADIENT_TOL, g
 
 
+def test_cpu_thread_pool_is_sized_before_jax_starts():
+    """Forced host devices share XLA's CPU pool; jaxlib's batched SVD can deadlock it (sharding.py):
+    before JAX starts, 3 devices x 1 group of >= 256 particles per device ask for 4 threads."""
+    code = ("import os; from mpmlab.backends.jax.sharding import check_devices; "
+            "check_devices(3, [3000, 10]); print(os.environ.get('PJRT_NPROC'))")
+    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={DEVICES}", JAX_PLATFORMS="cpu")
+    for key in ("PJRT_NPROC", "NPROC"):
+        env.pop(key, None)
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.split()[-1] == "4", proc.stdout + proc.stderr[-2000:]
+
+
+def test_threads_needed():
+    from mpmlab.backends.jax.sharding import cpu_threads_needed
+
+    assert cpu_threads_needed(2, [62720, 3648]) == 5       # jelly_pool_drop fine: both groups split
+    assert cpu_threads_needed(3, [16, 12]) == 1            # small blocks: jaxlib never splits them
+
+
 @pytest.mark.slow
 def test_cli_runs_sharded(report):
     """`mpmlab backend.devices=3` (jelly_pool_drop tiny: dt: auto, two materials, walls) = one device."""
