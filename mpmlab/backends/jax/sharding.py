@@ -111,7 +111,6 @@ class ShardedJaxStepper(JaxStepper):
         self.devices = n
         self.mesh = Mesh(np.array(jax.devices()[:n]), (AXIS,))
         self._rows = NamedSharding(self.mesh, P(AXIS))
-        self._same = NamedSharding(self.mesh, P())
         counts = [g.count for g in self.groups]
         block = [-(-c // n) for c in counts]                     # a group's rows per device
         edges = np.cumsum([0] + block)
