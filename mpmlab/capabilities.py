@@ -81,38 +81,31 @@ def markdown(builtin_only: bool = False) -> str:
                                         cons + " momentum" if cons != "–" else cons, *cells,
                                         registry.transfers.provenance(name)]) + " |")
     grad_head = " | ".join(f"{b} gradient" for b in backends)
-    lines += ["", "| boundary | " + " | ".join(backends) + f" | {grad_head} | from |",
-              "|---|" + "---|" * (2 * len(backends) + 1)]
-    for name in registry.boundaries.names():
-        if builtin_only and registry.boundaries.provenance(name) != "mpmlab":
-            continue
-        b = registry.boundaries.get(name)
-        cells = ["✓" if be in getattr(b, "implementations", {}) else "–" for be in backends]
-        cells += ["✓" if be in getattr(b, "implementations", {}) and be in getattr(b, "gradients", ()) else "–"
-                  for be in backends]
-        lines.append("| " + " | ".join([f"`{name}`"] + cells + [registry.boundaries.provenance(name)]) + " |")
-    # the fields of the body_force boundary (registry body_forces): JAX runs every field's evaluate; Warp
-    # (fast and tape path) the ones with a warp_func
-    lines += ["", "| body_force field | b of | " + " | ".join(backends) + f" | {grad_head} | from |",
-              "|---|---|" + "---|" * (2 * len(backends) + 1)]
-    for name in registry.body_forces.names():
-        if builtin_only and registry.body_forces.provenance(name) != "mpmlab":
-            continue
-        f = registry.body_forces.get(name)
-        runs = {"jax": True, "warp": getattr(f, "warp_func", None) is not None}
-        cells = ["✓" if runs.get(be, False) else "–" for be in backends] * 2
+
+    def plugin_table(reg, title: str, extra_heads: tuple, row) -> None:
+        """One table of a plugin registry: name, ``row(plugin) -> (extra cells, run cells, gradient cells)``,
+        provenance (built-ins only when ``builtin_only``)."""
+        lines.extend(["", f"| {title} | " + "".join(f"{h} | " for h in extra_heads) + " | ".join(backends)
+                      + f" | {grad_head} | from |", "|---|" + "---|" * (len(extra_heads) + 2 * len(backends) + 1)])
+        for name in reg.names():
+            if builtin_only and reg.provenance(name) != "mpmlab":
+                continue
+            extra, runs, grads = row(reg.get(name))
+            cells = ["✓" if be in runs else "–" for be in backends] + ["✓" if be in grads else "–" for be in backends]
+            lines.append("| " + " | ".join([f"`{name}`", *extra, *cells, reg.provenance(name)]) + " |")
+
+    def implemented(plugin):                # boundaries, observations: per-backend implementations and gradients
+        impl = getattr(plugin, "implementations", {})
+        return (), set(impl), {be for be in impl if be in getattr(plugin, "gradients", ())}
+
+    def field_row(f):                       # body_force fields: JAX runs every field's evaluate; Warp (fast and
+        runs = {"jax"} | ({"warp"} if getattr(f, "warp_func", None) is not None else set())  # tape) a warp_func
         pos = getattr(f, "position_label", {"reference": "X (reference)", "current": "x (current)"}.get(f.position))
-        lines.append("| " + " | ".join([f"`{name}`", pos] + cells + [registry.body_forces.provenance(name)]) + " |")
-    lines += ["", "| observation | " + " | ".join(backends) + f" | {grad_head} | from |",
-              "|---|" + "---|" * (2 * len(backends) + 1)]
-    for name in registry.observations.names():
-        if builtin_only and registry.observations.provenance(name) != "mpmlab":
-            continue
-        o = registry.observations.get(name)
-        cells = ["✓" if be in getattr(o, "implementations", {}) else "–" for be in backends]
-        cells += ["✓" if be in getattr(o, "implementations", {}) and be in getattr(o, "gradients", ()) else "–"
-                  for be in backends]
-        lines.append("| " + " | ".join([f"`{name}`"] + cells + [registry.observations.provenance(name)]) + " |")
+        return (pos,), runs, runs
+
+    plugin_table(registry.boundaries, "boundary", (), implemented)
+    plugin_table(registry.body_forces, "body_force field", ("b of",), field_row)
+    plugin_table(registry.observations, "observation", (), implemented)
     # the deformation-map reduced model (mpmlab.rom): its quadratures per backend, linear and nonlinear projection
     from .rom.stepper import CAPABILITIES as ROM
 
