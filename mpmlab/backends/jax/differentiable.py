@@ -31,7 +31,7 @@ def controls(stepper) -> dict[str, Any]:
     scene_order = [None] * len(stepper._bc_order)
     for k, i in enumerate(stepper._bc_order):
         scene_order[i] = prm["boundary"][k]
-    law_state = stepper.to_scene_order(stepper.init())["law"]   # the rest state (F = I, J = 1, ...)
+    law_state = stepper.to_scene_order(stepper.init())["law"]   # the initial state (the bodies' F)
     out = {"x": jnp.asarray(P.x, dt), "v": jnp.asarray(P.v, dt), "law": prm["law"], "law_weights": prm["law_weights"],
            "law_state": law_state, "boundary": tuple(scene_order),
            "gravity": prm["gravity"], "mass": prm["mass"], "volume": prm["volume"]}
@@ -46,7 +46,8 @@ REQUIRED = ("x", "v", "law", "boundary", "gravity", "mass", "volume")
 def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
     """(initial state, step parameters) from controls, in the layout ``stepper.step_fn`` works on (a
     sharded stepper's: ``to_layout``). ``law_state`` and ``C`` are optional: without them the rollout
-    starts at rest (F = I, J = 1, ..., C = 0); ``law_weights`` defaults to the laws' own weights."""
+    starts from the scene's initial state (the bodies' F and C; F = I, J = 1, C = 0 by default);
+    ``law_weights`` defaults to the laws' own weights."""
     missing = set(REQUIRED) - set(c)
     if missing:
         raise ConfigError(f"controls lack {sorted(missing)}; start from stepper.controls() and replace entries.")
