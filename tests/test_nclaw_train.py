@@ -261,3 +261,24 @@ def test_jax_tracking_loss_of_fixed_pieces_equals_one_program_per_length(truth):
         for n in NAMES:
             x, y = ops.numpy(ga[n]), ops.numpy(gb[n])
             assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y)), (L, n)
+
+
+def test_a_stopped_fit_says_how_far_it_got_and_what_it_kept(truth, tmp_path):
+    """A stop signal mid-fit (here raised from on_epoch in the second epoch) carries the epoch reached and
+    the checkpoint kept into the CLI's closing line, instead of the 'nothing was written' of a run stopped
+    before its first step (seen on a 120-epoch nclaw_train killed by SIGTERM)."""
+    from mpmlab.cli import describe_error
+
+    ck = tmp_path / "ck.pkl"
+    fit = make_fit("jax", truth, steps=20, epochs=3, period=5.0)
+    opt, sch = fit.optimizer(NETS)
+
+    def stop_in_second_epoch(epoch, loss, values):
+        if epoch == 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt) as info:
+        fit.run(3, opt, sch, progress=False, checkpoint=ck, checkpoint_every=1, on_epoch=stop_in_second_epoch)
+    assert info.value.mpmlab_detail.startswith("at epoch 2 of 3; ck.pkl keeps the last checkpointed epoch")
+    code, line = describe_error(info.value)
+    assert code == 130 and "at epoch 2 of 3" in line and "rerun the same command to resume" in line, line

@@ -187,12 +187,24 @@ class Fit:
             self.make_reference()
         from .lm import LevenbergMarquardt
 
-        if isinstance(optimizer_cfg, LevenbergMarquardt):
-            return self._run_lm(epochs, optimizer_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
-                                tolerance)
-        return self._run_gradient(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume, progress,
-                                  on_epoch, tolerance, on_checkpoint, stop,
-                                  max_backoffs if on_divergence == "backoff" else 0)
+        try:
+            if isinstance(optimizer_cfg, LevenbergMarquardt):
+                return self._run_lm(epochs, optimizer_cfg, checkpoint, checkpoint_every, resume, progress, on_epoch,
+                                    tolerance)
+            return self._run_gradient(epochs, optimizer_cfg, schedule_cfg, checkpoint, checkpoint_every, resume,
+                                      progress, on_epoch, tolerance, on_checkpoint, stop,
+                                      max_backoffs if on_divergence == "backoff" else 0)
+        except KeyboardInterrupt as stopped:
+            # a stop signal mid-fit: say how far it got and what was kept (without this detail the CLI reads
+            # it as a run stopped before its first step, "nothing was written", beside a checkpoint of hours)
+            if not hasattr(stopped, "mpmlab_detail"):
+                kept = (f"; {Path(checkpoint).name} keeps the last checkpointed epoch: rerun the same command to "
+                        f"resume" if checkpoint is not None and Path(checkpoint).exists() else "")
+                stopped.mpmlab_detail = f"at epoch {self.epoch} of {epochs}{kept}"
+                from ..core.signals import stop_reason
+
+                log.warning("fit %s %s.", stop_reason(stopped), stopped.mpmlab_detail)
+            raise
 
     def _bar(self, epochs, progress):
         """The progress bar, once the checkpoint (if any) is loaded; a resume is said in the run's log."""
