@@ -38,6 +38,16 @@ Scene: the 2D Ritter dam break (``mpmlab.scenes.validation.ritter_dam_break``, `
   ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=`` (XLA CPU's YNNPACK fusions off): on jaxlib
   0.10 they turn the small reductions of the step's transpose into slow library calls (README).
   ``--jax-variant-flags ''`` skips it.
+* **JAX elastic step, SVD before / after** (issue 17; ``--elastic-only`` runs this part alone). The 3D
+  fixed-corotated cube of ``stage_profile.py`` (``elastic_cube``, n_grid 32, 7600 particles, MLS, fp32),
+  one process: the JAX step traced with the parent commit's SVD (``jnp.linalg.svd``, one LAPACK call per
+  particle; ``mpmlab.backends.jax.linalg.svd_impl("lapack")``) and with the branch-free Jacobi SVD that
+  replaced it, and Warp's step (default threads and one thread). ``--elastic-rounds`` interleaved rounds
+  of ``stepper._advance(state, --elastic-steps)`` (best and median ms per step), then the gradient of
+  sum(x^2) after ``--elastic-grad-steps`` steps w.r.t. (v0, E, nu) for each (JAX: ``value_and_grad``, no
+  recomputation; Warp: torch autograd), medians of ``--reps`` alternating repeats. The positions after
+  the timed steps of the two JAX variants are compared (they differ by fp32 round-off only). Output:
+  ``benchmarks/results/elastic_step.json`` and the README section "JAX elastic step: the SVD".
 * The parent process never imports JAX, Warp or torch: Linux carries a process's ``ru_maxrss``
   high-water mark into its children (fork/vfork + execve), so a heavy parent would raise every
   child's baseline above what the child itself reaches.
@@ -51,6 +61,8 @@ Usage::
     python benchmarks/gradients.py --quick             # small sizes, a smoke run
     python benchmarks/gradients.py --N 400 --segments 10,20,50,100,400 --scaling-N 100,200,400,800
     python benchmarks/gradients.py --render            # README table and plot from the JSON only
+    python benchmarks/gradients.py --elastic-only      # the JAX elastic step, SVD before / after (~2 min)
+    python benchmarks/gradients.py --elastic-only --render
 """
 from __future__ import annotations
 
@@ -444,7 +456,99 @@ def worker_info(spec):
             "grid": list(st.scene.grid_shape), "dt": float(st.dt)}
 
 
-WORKERS = {"info": worker_info, "compile": worker_compile, "warm": worker_warm, "measure": worker_measure, "breakdown": worker_breakdown}
+# ---- the JAX elastic step: the SVD before / after (issue 17) -----------------------------------------------
+ELASTIC_RESULT = H.RESULTS / "elastic_step.json"
+#: (label, backend, JAX SVD implementation, Warp threads); None: mpmlab's default (one thread per 4096
+#: particles, as in stage_profile.py's 5.4 ms)
+ELASTIC_VARIANTS = (("jax, jnp.linalg.svd (parent commit)", "jax", "lapack", None),
+                    ("jax, Jacobi SVD", "jax", "jacobi", None),
+                    ("warp", "warp", None, None),
+                    ("warp, all cores", "warp", None, len(os.sched_getaffinity(0))))
+
+
+def worker_elastic(spec):
+    """Every variant of ELASTIC_VARIANTS in this one process: step time in interleaved rounds, then the
+    gradient through ``grad_steps`` steps (module docstring)."""
+    import contextlib
+
+    import jax
+    import jax.numpy as jnp
+    import mpmlab
+    from mpmlab.backends.jax import linalg
+    from mpmlab.observations import Lagrangian
+
+    H.quiet_warp(None)
+    svd = lambda impl: linalg.svd_impl(impl) if impl else contextlib.nullcontext()
+    steps, N = spec["steps"], spec["grad_steps"]
+    obs = Lagrangian(quantity="x")
+    runs = []
+    for label, backend, impl, threads in ELASTIC_VARIANTS:
+        # every call of a JAX variant runs under its SVD: the switch is read when a program is traced
+        opts = {} if threads is None else {"threads": threads}
+        with svd(impl):
+            st = mpmlab.build_stepper(H.throughput_scene("cube", 3, spec["n_grid"]), backend, "mls",
+                                      spec["precision"], **opts)
+            t0 = time.perf_counter()
+            s0 = st.init()
+            st._block(st._advance(s0, steps))
+            first = time.perf_counter() - t0
+        runs.append({"label": label, "backend": backend, "svd": impl, "st": st, "s0": s0, "step_s": [],
+                     "first_s": first, "threads": getattr(st, "threads", None) if backend == "warp" else None})
+    for _ in range(spec["rounds"]):
+        for r in runs:
+            with svd(r["svd"]):
+                t0 = time.perf_counter()
+                out = r["st"]._advance(r["s0"], steps)
+                r["st"]._block(out)
+                r["step_s"].append((time.perf_counter() - t0) / steps)
+            r["x"] = np.asarray(r["st"].to_numpy(out)["x"], float)
+    for r in runs:
+        with svd(r["svd"]):
+            st = r["st"]
+            if r["backend"] == "jax":
+                c = st.controls()
+                p = (c["v"], c["law"])
+
+                def loss(p, c, st=st):
+                    y = st.observe({**c, "v": p[0], "law": p[1]}, obs, steps=[N], segment=N)
+                    return jnp.sum(y * y)
+
+                fwd_c, grad_c = jax.jit(loss), jax.jit(jax.value_and_grad(loss))
+                t0 = time.perf_counter()
+                fwd_c, grad_c = fwd_c.lower(p, c).compile(), grad_c.lower(p, c).compile()
+                r["grad_compile_s"] = time.perf_counter() - t0
+                r["fwd"] = lambda f=fwd_c, p=p, c=c: float(f(p, c))
+                r["grad"] = lambda g=grad_c, p=p, c=c: jax.block_until_ready(g(p, c))
+            else:
+                r["fwd"], r["grad"] = warp_fns(st, N, N)
+            t0 = time.perf_counter()
+            out = r["grad"]()
+            r["grad_first_s"] = time.perf_counter() - t0
+            leaves = list(_leaves(out[1:] if r["backend"] == "warp" else out[1]))
+            r["grad_finite"] = bool(all(np.all(np.isfinite(np.asarray(a))) for a in leaves))
+            r["fwd_s"], r["grad_s"] = [], []
+    for _ in range(spec["reps"]):
+        for r in runs:
+            with svd(r["svd"]):
+                for key in ("fwd", "grad"):
+                    t0 = time.perf_counter()
+                    r[key]()
+                    r[f"{key}_s"].append(time.perf_counter() - t0)
+    jx = [r for r in runs if r["backend"] == "jax"]
+    extent = float(np.abs(jx[0]["x"]).max())
+    rows = []
+    for r in runs:
+        rows.append({k: r[k] for k in ("label", "backend", "svd", "threads", "first_s", "step_s", "grad_compile_s",
+                                       "grad_first_s", "grad_finite", "fwd_s", "grad_s") if k in r})
+        rows[-1].update(step_ms_best=1e3 * min(r["step_s"]), step_ms_median=1e3 * float(np.median(r["step_s"])),
+                        grad_fwd_s=float(np.median(r["fwd_s"])), grad_total_s=float(np.median(r["grad_s"])))
+        rows[-1]["x_vs_first_jax"] = float(np.abs(r["x"] - jx[0]["x"]).max()) / extent
+    return {"particles": int(runs[0]["st"].particles.count), "rows": rows,
+            "machine": H.machine_info(("jax", "warp", "torch"))}
+
+
+WORKERS = {"info": worker_info, "compile": worker_compile, "warm": worker_warm, "measure": worker_measure,
+           "breakdown": worker_breakdown, "elastic": worker_elastic}
 
 
 def run_worker(kind, spec, log, timeout=900):
@@ -577,6 +681,65 @@ def tables(res) -> str:
     return "\n".join(L) + "\n"
 
 
+def git_commit() -> str:
+    """HEAD's short hash, with '+' when tracked files differ from it (the measured code is then HEAD + edits)."""
+    def git(*a):
+        return subprocess.run(["git", "-C", str(H.ROOT), *a], capture_output=True, text=True).stdout.strip()
+    return git("rev-parse", "--short", "HEAD") + ("+" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+def run_elastic(args, log) -> dict:
+    if args.quick:
+        args.elastic_steps, args.elastic_rounds, args.elastic_grad_steps = 20, 2, 5
+    spec = {"n_grid": args.elastic_n_grid, "precision": "fp32", "steps": args.elastic_steps,
+            "rounds": args.elastic_rounds, "grad_steps": args.elastic_grad_steps, "reps": args.reps}
+    load_before, t0 = H.load_average(), time.perf_counter()
+    log(f"elastic step: {len(ELASTIC_VARIANTS)} variants, {spec['rounds']} rounds of {spec['steps']} steps, "
+        f"gradients through {spec['grad_steps']} steps")
+    res = run_worker("elastic", spec, log, timeout=1800)
+    res["machine"].update(load_before=load_before, load_after=H.load_average())
+    res.update(date=time.strftime("%Y-%m-%d %H:%M"), commit=git_commit(), spec=spec, total_s=time.perf_counter() - t0)
+    for r in res["rows"]:
+        log(f"  {r['label']}: {r['step_ms_best']:.2f} ms/step (median {r['step_ms_median']:.2f}), gradient "
+            f"{r['grad_total_s']:.3f} s vs forward {r['grad_fwd_s']:.3f} s")
+    return res
+
+
+def elastic_tables(e) -> str:
+    m, sp = e["machine"], e["spec"]
+    rows = {r["label"]: r for r in e["rows"]}
+    lapack, jacobi = (next(r for r in e["rows"] if r.get("svd") == k) for k in ("lapack", "jacobi"))
+    warp = next(r for r in e["rows"] if r["backend"] == "warp" and r["label"] == "warp")
+    L = [f"Measured {e['date']} at commit {e['commit']} on {m['cpu']} ({m['cores']} cores, shared; load average "
+         f"{m['load_before']} before the run, {m['load_after']} after), JAX {m['jax']} (XLA's own threads), "
+         f"Warp {m['warp']}. Regenerate with `python benchmarks/gradients.py --elastic-only` (method in its "
+         "docstring; raw numbers in `benchmarks/results/elastic_step.json`).\n",
+         f"Scene: the 3D fixed-corotated elastic cube of `stage_profile.py` (`elastic_cube`, n_grid "
+         f"{sp['n_grid']}, {e['particles']} particles), MLS, {sp['precision']}. *step* = `stepper._advance(state, "
+         f"{sp['steps']})` per step, best and median of {sp['rounds']} interleaved rounds in one process; "
+         f"*gradient* = loss and gradient of sum(x^2) after {sp['grad_steps']} steps w.r.t. (v0, E, nu) (JAX: "
+         "`value_and_grad` of `observe`, no recomputation; Warp: torch autograd), median of "
+         f"{sp['reps']}, against the same forward alone; *x vs parent* = max |x - x_parent| / max |x| after "
+         f"{sp['steps']} steps.\n"]
+    L += H.md_table(["variant", "step best (ms)", "step median (ms)", "vs Warp (best)", "first call (s)",
+                     f"gradient, {sp['grad_steps']} steps (s)", "forward (s)", "ratio", "x vs parent"])
+    for lab, r in rows.items():
+        thr = f" ({r['threads']} thr)" if r.get("threads") else ""
+        L.append(H.md_row([lab + thr, f"{r['step_ms_best']:.2f}", f"{r['step_ms_median']:.2f}",
+                           f"{r['step_ms_best'] / warp['step_ms_best']:.2f}x", f"{r['first_s']:.1f}",
+                           f"{r['grad_total_s']:.3f}", f"{r['grad_fwd_s']:.3f}",
+                           f"{r['grad_total_s'] / r['grad_fwd_s']:.1f}x", f"{r['x_vs_first_jax']:.1e}"]))
+    ratio = jacobi["step_ms_best"] / warp["step_ms_best"]
+    L.append(f"\n**Summary** (generated): the Jacobi SVD makes the JAX step "
+             f"{lapack['step_ms_best'] / jacobi['step_ms_best']:.1f}x faster than with `jnp.linalg.svd` "
+             f"({lapack['step_ms_best']:.2f} -> {jacobi['step_ms_best']:.2f} ms) and its gradient through "
+             f"{sp['grad_steps']} steps {lapack['grad_total_s'] / jacobi['grad_total_s']:.1f}x "
+             f"({lapack['grad_total_s']:.3f} -> {jacobi['grad_total_s']:.3f} s); JAX / Warp = {ratio:.2f} "
+             f"(Warp {warp['step_ms_best']:.2f} ms, default threads): target JAX <= 1.5x Warp "
+             + ("**met**." if ratio <= 1.5 else "**not met**."))
+    return "\n".join(L) + "\n"
+
+
 def write_readme(path: Path, body: str, title="Gradients: memory and time", name="gradients"):
     H.write_readme_section(path, name, title, body)
 
@@ -665,6 +828,13 @@ def main(argv=None):
     ap.add_argument("--merge", action="store_true",
                     help="keep the rows of variants not run now from the existing --out JSON (e.g. --backends warp)")
     ap.add_argument("--render", action="store_true", help="only rewrite the README section and plot from --out")
+    ap.add_argument("--elastic-only", action="store_true",
+                    help="only the JAX elastic step, SVD before / after (with --render: its README section from its JSON)")
+    ap.add_argument("--no-elastic", action="store_true", help="skip the JAX elastic step")
+    ap.add_argument("--elastic-n-grid", type=int, default=32)
+    ap.add_argument("--elastic-steps", type=int, default=100, help="steps per timed round of the elastic step")
+    ap.add_argument("--elastic-rounds", type=int, default=5)
+    ap.add_argument("--elastic-grad-steps", type=int, default=20, help="steps of the elastic step's gradient")
     ap.add_argument("--out", default=str(H.OUT / "gradients.json"))
     ap.add_argument("--plot", default=str(H.OUT / "gradients.png"))
     H.add_readme(ap)
@@ -679,6 +849,11 @@ def main(argv=None):
 
     log = lambda *a: H.log(*a, err=True)
     out = Path(args.out)
+    if args.elastic_only:
+        e = H.read_json(ELASTIC_RESULT) if args.render else run_elastic(args, log)
+        if not args.render:
+            H.write_json(ELASTIC_RESULT, e)
+        return report_elastic(e, args)
     if args.render:
         res = json.loads(out.read_text())
         return report(res, args)
@@ -746,7 +921,19 @@ def main(argv=None):
         res["date"] = f"{old['date']} ({', '.join(old_labels)} rows); {res['date']} ({', '.join(sorted(new_labels))} rows)"
     H.write_json(out, res)
     log(f"total {res['total_s']:.0f} s")
+    if not args.no_elastic:
+        e = run_elastic(args, log)
+        H.write_json(ELASTIC_RESULT, e)
+        report_elastic(e, args)
     return report(res, args)
+
+
+def report_elastic(e, args):
+    md = elastic_tables(e)
+    print(md)
+    if args.readme:
+        write_readme(Path(args.readme), md, title="JAX elastic step: the SVD", name="elastic_step")
+    return e
 
 
 def report(res, args):
