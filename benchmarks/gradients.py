@@ -682,10 +682,11 @@ def tables(res) -> str:
 
 
 def git_commit() -> str:
-    """HEAD's short hash, with '+' when tracked files differ from it (the measured code is then HEAD + edits)."""
+    """HEAD's short hash, and the tracked files that differ from it (the measured code is HEAD + those)."""
     def git(*a):
-        return subprocess.run(["git", "-C", str(H.ROOT), *a], capture_output=True, text=True).stdout.strip()
-    return git("rev-parse", "--short", "HEAD") + ("+" if git("status", "--porcelain", "--untracked-files=no") else "")
+        return subprocess.run(["git", "-C", str(H.ROOT), *a], capture_output=True, text=True).stdout
+    edited = [l[3:] for l in git("status", "--porcelain", "--untracked-files=no").splitlines() if l.strip()]
+    return git("rev-parse", "--short", "HEAD").strip() + (f" (+ edits to {', '.join(edited)})" if edited else "")
 
 
 def run_elastic(args, log) -> dict:
