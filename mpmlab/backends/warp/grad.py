@@ -34,12 +34,29 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
+from ...core.budget import resolve_segment
 from ...core.errors import ConfigError, GradientError, SimulationDiverged
+from . import adjoints as ADJ
 from . import kernels as K
 from .types import warp_types
 
 #: Steps per recomputed segment when ``observe`` is not given one.
 DEFAULT_SEGMENT = 100
+
+#: Adjoint of P2G on the tape: ``"hand"`` (``adjoints.py``: a per-particle gather registered with
+#: ``Tape.record_func``) or ``"generated"`` (Warp's generated adjoint of the forward kernel). Both give
+#: the same gradient (to rounding, ``tests/test_warp_adjoints.py``); a ``GradPath`` copies this at
+#: construction and its ``adjoints`` attribute can be changed afterwards.
+ADJOINTS = "hand"
+ADJOINT_KINDS = ("hand", "generated")
+
+
+def _active_tape():
+    """The ``wp.Tape`` being recorded, or None (Warp keeps it in its runtime; no public accessor in 1.19)."""
+    try:
+        return wp._src.context.runtime.tape
+    except AttributeError:                  # another Warp layout: fall back to the generated adjoints
+        return None
 
 
 # ---- kernels ----------------------------------------------------------------------------------------
@@ -125,6 +142,45 @@ class GradPath:
         #: per group: the law's generated types (state fields and their Warp dtypes, weight shapes)
         self.law_types = [k.types for k in st.k_laws]
         self._obs_cache = {}
+        self.adjoints = ADJOINTS
+        #: steps run by :meth:`step` since construction (forward, recomputed and recorded alike): the tests
+        #: use it to check that ``segment="auto"`` skips the recomputation
+        self.steps_run = 0
+        self._pool_owner = None             # weakref to the kept recording that holds the step buffers
+
+    @property
+    def adjoints(self):
+        return self._adjoints
+
+    @adjoints.setter
+    def adjoints(self, kind):
+        if kind not in ADJOINT_KINDS:
+            raise ConfigError(f"adjoints = {kind!r}: use one of {ADJOINT_KINDS}.")
+        self._adjoints = kind
+
+    @property
+    def k_p2g_adj(self):
+        k = self.__dict__.get("_k_p2g_adj")
+        if k is None:
+            k = self.__dict__["_k_p2g_adj"] = ADJ.p2g_adjoint_kernels(self.dim, self.st.precision,
+                                                                        self.st.warp_transfer, self.has_ext)
+        return k
+
+    def p2g_adj_scratch(self):
+        """Per-particle scratch of the hand-written P2G adjoint (the adjoints of its per-particle terms)."""
+        sc = self.__dict__.get("_p2g_scratch")
+        if sc is None:
+            T, dev, N, k = self.T, self.dev, self.N, self.k_p2g_adj
+            z = lambda n, dtype: wp.zeros(n, dtype=dtype, device=dev)
+            sizes = {"A": N if k.m_affine else 1, "T": N if k.m_grad else 1, "Fm": N if k.f_affine else 1,
+                     "Fg": N if k.f_grad else 1}
+            sc = SimpleNamespace(q=z(N, T.vec), q_out=z(N, T.vec), x=z(N, T.vec), m=z(N, T.scalar),
+                                 e=z(1, T.vec), f=z(1, T.vec))
+            for key, n in sizes.items():
+                setattr(sc, key, z(n, T.mat))
+                setattr(sc, key + "_out", z(n, T.mat))
+            self.__dict__["_p2g_scratch"] = sc
+        return sc
 
     # ---- controls -----------------------------------------------------------------------------------
     def controls(self):
@@ -316,9 +372,18 @@ class GradPath:
             for bc, c in zip(self.bcs, ctl.bc):
                 if bc.stage == "particle_force":
                     bc.force(ext, c, t, ctl, s.x)
+        self.steps_run += 1
         grid_mm, grid_f = buf.grid_mm, buf.grid_f
-        wp.launch(self.k_p2g, dim=N, inputs=[s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.origin, st.dx_s,
-                                             st.dt_s, st.transfer_scalars, st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0], device=dev)
+        p2g_in = [s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.origin, st.dx_s, st.dt_s, st.transfer_scalars,
+                  st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0]
+        tape = _active_tape() if (grad and self._adjoints == "hand") else None
+        if tape is not None and grid_mm.requires_grad:
+            # the forward off the tape, its hand-written adjoint (a gather, adjoints.py) on it
+            wp.launch(self.k_p2g, dim=N, inputs=p2g_in, device=dev, record_tape=False)
+            tape.record_func(ADJ.RecordedP2G(self, p2g_in, s, ctl, ext, grid_mm, grid_f),
+                             arrays=[grid_mm] + ([grid_f] if self.split else []))
+        else:
+            wp.launch(self.k_p2g, dim=N, inputs=p2g_in, device=dev)
         grid_v, grid_v_old = buf.grid_v, buf.grid_v_old
         zero = self.T.ivec()
         wp.launch(self.k_grid, dim=G, inputs=[grid_mm, grid_f, 1, G, 0, zero, zero, st.dt_s, self.T.vec(), ctl.gravity,
