@@ -47,12 +47,20 @@ from .types import warp_types
 
 @lru_cache(maxsize=None)
 def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
-    """(stencil, terms) kernels of P2G's adjoint for transfer ``tr`` (a ``WarpTransfer``); the
-    forward is ``kernels.p2g_kernel(dim, precision, tr, has_ext, atomic=True)``."""
+    """P2G's adjoint for transfer ``tr`` (a ``WarpTransfer``) as one kernel, ``adjoint``, launched in
+    Warp's adjoint mode: per particle it evaluates the transfer's per-particle terms (q, A, Tg; Fm, Fg)
+    and hands them to ``pairing``, a function whose forward is 0 and whose hand-written gradient
+    (``wp.func_grad``) gathers the node adjoints of the 3^D stencil and returns the adjoints of those
+    terms, of the mass, the external force and the position. Warp's generated code then carries the
+    terms' adjoints through the transfer's own ``p2g_momentum`` / ``p2g_force`` (a replay of those few
+    per-particle operations only) into v, C, tau, mass, volume. The forward is
+    ``kernels.p2g_kernel(dim, precision, tr, has_ext, atomic=True)``; launch ``adjoint`` with
+    ``adj_outputs=[ones]``."""
     T = warp_types(dim, precision)
     S = K.stencil_funcs(dim, precision)
     scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
     gvec = K.grid_vec_type(dim, precision)
+    vec3s = wp.types.vector(3, scalar)
     F = tr.funcs
     split = tr.split_force
     m_affine = "affine" in tr.momentum_terms
@@ -62,47 +70,154 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
     ext_alone = has_ext and split and not (f_affine or f_grad)
     ext_grad = has_ext and f_grad and not f_affine      # f_grad's node term carries w fext
     ext_affine = has_ext and f_affine                   # f_affine's node term carries w fext
+    any_grad = m_grad or f_grad
     carries_C = tr.carries_C
 
     @wp.func
-    def head(a: gvec):
-        out = vec()
+    def node(w: scalar, gw: vec, H: mat, o: vec, a4: gvec, af: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat,
+             m: scalar, fext: vec, fxd: vec, dx: scalar):
+        """One node's share: (w a_q, w a_q o^T, a_q g^T, w a_m, w a_f o^T, w a_f [ext], a_f g^T, adj fx)."""
+        aq = vec()
         for d in range(dim):
-            out[d] = a[d]
-        return out
+            aq[d] = a4[d]
+        am = a4[dim]
+        val = q
+        qo = mat()
+        if wp.static(m_affine):
+            val = q + A @ (o * dx - fxd)
+            qo = wp.outer(w * aq, o)
+        afx = (wp.dot(aq, val) + am * m) * gw
+        dT = mat()
+        if wp.static(m_grad):
+            dT = wp.outer(aq, gw)
+            afx = afx + H @ (wp.transpose(Tg) @ aq)
+        fo = mat()
+        f = vec()
+        dFg = mat()
+        if wp.static(f_grad):
+            dFg = wp.outer(af, gw)
+            afx = afx + H @ (wp.transpose(Fg) @ af)
+            if wp.static(ext_grad):
+                f = w * af
+                afx = afx + wp.dot(af, fext) * gw
+        if wp.static(f_affine):
+            fv = Fm @ (o * dx - fxd)
+            if wp.static(ext_affine):
+                fv = fv + fext
+            fo = wp.outer(w * af, o)
+            f = w * af
+            afx = afx + wp.dot(af, fv) * gw
+        if wp.static(ext_alone):
+            f = w * af
+            afx = afx + wp.dot(af, fext) * gw
+        return w * aq, qo, dT, w * am, fo, f, dFg, afx
 
     @wp.func
-    def second(i: int):
-        """d^2 W_i / d f^2 of the quadratic B-spline: 1, -2, 1."""
-        r = scalar(1.0)
-        if i == 1:
-            r = scalar(-2.0)
-        return r
+    def pairing(x: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat, m: scalar, fext: vec, origin: vec, dx: scalar,
+                strides: ivec, adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec)):
+        """sum_o <adj node_o, P2G's contribution to node_o>, as far as the gradient is concerned: only its
+        gradient (below) is ever evaluated, so the forward is a constant."""
+        return scalar(0.0)
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def stencil(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
+    @wp.func_grad(pairing)
+    def adj_pairing(x: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat, m: scalar, fext: vec, origin: vec,
+                    dx: scalar, strides: ivec, adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec),
+                    adj_ret: scalar):
+        inv_dx = scalar(1.0) / dx
+        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))
+        DD = vec3s(scalar(1.0), scalar(-2.0), scalar(1.0))      # W'' of the quadratic B-spline
+        base, fx = S.locate(x, origin, inv_dx)
+        W, DW = S.bspline(fx)
+        fxd = fx * dx
+        nb = int(0)
+        for d in range(dim):
+            nb = nb + base[d] * strides[d]
+        s_q = vec()
+        s_qo = mat()
+        s_T = mat()
+        s_m = scalar(0.0)
+        s_fo = mat()
+        s_f = vec()
+        s_Fg = mat()
+        afx = vec()
+        af = vec()
+        H = mat()
+        if wp.static(dim == 3):
+            for i in range(3):
+                for j in range(3):
+                    nij = nb + i * strides[0] + j * strides[1]
+                    wxy = W[i, 0] * W[j, 1]
+                    for k in range(3):
+                        w = wxy * W[k, 2]
+                        gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
+                        if wp.static(any_grad):
+                            hxy = DW[i, 0] * DW[j, 1] * W[k, 2]
+                            hxz = DW[i, 0] * W[j, 1] * DW[k, 2]
+                            hyz = W[i, 0] * DW[j, 1] * DW[k, 2]
+                            H = mat(DD[i] * W[j, 1] * W[k, 2], hxy, hxz,
+                                    hxy, W[i, 0] * DD[j] * W[k, 2], hyz,
+                                    hxz, hyz, wxy * DD[k])
+                        if wp.static(split):
+                            af = adj_f[nij + k]
+                        o = vec(OFF[i], OFF[j], OFF[k])
+                        a, b, c, e, f, g, h, r = node(w, gw, H, o, adj_mm[nij + k], af, q, A, Tg, Fm, Fg, m, fext,
+                                                      fxd, dx)
+                        s_q = s_q + a
+                        s_qo = s_qo + b
+                        s_T = s_T + c
+                        s_m = s_m + e
+                        s_fo = s_fo + f
+                        s_f = s_f + g
+                        s_Fg = s_Fg + h
+                        afx = afx + r
+        else:
+            for i in range(3):
+                ni = nb + i * strides[0]
+                for j in range(3):
+                    w = W[i, 0] * W[j, 1]
+                    gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
+                    if wp.static(any_grad):
+                        hxy = DW[i, 0] * DW[j, 1]
+                        H = mat(DD[i] * W[j, 1], hxy, hxy, W[i, 0] * DD[j])
+                    if wp.static(split):
+                        af = adj_f[ni + j]
+                    o = vec(OFF[i], OFF[j])
+                    a, b, c, e, f, g, h, r = node(w, gw, H, o, adj_mm[ni + j], af, q, A, Tg, Fm, Fg, m, fext, fxd, dx)
+                    s_q = s_q + a
+                    s_qo = s_qo + b
+                    s_T = s_T + c
+                    s_m = s_m + e
+                    s_fo = s_fo + f
+                    s_f = s_f + g
+                    s_Fg = s_Fg + h
+                    afx = afx + r
+        # the fx inside A (o - fx) dx: -dx A^T sum_o w_o a_q (likewise Fm)
+        if wp.static(m_affine):
+            afx = afx - dx * (wp.transpose(A) @ s_q)
+            wp.adjoint[A] += adj_ret * ((s_qo - wp.outer(s_q, fx)) * dx)
+        if wp.static(f_affine):
+            afx = afx - dx * (wp.transpose(Fm) @ s_f)
+            wp.adjoint[Fm] += adj_ret * ((s_fo - wp.outer(s_f, fx)) * dx)
+        if wp.static(m_grad):
+            wp.adjoint[Tg] += adj_ret * s_T
+        if wp.static(f_grad):
+            wp.adjoint[Fg] += adj_ret * s_Fg
+        wp.adjoint[q] += adj_ret * s_q
+        wp.adjoint[m] += adj_ret * s_m
+        wp.adjoint[x] += adj_ret * (inv_dx * afx)                 # fx = (x - origin) / dx - floor(...)
+        if wp.static(split):
+            wp.adjoint[fext] += adj_ret * s_f
+
+    @wp.kernel(module="unique")
+    def adjoint(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
                 mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
                 origin: vec, dx: scalar, dt: scalar, tp: wp.array(dtype=scalar), strides: ivec,
-                adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec),
-                adj_x: wp.array(dtype=vec), adj_mass: wp.array(dtype=scalar), adj_ext: wp.array(dtype=vec),
-                adj_q: wp.array(dtype=vec), adj_A: wp.array(dtype=mat), adj_T: wp.array(dtype=mat),
-                adj_Fm: wp.array(dtype=mat), adj_Fg: wp.array(dtype=mat)):
+                adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec), out: wp.array(dtype=scalar)):
+        """Run in adjoint mode only (adj out = 1): the forward value is 0."""
         p = wp.tid()
         inv_dx = scalar(1.0) / dx
-        G = adj_mm.shape[0]
-        if S.in_grid(x[p], origin, inv_dx, strides, G) == 0:
-            adj_q[p] = vec()                       # contributed nothing: its terms' adjoints are 0
-            if wp.static(m_affine):
-                adj_A[p] = mat()
-            if wp.static(m_grad):
-                adj_T[p] = mat()
-            if wp.static(f_affine):
-                adj_Fm[p] = mat()
-            if wp.static(f_grad):
-                adj_Fg[p] = mat()
-            return
-        base, fx = S.locate(x[p], origin, inv_dx)
-        W, DW = S.bspline(fx)
+        if S.in_grid(x[p], origin, inv_dx, strides, adj_mm.shape[0]) == 0:
+            return                     # contributed nothing
         m = mass[p]
         Cp = mat()
         if wp.static(carries_C):
@@ -117,132 +232,9 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
             fext = ext[p]
             if wp.static(not split):
                 q = q + dt * fext
-        fxd = fx * dx
-        nb = int(0)
-        for d in range(dim):
-            nb = nb + base[d] * strides[d]
-        s_q = vec()          # sum w a_q
-        s_qo = mat()         # sum w a_q o^T
-        s_T = mat()          # sum a_q g^T
-        s_m = scalar(0.0)    # sum w a_m
-        s_fo = mat()         # sum w a_f o^T
-        s_f = vec()          # sum w a_f
-        s_Fg = mat()         # sum a_f g^T
-        afx = vec()          # adjoint of fx (cell units) through the weights
-        for n in range(wp.static(3**dim)):
-            oi = ivec()
-            o = vec()
-            node = nb
-            r = n
-            for d in range(dim):
-                od = r % 3
-                r = r // 3
-                oi[d] = od
-                o[d] = scalar(od)
-                node = node + od * strides[d]
-            w = scalar(1.0)
-            for e in range(dim):
-                w = w * W[oi[e], e]
-            gw = vec()       # grad w (cell units)
-            for d in range(dim):
-                wd = scalar(1.0)
-                for e in range(dim):
-                    if e == d:
-                        wd = wd * DW[oi[e], e]
-                    else:
-                        wd = wd * W[oi[e], e]
-                gw[d] = wd
-            H = mat()        # Hessian of w (only the gradient terms need it)
-            if wp.static(m_grad or f_grad):
-                for d in range(dim):
-                    for c in range(dim):
-                        h = scalar(1.0)
-                        for e in range(dim):
-                            if e == d and e == c:
-                                h = h * second(oi[e])
-                            elif e == d or e == c:
-                                h = h * DW[oi[e], e]
-                            else:
-                                h = h * W[oi[e], e]
-                        H[d, c] = h
-            a4 = adj_mm[node]
-            aq = head(a4)
-            am = a4[dim]
-            val = q
-            if wp.static(m_affine):
-                val = q + A @ (o * dx - fxd)
-                s_qo = s_qo + wp.outer(w * aq, o)
-            s_q = s_q + w * aq
-            s_m = s_m + w * am
-            afx = afx + (wp.dot(aq, val) + am * m) * gw
-            if wp.static(m_grad):
-                s_T = s_T + wp.outer(aq, gw)
-                afx = afx + H @ (wp.transpose(Tg) @ aq)
-            if wp.static(split):
-                af = adj_f[node]
-                if wp.static(f_grad):
-                    s_Fg = s_Fg + wp.outer(af, gw)
-                    afx = afx + H @ (wp.transpose(Fg) @ af)
-                    if wp.static(ext_grad):
-                        s_f = s_f + w * af
-                        afx = afx + wp.dot(af, fext) * gw
-                if wp.static(f_affine):
-                    fv = Fm @ (o * dx - fxd)
-                    if wp.static(ext_affine):
-                        fv = fv + fext
-                    s_fo = s_fo + wp.outer(w * af, o)
-                    s_f = s_f + w * af
-                    afx = afx + wp.dot(af, fv) * gw
-                if wp.static(ext_alone):
-                    s_f = s_f + w * af
-                    afx = afx + wp.dot(af, fext) * gw
-        # -w dx A^T a_q summed over nodes (the fx inside A (o - fx) dx), likewise for Fm
-        if wp.static(m_affine):
-            afx = afx - dx * (wp.transpose(A) @ s_q)
-            adj_A[p] = (s_qo - wp.outer(s_q, fx)) * dx
-        if wp.static(f_affine):
-            afx = afx - dx * (wp.transpose(Fm) @ s_f)
-            adj_Fm[p] = (s_fo - wp.outer(s_f, fx)) * dx
-        if wp.static(m_grad):
-            adj_T[p] = s_T
-        if wp.static(f_grad):
-            adj_Fg[p] = s_Fg
-        adj_q[p] = s_q
-        adj_x[p] = adj_x[p] + inv_dx * afx
-        adj_mass[p] = adj_mass[p] + s_m
-        if wp.static(has_ext):
-            ae = s_f
-            if wp.static(not split):
-                ae = dt * s_q
-            adj_ext[p] = adj_ext[p] + ae
+        out[p] = pairing(x[p], q, A, Tg, Fm, Fg, m, fext, origin, dx, strides, adj_mm, adj_f)
 
-    @wp.kernel(module="unique")
-    def terms(v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
-              mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), dt: scalar, dx: scalar,
-              tp: wp.array(dtype=scalar),
-              q_out: wp.array(dtype=vec), A_out: wp.array(dtype=mat), T_out: wp.array(dtype=mat),
-              Fm_out: wp.array(dtype=mat), Fg_out: wp.array(dtype=mat)):
-        """The per-particle P2G terms alone; only its generated adjoint is launched."""
-        p = wp.tid()
-        inv_dx = scalar(1.0) / dx
-        Cp = mat()
-        if wp.static(carries_C):
-            Cp = C[p]
-        q, A, Tg = F.p2g_momentum(mass[p], vol[p], v[p], Cp, tau[p], dt, inv_dx, tp)
-        q_out[p] = q
-        if wp.static(m_affine):
-            A_out[p] = A
-        if wp.static(m_grad):
-            T_out[p] = Tg
-        if wp.static(split):
-            Fm, Fg = F.p2g_force(mass[p], vol[p], v[p], Cp, tau[p], dt, inv_dx, tp)
-            if wp.static(f_affine):
-                Fm_out[p] = Fm
-            if wp.static(f_grad):
-                Fg_out[p] = Fg
-
-    return SimpleNamespace(stencil=stencil, terms=terms, m_affine=m_affine, m_grad=m_grad, f_affine=f_affine,
-                           f_grad=f_grad)
+    return SimpleNamespace(adjoint=adjoint)
 
 
 class RecordedP2G:
@@ -261,28 +253,14 @@ class RecordedP2G:
 
     def __call__(self):
         p, s, ctl = self.path, self.s, self.ctl
-        k, tmp = p.k_p2g_adj, p.p2g_adj_scratch()
-        st, dev, N = p.st, p.dev, p.N
-        g = lambda a: a.grad if a.requires_grad else None
-        adj_x, adj_mass = g(s.x), g(ctl.mass)
-        adj_ext = g(self.ext) if p.has_ext else None
-        if adj_x is None:                  # positions not differentiable here: accumulate into scratch
-            adj_x = tmp.x
-            adj_x.zero_()
-        if adj_mass is None:
-            adj_mass = tmp.m
-            adj_mass.zero_()
-        if adj_ext is None:
-            adj_ext = tmp.e
-        adj_f = self.grid_f.grad if p.split else tmp.f
-        wp.launch(k.stencil, dim=N, inputs=[s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, self.ext, st.origin, st.dx_s,
-                                            st.dt_s, st.transfer_scalars, st.strides, self.grid_mm.grad, adj_f,
-                                            adj_x, adj_mass, adj_ext, tmp.q, tmp.A, tmp.T, tmp.Fm, tmp.Fg],
-                  device=dev, record_tape=False)
+        sc = p.p2g_adj_scratch()
+        st = p.st
+        g = lambda a: a.grad if (isinstance(a, wp.array) and a.requires_grad) else None
         C = s.C if p.affine else p.empty_C
-        wp.launch(k.terms, dim=N, inputs=[s.v, C, s.tau, ctl.mass, ctl.volume, st.dt_s, st.dx_s,
-                                          st.transfer_scalars],
-                  outputs=[tmp.q_out, tmp.A_out, tmp.T_out, tmp.Fm_out, tmp.Fg_out],
-                  adj_inputs=[g(s.v), g(C) if p.affine else None, g(s.tau), g(ctl.mass), g(ctl.volume), None, None,
-                              None],
-                  adj_outputs=[tmp.q, tmp.A, tmp.T, tmp.Fm, tmp.Fg], adjoint=True, device=dev, record_tape=False)
+        adj_f = self.grid_f.grad if p.split else sc.f
+        inputs = [s.x, s.v, C, s.tau, ctl.mass, ctl.volume, self.ext, st.origin, st.dx_s, st.dt_s,
+                  st.transfer_scalars, st.strides, self.grid_mm.grad, adj_f]
+        wp.launch(p.k_p2g_adj.adjoint, dim=p.N, inputs=inputs, outputs=[sc.out],
+                  adj_inputs=[g(s.x), g(s.v), g(C) if p.affine else None, g(s.tau), g(ctl.mass), g(ctl.volume),
+                              g(self.ext) if p.has_ext else None] + [None] * 7,
+                  adj_outputs=[sc.ones], adjoint=True, device=p.dev, record_tape=False)

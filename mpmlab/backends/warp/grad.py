@@ -28,6 +28,7 @@ adjoint is non-finite. Nothing is zeroed. (Checking every step always cost ~15 %
 Kernels are compiled on first use only (forward-only runs build none of them).
 """
 
+import weakref
 from functools import lru_cache
 from types import SimpleNamespace
 
@@ -167,18 +168,12 @@ class GradPath:
         return k
 
     def p2g_adj_scratch(self):
-        """Per-particle scratch of the hand-written P2G adjoint (the adjoints of its per-particle terms)."""
+        """Scratch of the hand-written P2G adjoint: its (unused) output and the seed 1 of its adjoint."""
         sc = self.__dict__.get("_p2g_scratch")
         if sc is None:
-            T, dev, N, k = self.T, self.dev, self.N, self.k_p2g_adj
-            z = lambda n, dtype: wp.zeros(n, dtype=dtype, device=dev)
-            sizes = {"A": N if k.m_affine else 1, "T": N if k.m_grad else 1, "Fm": N if k.f_affine else 1,
-                     "Fg": N if k.f_grad else 1}
-            sc = SimpleNamespace(q=z(N, T.vec), q_out=z(N, T.vec), x=z(N, T.vec), m=z(N, T.scalar),
-                                 e=z(1, T.vec), f=z(1, T.vec))
-            for key, n in sizes.items():
-                setattr(sc, key, z(n, T.mat))
-                setattr(sc, key + "_out", z(n, T.mat))
+            T, dev, N = self.T, self.dev, self.N
+            sc = SimpleNamespace(out=wp.zeros(N, dtype=T.scalar, device=dev), f=wp.zeros(1, dtype=T.vec, device=dev),
+                                 ones=wp.full(N, value=T.scalar(1.0), dtype=T.scalar, device=dev))
             self.__dict__["_p2g_scratch"] = sc
         return sc
 
@@ -437,20 +432,88 @@ class GradPath:
         return hit[1]
 
     # ---- rollout and its adjoint --------------------------------------------------------------------
-    def forward(self, names, flat, observation, steps, segment):
-        """Observations [T, L, d] (a torch tensor) and the saved segment-start states."""
+    def bytes_per_step(self) -> int:
+        """What one kept step costs (``segment="auto"``): every array of its step buffer
+        (:meth:`alloc_buffers`: output state, grids, boundary outputs) and its gradient, measured on a
+        buffer allocated once (no gradients) and doubled; the tapes' bookkeeping is not counted."""
+        b = self.__dict__.get("_bytes_per_step")
+        if b is None:
+            buf = self.alloc_buffers(False)
+            arrays = [buf.grid_mm, buf.grid_f, buf.grid_v, buf.grid_v_old, buf.ext, *buf.bc_out,
+                      *(a for xv in buf.pv for a in xv)] + [a for _, a, _ in self.state_arrays(buf.state)]
+            b = self.__dict__["_bytes_per_step"] = 2 * int(sum(a.capacity for a in arrays))
+        return b
+
+    def _take_pool(self, count: int):
+        """(``count`` step buffers with gradients, shared): the kept pool (:meth:`grad_buffers`), unless
+        a kept recording (``segment="auto"``) whose backward pass has not run yet still holds it; then
+        fresh ones (not shared)."""
+        owner = self._pool_owner() if self._pool_owner is not None else None
+        if owner is not None and owner.pool is not None:
+            return [self.alloc_buffers(True) for _ in range(count)], False
+        return self.grad_buffers(count), True
+
+    def _record(self, ctl, k0, k1, start, times, want, obs, pool, guard=False):
+        """Steps k0 -> k1 under one ``wp.Tape`` per step (the initial state's stress and observation on
+        ``init_tape`` when ``start`` is None, i.e. k0 = 0), observations of the steps in ``want``."""
+        L, d = obs.shape
+        ovec = wp.types.vector(d, self.T.scalar)
+        init_tape = wp.Tape()
+        if start is None:
+            with init_tape:
+                s = self.initial(ctl, grad=True)
+        else:
+            s = start
+        if guard:
+            self._guard(s, k0)
+        states, tapes, outs = [s], [], {}
+        if k0 == 0 and 0 in want:
+            with init_tape:
+                outs[0] = wp.zeros(L, dtype=ovec, device=self.dev, requires_grad=True)
+                obs.launch(s, outs[0])
+        for k in range(k0 + 1, k1 + 1):
+            tape = wp.Tape()
+            with tape:
+                s = self.step(s, ctl, times[k - 1], grad=True, buf=pool[k - k0 - 1])
+                if k in want:
+                    outs[k] = wp.zeros(L, dtype=ovec, device=self.dev, requires_grad=True)
+                    obs.launch(s, outs[k])
+            tapes.append(tape)
+            states.append(s)
+            if guard:
+                self._guard(s, k)
+        return _Record(k0=k0, k1=k1, init_tape=init_tape, states=states, tapes=tapes, outs=outs, pool=pool)
+
+    def forward(self, names, flat, observation, steps, segment, keep=False):
+        """Observations [T, L, d] (a torch tensor) and what the backward pass needs: the saved
+        segment-start states, or with ``keep`` the whole rollout recorded on tapes (one segment of all
+        the steps; the backward pass then recomputes nothing)."""
         import torch
 
         obs = self.observer(observation)
-        ctl = self.to_warp(names, flat, grad=False)
         L, d = obs.shape
         n = int(steps[-1])
         want = {int(k): i for i, k in enumerate(steps)}
-        out = torch.empty((len(steps), L, d), dtype=torch.float64 if self.st.precision == "fp64" else torch.float32,
-                          device=_torch_device(self.dev))
+        tdt = torch.float64 if self.st.precision == "fp64" else torch.float32
+        out = torch.empty((len(steps), L, d), dtype=tdt, device=_torch_device(self.dev))
+        times, t = [], 0.0
+        for _ in range(n):
+            times.append(t)
+            t = t + self.st.dt            # accumulated like the fast path's state.t (boundary windows)
+        if keep:
+            ctl = self.to_warp(names, flat, grad=True)
+            pool, shared = self._take_pool(n)
+            rec = self._record(ctl, 0, n, None, times, want, obs, pool, guard=True)
+            for k, o in rec.outs.items():
+                out[want[k]] = wp.to_torch(o).reshape(L, d).clone()
+            saved = SimpleNamespace(saved={}, times=times, record=rec, ctl=ctl)
+            if shared:
+                self._pool_owner = weakref.ref(rec)
+            return out, saved
+        ctl = self.to_warp(names, flat, grad=False)
         s = self.initial(ctl, grad=False)
         self._guard(s, 0)
-        saved, times, t = {}, [], 0.0
+        saved = {}
         pool = [self.alloc_buffers(False), self.alloc_buffers(False)] if n else []   # ping-pong
         for k in range(n + 1):
             if k in want:
@@ -461,11 +524,9 @@ class GradPath:
                 break
             if k % segment == 0 and k > 0:
                 saved[k] = self.clone(s)
-            times.append(t)
-            s = self.step(s, ctl, t, grad=False, buf=pool[k % 2])
-            t = t + self.st.dt            # accumulated like the fast path's state.t (boundary windows)
+            s = self.step(s, ctl, times[k], grad=False, buf=pool[k % 2])
             self._guard(s, k + 1)
-        return out, SimpleNamespace(saved=saved, times=times)
+        return out, SimpleNamespace(saved=saved, times=times, record=None, ctl=None)
 
     def backward(self, names, flat, observation, steps, segment, saved, grad_out):
         """Gradients (torch tensors, one per flat control) of sum(grad_out * observations)."""
@@ -479,42 +540,32 @@ class GradPath:
         obs = self.observer(observation)
         L, d = obs.shape
         ovec = wp.types.vector(d, self.T.scalar)
-        ctl = self.to_warp(names, flat, grad=True)
+        kept = saved.record
+        ctl = saved.ctl if kept is not None else self.to_warp(names, flat, grad=True)
         ctl_arrays = self.control_arrays(ctl)
         n = int(steps[-1])
         want = {int(k): i for i, k in enumerate(steps)}
         g_out = grad_out.detach().to(device=_torch_device(self.dev)).contiguous()
         times = saved.times
         adj_end = None                                  # adjoint of the current segment's end state
-        starts = list(range(0, n, segment)) or [0]        # segment start steps (n = 0: one empty segment)
-        pool = self.grad_buffers(min(segment, n))       # one per step of a segment
+        if kept is not None:
+            starts, segment = [0], max(n, 1)            # the whole rollout, recorded by the forward pass
+        else:
+            starts = list(range(0, n, segment)) or [0]    # segment start steps (n = 0: one empty segment)
+            pool = self._take_pool(min(segment, n))[0]    # one per step of a segment
         for k0 in reversed(starts):
             k1 = min(k0 + segment, n)
-            init_tape = wp.Tape()
-            if k0 == 0:
-                with init_tape:
-                    s = self.initial(ctl, grad=True)
+            if kept is not None:
+                rec = kept
             else:
-                s = self.clone(saved.saved[k0], grad=True)
-            states, tapes, outs = [s], [], {}
-            if k0 == 0 and 0 in want:
-                with init_tape:
-                    outs[0] = wp.zeros(L, dtype=ovec, device=self.dev, requires_grad=True)
-                    obs.launch(s, outs[0])
-            for k in range(k0 + 1, k1 + 1):
-                tape = wp.Tape()
-                with tape:
-                    s = self.step(s, ctl, times[k - 1], grad=True, buf=pool[k - k0 - 1])
-                    if k in want:
-                        outs[k] = wp.zeros(L, dtype=ovec, device=self.dev, requires_grad=True)
-                        obs.launch(s, outs[k])
-                tapes.append(tape)
-                states.append(s)
+                start = None if k0 == 0 else self.clone(saved.saved[k0], grad=True)
+                rec = self._record(ctl, k0, k1, start, times, want, obs, pool)
+            init_tape, states, tapes, outs = rec.init_tape, rec.states, rec.tapes, rec.outs
             before = [wp.clone(a.grad) for _, a, _ in ctl_arrays]   # finite: checked after the later segment
 
             def run_backward(flags):
                 """Seed and run this segment's tapes backwards; with ``flags``, check every step's adjoints."""
-                for buf in pool[: k1 - k0]:
+                for buf in rec.pool[: k1 - k0]:
                     self.zero_grads(buf)
                 for a in [a for _, a, _ in self.state_arrays(states[0]) if a.requires_grad]:
                     a.grad.zero_()
@@ -538,17 +589,21 @@ class GradPath:
             # one non-finite check per segment (start-state and control adjoints: a non-finite adjoint
             # anywhere in the segment reaches them); only when it fires is the segment replayed with a
             # check after every step, to name the step and particle
-            run_backward(None)
-            flag = wp.zeros(1, dtype=int, device=self.dev)
-            self._flag(states[0] if k0 > 0 else None, ctl_arrays, flag, 0)
-            if flag.numpy()[0]:
-                flags = wp.zeros(k1 - k0 + 1, dtype=int, device=self.dev)
-                run_backward(flags)
-                f = flags.numpy()
-                slot = int(np.nonzero(f)[0].max()) if f.any() else 0
-                self._raise(k0 + slot, states[slot - 1] if slot > 0 else None, ctl_arrays)
+            try:
+                run_backward(None)
+                flag = wp.zeros(1, dtype=int, device=self.dev)
+                self._flag(states[0] if k0 > 0 else None, ctl_arrays, flag, 0)
+                if flag.numpy()[0]:
+                    flags = wp.zeros(k1 - k0 + 1, dtype=int, device=self.dev)
+                    run_backward(flags)
+                    f = flags.numpy()
+                    slot = int(np.nonzero(f)[0].max()) if f.any() else 0
+                    self._raise(k0 + slot, states[slot - 1] if slot > 0 else None, ctl_arrays)
+            finally:
+                if kept is not None:
+                    kept.pool = None              # the buffers are free again (the tapes die with ``saved``)
             adj_end = [wp.clone(a.grad) for _, a, _ in self.state_arrays(states[0])] if k0 > 0 else None
-            del tapes, states, outs, init_tape
+            del tapes, states, outs, init_tape, rec
         grads = []
         for (name, a, _), t in zip(ctl_arrays, flat):
             g = wp.to_torch(a.grad).clone()
@@ -604,6 +659,10 @@ class GradPath:
         raise GradientError(step, -1, "state")
 
 
+class _Record(SimpleNamespace):
+    """A recorded segment (a class of its own: the path keeps a weak reference to a kept one)."""
+
+
 def _torch_device(dev) -> str:
     d = str(dev)
     return "cpu" if d.startswith("cpu") else d
@@ -617,8 +676,11 @@ def _function():
         """Observations of a Warp rollout; backward recomputes segments under ``wp.Tape``s."""
 
         @staticmethod
-        def forward(ctx, path, names, observation, steps, segment, *flat):
-            out, saved = path.forward(names, flat, observation, steps, segment)
+        def forward(ctx, path, names, observation, steps, segment, keep, *flat):
+            # keep (segment="auto" and it fits): record the forward on tapes now, but only when a gradient
+            # can be asked for (a forward under torch.no_grad() records nothing)
+            keep = keep and any(ctx.needs_input_grad[6:])
+            out, saved = path.forward(names, flat, observation, steps, segment, keep)
             ctx.path, ctx.names, ctx.observation, ctx.steps, ctx.segment = path, names, observation, steps, segment
             ctx.saved = saved
             ctx.save_for_backward(*flat)
@@ -627,9 +689,16 @@ def _function():
         @staticmethod
         def backward(ctx, grad_out):
             flat = ctx.saved_tensors
-            grads = ctx.path.backward(ctx.names, flat, ctx.observation, ctx.steps, ctx.segment, ctx.saved, grad_out)
-            grads = [g if need else None for g, need in zip(grads, ctx.needs_input_grad[5:])]
-            return (None, None, None, None, None, *grads)
+            saved = ctx.saved
+            if saved.record is not None:                # a kept recording (segment="auto") is used once
+                if saved.record.pool is None:
+                    raise RuntimeError("observe(segment='auto'): a second backward pass through the same kept Warp "
+                                       "rollout is not supported (its step buffers are released after the first); "
+                                       "call observe() again, or give an integer segment.")
+                ctx.saved = None
+            grads = ctx.path.backward(ctx.names, flat, ctx.observation, ctx.steps, ctx.segment, saved, grad_out)
+            grads = [g if need else None for g, need in zip(grads, ctx.needs_input_grad[6:])]
+            return (None, None, None, None, None, None, *grads)
 
     return Observe
 
@@ -649,9 +718,15 @@ def controls(stepper) -> dict:
     return path_of(stepper).controls()
 
 
-def observe(stepper, c: dict, observation, steps, segment: int | None = None):
+def observe(stepper, c: dict, observation, steps, segment: int | str | None = None):
     """[T, L, d] torch tensor: ``observation`` of the rollout from controls ``c`` after each of ``steps``
-    (sorted; 0 = the initial state); differentiable w.r.t. every control tensor that requires grad."""
+    (sorted; 0 = the initial state); differentiable w.r.t. every control tensor that requires grad.
+
+    ``segment``: steps per recomputed segment of the backward pass (None: ``DEFAULT_SEGMENT``), or
+    ``"auto"``: when every step's buffers fit the memory budget (``mpmlab.core.budget.resolve_segment``
+    with :meth:`GradPath.bytes_per_step`), the forward pass records the whole rollout on tapes and the
+    backward pass recomputes nothing (cost forward + adjoint instead of 2 forwards + adjoint); else
+    segments of ``DEFAULT_SEGMENT``."""
     import torch
 
     global _OBSERVE
@@ -661,9 +736,13 @@ def observe(stepper, c: dict, observation, steps, segment: int | None = None):
     s = np.asarray(steps, dtype=np.int64).reshape(-1)
     if s.size == 0 or s[0] < 0 or np.any(np.diff(s) <= 0):
         raise ConfigError("observation steps must be non-empty, non-negative and strictly increasing.")
-    segment = int(segment or DEFAULT_SEGMENT)
-    if segment < 1:
-        raise ConfigError(f"segment = {segment} must be >= 1 step.")
+    if isinstance(segment, str):
+        segment, keep = resolve_segment(segment, int(s[-1]), path.bytes_per_step(), default=DEFAULT_SEGMENT)
+    else:
+        segment, keep = int(segment or DEFAULT_SEGMENT), False    # 0 / None: the default, as before
+        if segment < 1:
+            raise ConfigError(f"segment = {segment} must be >= 1 step.")
     names, flat = path.flatten(c)
     flat = [f if isinstance(f, torch.Tensor) else torch.as_tensor(np.asarray(f, float)) for f in flat]
-    return _OBSERVE.apply(path, tuple(names), observation, tuple(int(k) for k in s), segment, *flat)
+    keep = keep and torch.is_grad_enabled()        # (inside the Function's forward, grad mode is always off)
+    return _OBSERVE.apply(path, tuple(names), observation, tuple(int(k) for k in s), segment, keep, *flat)
