@@ -57,11 +57,17 @@ class SimulationDiverged(MpmlabError):
         field: name of the field (``x``, ``v``, ``F``, ``J``, ...).
         value: the offending value (as a Python float or a short string).
         trajectory: the frames produced before the failure (a ``Trajectory``), or None.
+        cause: what grew, as classified by ``mpmlab.core.diagnosis`` from the states just before the
+            failure: ``cfl``, ``compression``, ``cell_crossing``, ``velocity``, ``law``, ``domain``,
+            ``unknown``; None where no diagnosis ran (the initial state, a non-reproduced failure).
+        measures: the measured numbers behind ``cause`` (CFL numbers, J, moves per step, J ripple, ...).
     """
 
-    def __init__(self, step: int, particle: int, field: str, value, hint: str = "", trajectory=None):
+    def __init__(self, step: int, particle: int, field: str, value, hint: str = "", trajectory=None,
+                 cause: str | None = None, measures: dict | None = None):
         self.step, self.particle, self.field, self.value, self.hint = step, particle, field, value, hint
         self.trajectory = trajectory
+        self.cause, self.measures = cause, dict(measures or {})
         msg = f"simulation diverged at step {step}: particle {particle} has {field} = {value}"
         if hint:
             msg += f"; {hint}"

@@ -149,20 +149,35 @@ class BaseStepper(AbstractStepper):
         return self.dt * (self.scene.wave_speed() + speed) / self.scene.dx
 
     def _diverged(self, start_state, start_step: int, steps: int, traj_so_far: Callable[[], Trajectory]):
-        """Replay a failed chunk one step at a time to name the exact step, then raise."""
+        """Replay a failed chunk one step at a time to name the exact step, classify the cause from the
+        states just before it (``mpmlab.core.diagnosis``), then raise.
+
+        Bounded cost: the replay is the chunk's steps (as before), and only the chunk's start and the
+        last three sound states are kept on the host for the diagnosis."""
+        from collections import deque
+
+        from .diagnosis import diagnose
+
         state = start_state
-        prev = self.to_numpy(state)
+        first = self.to_numpy(state)
+        recent = deque([first], maxlen=3)
         for k in range(steps):
             state = self._advance(state, 1)
             now = self.to_numpy(state)
             bad = self.locate_failure(now)
             if bad is not None:
                 p, field, value = bad
-                C = self.cfl_number(prev)
-                hint = (f"CFL number was {C:.3g} (cfl_limit {self.scene.cfl_limit:g}) one step before; "
-                        f"reduce dt (or use dt: auto), stiffen less, or check boundaries")
-                raise SimulationDiverged(start_step + k + 1, p, field, value, hint, trajectory=traj_so_far())
-            prev = now
+                try:
+                    d = diagnose(self, first, list(recent), now, bad, frames=list(getattr(self, "_frame_notes", ())))
+                    hint, cause, measures = d.line, d.cause, d.measures
+                except Exception as exc:   # the diagnosis must never hide the failure itself
+                    C = self.cfl_number(recent[-1])
+                    hint = (f"CFL number was {C:.3g} (cfl_limit {self.scene.cfl_limit:g}) one step before; "
+                            f"diagnosis failed ({type(exc).__name__}: {exc})")
+                    cause, measures = "unknown", {}
+                raise SimulationDiverged(start_step + k + 1, p, field, value, hint, trajectory=traj_so_far(),
+                                         cause=cause, measures=measures)
+            recent.append(now)
         # The reduction flagged the chunk but the replay did not reproduce it (non-determinism).
         raise SimulationDiverged(start_step + steps, -1, "state", "non-finite (not reproduced on replay)",
                                  trajectory=traj_so_far())
@@ -206,7 +221,14 @@ class BaseStepper(AbstractStepper):
         times: list[float] | None = [] if adaptive else None
         t_now = 0.0                      # simulated time (float64 sum of the steps taken; adaptive dt)
 
+        from collections import deque
+
+        from .diagnosis import frame_note
+
+        self._frame_notes = deque(maxlen=64)   # J range and speed of the recent kept frames (diagnosis)
+
         def keep(npstate, step_id):
+            self._frame_notes.append(frame_note(self, npstate, step_id))
             if keep_frames:
                 frames.append({k: npstate[k] for k in ("x", "v", *fields) if k in npstate})
             step_ids.append(step_id)

@@ -1,0 +1,114 @@
+"""The divergence diagnosis (issue 19, item 5): each cause is classified from measured quantities of the
+states just before the failure, on a small constructed case, and the message says what grew, where,
+the number and what to try (``mpmlab.core.diagnosis``).
+
+Cases (2D, dx = 0.05, a 0.3 m square of 4 particles per cell unless said):
+
+* ``cfl`` -- a stiff square (E = 1e5, c_p = 11.6 m/s) with dt = 2.5e-2 s: dt c / dx = 5.8;
+* ``compression`` -- a Hencky square (E = 1e4, no yield) squeezed by an initial velocity -600 (x - x_c)
+  along x (APIC, C = grad v) at a step that moves it 0.36 cells: J falls to 6e-4 by step 20 at CFL 0.02,
+  then the log-strain pressure throws it apart (the failure: a particle leaving the domain at step ~150);
+  the kept frames' J range names the collapse;
+* ``velocity`` -- one particle of a square at rest thrown at 400 m/s (20 cells per step);
+* ``law`` -- fp32 and E = 1e39 (beyond float32: mu = inf, and 2 mu (F - R) = inf * 0 at rest) with the
+  dt of CFL 0.3: NaN from a quiet state in one step;
+* ``cell_crossing`` -- the twisted annulus of ``mpmlab.scenes.large_shear`` at dx = 0.1 (APIC, fp64): J
+  rings in grid-aligned modes long before the peak shear; halving dt fails the same way.
+"""
+import numpy as np
+import pytest
+
+import mpmlab
+from mpmlab.core import diagnosis as D
+
+BACKENDS = ("jax", "warp")
+
+
+def square(dt, E=1e4, walls=True, cfl_limit=1e9, gravity=(0.0, -9.8), velocity=None, C=None):
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.35, 0.35], "hi": [0.65, 0.65]}, material="fixed_corotated",
+                       params={"E": E, "nu": 0.3}, density=1000.0, particles_per_cell=4, velocity=velocity, C=C)
+    return mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=list(gravity),
+                        boundaries=[mpmlab.boundaries.Walls()] if walls else [], dt=dt, cfl_limit=cfl_limit)
+
+
+def with_velocity(st, backend, v):
+    s = st.init()
+    if backend == "jax":
+        import jax.numpy as jnp
+        return dict(s, v=jnp.asarray(v, dtype=s["v"].dtype))
+    import warp as wp
+    s.v.assign(wp.array(np.asarray(v, dtype=s.v.numpy().dtype), dtype=s.v.dtype))
+    return s
+
+
+def diverge(st, state=None, steps=400, every=10):
+    with pytest.raises(mpmlab.SimulationDiverged) as err:
+        st.rollout(state, steps=steps, every=every)
+    e = err.value
+    msg = str(e)
+    assert e.cause in D.CAUSES and f"step {e.step}" in msg and "cause:" in msg and "\n" not in msg
+    assert "CFL number" in msg and e.measures["cfl_prev"] > 0
+    return e
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_cfl(backend):
+    st = mpmlab.build_stepper(square(dt=2.5e-2, E=1e5), backend, "pic", "fp64", check_every=5)
+    e = diverge(st)
+    assert e.cause == "cfl" and e.measures["cfl_wave"] == pytest.approx(5.80, rel=1e-2)
+    assert "reduce dt" in str(e)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_compression(backend):
+    k = 600.0   # APIC keeps each particle's velocity -k (X - 0.5) and C = grad v: J -> 0 within ~20 steps
+
+    def squeeze(x):
+        v = np.zeros_like(x)
+        v[:, 0] = -k * (x[:, 0] - 0.5)
+        return v
+
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.35, 0.35], "hi": [0.65, 0.65]}, material="hencky_von_mises",
+                       params={"E": 1e4, "nu": 0.3, "yield_stress": 1e30}, density=1000.0, particles_per_cell=4,
+                       velocity=squeeze, C=[[-k, 0.0], [0.0, 0.0]])
+    sc = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, 0.0],
+                      boundaries=[], dt=2e-4, cfl_limit=1e9)
+    st = mpmlab.build_stepper(sc, backend, "apic", "fp64", check_every=4)
+    e = diverge(st, steps=200, every=20)
+    m = e.measures
+    assert e.cause == "compression", str(e)
+    # J collapsed (to ~6e-4 at step 20) at CFL 0.02, long before the Hencky stress threw the body apart
+    assert min(m["frames_J_min"]) < 0.01 and m["cfl_wave"] < 0.05 and m["cfl_start"] < 1.0
+    assert "J collapse" in str(e) and "reduce dt" not in str(e)
+
+
+def test_velocity_blow_up():
+    st = mpmlab.build_stepper(square(dt=2.5e-3, E=1e3, walls=False, gravity=(0.0, 0.0)), "jax", "pic", "fp64",
+                              check_every=5)
+    v = np.zeros_like(st.particles.x)
+    v[7] = [400.0, 0.0]
+    e = diverge(st, with_velocity(st, "jax", v))
+    assert e.cause == "velocity", str(e)
+    assert e.measures["cfl_start"] < 1.0 and max(e.measures["move_cells_prev"], e.measures["move_cells_fail"]) > 1.0
+
+
+def test_law_out_of_range_parameter():
+    sc = square(dt=1.0, E=1e39, walls=False)
+    sc.dt = 0.3 * sc.dx / sc.wave_speed()
+    st = mpmlab.build_stepper(sc, "jax", "pic", "fp32", check_every=1)
+    e = diverge(st, steps=3, every=1)
+    assert e.cause == "law" and e.step == 1, str(e)
+    assert "fixed_corotated" in str(e) and "parameters" in str(e)
+
+
+def test_cell_crossing_twisted_annulus_is_not_cfl():
+    from mpmlab.scenes import large_shear as LS
+
+    runs = [LS.run("annulus", dx=0.1, transfer="apic", frames=22, dt_scale=s) for s in (1.0, 0.5)]
+    for r in runs:
+        assert r["diverged"] and r["cause"] == "cell_crossing", r["message"]
+        m = r["measures"]
+        assert m["cfl_wave"] < 0.3 and m["J_min"] < 0.9 and m["J_max"] > 1.1
+        assert "shape function" in r["message"] and "reduce dt" not in r["message"]
+    # halving dt does not remove it: the failure time moves by less than 25 %
+    assert runs[1]["t_diverged"] < 1.25 * runs[0]["t_diverged"] < runs[0]["t_end"]
