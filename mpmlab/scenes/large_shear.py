@@ -298,13 +298,15 @@ class Annulus(Shape):
 
 
 def scene(tw: Twist | str = "annulus", dx: float = 0.05, particles_per_axis: int = 2, t_end: float | None = None,
-          cfl: float = 0.3, affine: bool = True, pad_cells: int = 4, dt: float | None = None) -> Scene:
+          cfl: float = 0.3, affine: bool = True, pad_cells: int = 4, dt: float | None = None,
+          step_multiple: int = 1) -> Scene:
     """The solution's 2D plane-strain scene: the annulus/disc centred at the origin, no walls, no
     gravity, the exact body force (``expression`` field), the exact initial velocity and (``affine``)
     C = grad v at t = 0 (needs APIC/MLS/TPIC; pass False for PIC/FLIP). F = I at t = 0 (h(0) = 0).
 
-    dt: fixed, ``t_end / ceil(t_end / (cfl dx / (c_p + max |v|)))`` so that ``t_end`` (default: 1.1 x the
-    peak time, past the peak deformation) is hit exactly; or give ``dt``."""
+    dt: fixed, ``t_end / n`` with n = ceil(t_end / (cfl dx / (c_p + max |v|))) rounded up to a multiple of
+    ``step_multiple`` (frames at the same times on every grid), so that ``t_end`` (default: 1.1 x the peak
+    time, past the peak deformation) is hit exactly; or give ``dt``."""
     from ..boundaries.body_force import BodyForce
 
     tw = solution(tw) if isinstance(tw, str) else tw
@@ -324,7 +326,7 @@ def scene(tw: Twist | str = "annulus", dx: float = 0.05, particles_per_axis: int
     lo, hi = [-n * dx] * 2, [n * dx] * 2
     if dt is None:
         c = tw.wave_speeds()[1] + tw.peak_speed()
-        steps = int(math.ceil(t_end / (cfl * dx / c)))
+        steps = int(math.ceil(t_end / (cfl * dx / c) / step_multiple)) * step_multiple
         dt = t_end / steps
     bf = BodyForce(field="expression", values=body_force_expressions(tw))
     return Scene(dim=2, dx=dx, domain=(lo, hi), bodies=[body], gravity=None, boundaries=[bf], dt=dt, cfl=cfl,
@@ -355,28 +357,32 @@ def make_transfer_for(transfer: str, shape_function: str = "quadratic"):
 def run(tw: Twist | str = "annulus", dx: float = 0.05, backend: str = "jax", transfer: str = "apic",
         precision: str = "fp64", shape_function: str = "quadratic", t_end: float | None = None,
         frames: int = 22, particles_per_axis: int = 2, cfl: float = 0.3, dt_scale: float = 1.0,
-        check_every: int | None = None, on_frame: Callable | None = None) -> dict[str, Any]:
+        check_every: int | None = None, on_frame: Callable | None = None, keep_x: bool = False) -> dict[str, Any]:
     """Roll the solution out to ``t_end`` keeping ``frames`` frames; score each frame
     (:func:`displacement_error`). A divergence ends the run: its time, step and diagnosis are returned
-    (``diverged``, ``t_diverged``, ``cause``, ``message``, ``measures``), not raised."""
+    (``diverged``, ``t_diverged``, ``cause``, ``message``, ``measures``), not raised. ``keep_x``: also return
+    the last frame's particle positions (``x_last``) and the reference positions (``X0``)."""
     from ..core.errors import SimulationDiverged
     from ..simulator import build_stepper
 
     tw = solution(tw) if isinstance(tw, str) else tw
     t_end = 1.1 * tw.t_peak if t_end is None else t_end
     affine = transfer in ("apic", "mls", "tpic")
-    sc = scene(tw, dx=dx, particles_per_axis=particles_per_axis, t_end=t_end, cfl=cfl, affine=affine)
+    sc = scene(tw, dx=dx, particles_per_axis=particles_per_axis, t_end=t_end, cfl=cfl, affine=affine,
+               step_multiple=frames)
     if dt_scale != 1.0:
         steps0 = int(round(t_end / sc.resolve_dt()))
         sc = scene(tw, dx=dx, particles_per_axis=particles_per_axis, t_end=t_end, cfl=cfl, affine=affine,
                    dt=t_end / int(round(steps0 / dt_scale)))
     dt = sc.resolve_dt()
     steps = int(round(t_end / dt))
-    every = max(1, steps // frames)
+    every = max(1, steps // frames)     # frames at t_end k / frames on every grid (steps is a multiple)
     X0 = sc.particles().x
     hist: list[dict[str, float]] = []
+    last: dict[str, Any] = {}
 
     def frame(i, npstate):
+        last["x"] = np.array(npstate["x"], float)
         e = displacement_error(tw, X0, npstate["x"].astype(float), float(npstate["time"]))
         F = npstate.get("F")
         Jdev = float(np.max(np.abs(np.linalg.det(F) - 1.0))) if F is not None else float("nan")
@@ -398,8 +404,10 @@ def run(tw: Twist | str = "annulus", dx: float = 0.05, backend: str = "jax", tra
         out.update(diverged=True, step_diverged=e.step, t_diverged=e.step * dt, cause=getattr(e, "cause", None),
                    message=str(e), measures=getattr(e, "measures", None))
     out["run_s"] = time.perf_counter() - t0
+    if keep_x:
+        out["x_last"], out["X0"] = last.get("x"), X0
     out["history"] = hist
-    last = hist[-1] if hist else {}
-    out.update({k: last.get(k) for k in ("displacement_error", "relative_error", "max_error")})
-    out["t_last"] = last.get("t")
+    fin = hist[-1] if hist else {}
+    out.update({k: fin.get(k) for k in ("displacement_error", "relative_error", "max_error")})
+    out["t_last"] = fin.get("t")
     return out
