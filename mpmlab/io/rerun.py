@@ -21,6 +21,9 @@ Layout of a recording (rerun-sdk 0.41, one explicit ``rr.RecordingStream``, neve
 * ``legend/colors``: a colour bar (scalar colourings) or the material / body swatches, a PNG image;
 * ``metrics/<name>``: ``rr.Scalars`` per frame (vector metrics split into ``<name>/x``, ``/y``, ``/z``),
   each with a ``SeriesLines`` name that carries its unit; NaN values are not logged;
+* ``world/<name>`` line strips given to :func:`write_recording` (``line_strips``), logged at one frame
+  each: e.g. ``world/deposit_profile``, a granular deposit's final profile (``task=simulate`` with
+  ``task.runout``; its front and wall height are the ``metrics/runout_*`` series);
 * ``derived/gravity_potential_energy_rel`` and ``derived/total_energy``: the gravitational energy
   relative to frame 0 and the total energy (kinetic + that + elastic), as in ``energy.png``;
 * ``scene/metadata``: a markdown ``TextDocument`` (static) with backend, transfer, precision, laws,
@@ -56,6 +59,8 @@ MISSING_COLOR = np.array([160, 160, 160], np.uint8)
 #: against the viewer's near-black background (viridis(0) has 1.3:1 and vanishes).
 COLORMAP = ("viridis", 0.32, 1.0)
 DOMAIN_COLOR = np.array([150, 150, 150], np.uint8)
+#: line strips drawn over the particles (a deposit profile)
+LINE_COLOR = (240, 60, 60)
 VIEWER_BACKGROUND = (13, 13, 13)
 _AXES = ("x", "y", "z")
 _AXIS_COLORS = {"x": [230, 85, 80], "y": [90, 200, 90], "z": [80, 150, 240]}
@@ -730,6 +735,27 @@ class RecordingWriter(AtomicWriter):
             self.frames_logged.append(int(frame_index))
         self._log_metrics(rec, metrics or {})
 
+    def add_line_strip(self, entity: str, points, frame_index: int, time: float = float("nan"),
+                       color: Sequence[int] = LINE_COLOR, label: str | None = None) -> None:
+        """Log a polyline [K, dim] (world coordinates) at ``frame_index`` as ``entity`` (under ``world/``:
+        drawn in the particle view); it shows from that frame on."""
+        import rerun as rr
+
+        if self._closed:
+            raise ConfigError("RecordingWriter is closed; open a new writer to log more.")
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != self.dim:
+            raise ConfigError(f"line strip '{entity}': points must be [K, {self.dim}] (got shape {pts.shape}).")
+        self.open()
+        rec = self._rec
+        rec.set_time("frame", sequence=int(frame_index))
+        if np.isfinite(time):
+            rec.set_time("sim_time", duration=float(time))
+        strips = rr.LineStrips2D if self.dim == 2 else rr.LineStrips3D
+        kw = {"labels": [label], "show_labels": False} if label else {}
+        rec.log(entity, strips([pts[np.all(np.isfinite(pts), axis=1)]], colors=[list(color)],
+                                radii=rr.Radius.ui_points(2.0), **kw))
+
     def _values_struct(self, values: dict):
         import pyarrow as pa
 
@@ -836,7 +862,8 @@ def write_recording(path: str | os.PathLike, traj: Trajectory, color_by: str = "
                     metrics: dict | bool | None = None, app_id: str = "mpmlab", recording_id: str | None = None,
                     overwrite: bool = False, color_range: tuple[float, float] | None = None,
                     compile_time_s: float | None = None, particle_values: bool = True,
-                    color_variants: bool = False) -> Path:
+                    color_variants: bool = False,
+                    line_strips: dict[str, tuple[int, Any]] | None = None) -> Path:
     """Write ``traj`` as a rerun .rrd recording with a default blueprint (no viewer needed).
 
     Args:
@@ -857,6 +884,8 @@ def write_recording(path: str | os.PathLike, traj: Trajectory, color_by: str = "
             material and particle id: what hovering a particle shows).
         color_variants: also log one colour per colouring (``ParticleColors:colors``), to recolour in
             the viewer without a rerun (the hover card then shows a summary instead of the values).
+        line_strips: ``{entity: (frame index, points [K, dim])}``: polylines in world coordinates logged
+            at that frame (e.g. ``world/deposit_profile``), drawn over the particles from then on.
 
     Returns:
         The path written.
@@ -893,11 +922,20 @@ def write_recording(path: str | os.PathLike, traj: Trajectory, color_by: str = "
                         compile_time_s=compile_time_s, particle_values=particle_values,
                         color_variants=color_variants)
     w.compile_left_out = compile_left_out
+    strips: dict[int, list] = {}
+    for entity, (frame, pts) in (line_strips or {}).items():
+        if not 0 <= int(frame) < T:
+            raise ConfigError(f"write_recording: line strip '{entity}' is for frame {frame}, but the trajectory "
+                              f"has {T} frames.")
+        strips.setdefault(int(frame), []).append((entity, pts))
     with w:
         kept_set = set(kept)
         for i in range(T):
             w.add_frame(i, traj.x[i], traj.v[i], float(traj.time[i]), frame_fields(i), traj.field_particles,
                         {k: a[i] for k, a in metrics.items()}, force=i in kept_set)
+            for entity, pts in strips.get(i, ()):
+                w.add_line_strip(entity, pts, i, float(traj.time[i]),
+                                 label=entity.rsplit("/", 1)[-1].replace("_", " "))
     return w.path
 
 

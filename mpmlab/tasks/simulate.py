@@ -16,8 +16,9 @@ import logging
 import os
 import platform
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import List, Optional
 
 import numpy as np
 
@@ -33,8 +34,43 @@ log = logging.getLogger("mpmlab")
 
 
 @dataclass
+class RunoutOptions:
+    """``task.runout``: the run-out analysis (:mod:`mpmlab.analysis.runout`). ``enabled``: null (the
+    default) runs it where the scene declares its geometry (``scene.vars.runout``: the granular
+    collapse scenes), true runs it on any scene (error if no flow axis is known), false never. A key
+    left null here takes the scene's value; the rest has defaults: ``up`` against gravity, ``wall`` and
+    ``base`` the domain's lower faces, ``direction`` +1, ``cell`` the grid spacing."""
+
+    enabled: Optional[bool] = None
+    #: the flow axis (x|y|z or 0..dim-1) from the wall; or ``center`` for a radial flow
+    axis: Optional[str] = None
+    #: the axis against gravity
+    up: Optional[str] = None
+    #: the wall's position along ``axis`` [m]; ``direction`` +1: the flow goes towards larger coordinates
+    wall: Optional[float] = None
+    direction: Optional[int] = None
+    #: the floor's position along ``up`` [m]
+    base: Optional[float] = None
+    #: radial flow (a cylinder collapse): the horizontal distance from this point
+    center: Optional[List[float]] = None
+    #: the initial column's length (radial: radius) and height, for d_n = (L_f - L0) / L0 and H_wall / H0
+    L0: Optional[float] = None
+    H0: Optional[float] = None
+    #: cube edge of the deposit's connectivity and the profile's bin width [m] (default: the grid's dx)
+    cell: Optional[float] = None
+    #: the stop rule: front and wall height moved < tol_cells cells over window_s s, and kinetic energy
+    #: below ke_fraction of its peak
+    window_s: float = 0.1
+    tol_cells: float = 0.1
+    ke_fraction: float = 1.0e-3
+    #: end the run at the first frame where the rule holds (outputs closed as complete, up to that frame)
+    stop_when_settled: bool = False
+
+
+@dataclass
 class SimulateTaskConfig(TaskConfig):
     name: str = "simulate"
+    runout: RunoutOptions = field(default_factory=RunoutOptions)
 
 
 register_task_schema("simulate", SimulateTaskConfig)
@@ -67,7 +103,19 @@ def _output_names(cfg) -> list[str]:
     names += [TRAJECTORY] if cfg.output.trajectory else []
     names += [RECORDING] if cfg.output.recording else []
     names += [ENERGY_PLOT] if cfg.output.plots else []
+    names += [RUNOUT_PLOT] if cfg.output.plots and _runout_wanted(cfg) else []
     return names
+
+
+def _runout_wanted(cfg) -> bool:
+    """Whether the run-out analysis runs (before the scene is built: the output names are checked first)."""
+    opts = cfg.task.get("runout")
+    if opts is None:
+        return False
+    if opts.enabled is not None:
+        return bool(opts.enabled)
+    vars_ = cfg.scene.get("vars")
+    return bool(vars_ is not None and vars_.get("runout"))
 
 
 def run(cfg, ctx) -> dict:
@@ -105,6 +153,7 @@ def run(cfg, ctx) -> dict:
         log.info("steps = %d is not a multiple of frame_every = %d: frames are kept at steps 0, %d, ..., %d "
                  "and at the last step, %d.", steps, every, every, steps - steps % every, steps)
     check_output_sizes(cfg, scene, out, steps, every, written)
+    plan = runout_plan(cfg, scene)      # the run-out analysis (task.runout), its options checked here
 
     options = {}
     if cfg.backend.check_every is not None:
@@ -164,6 +213,11 @@ def run(cfg, ctx) -> dict:
                              "derived_particles_json": m["particles"]} for k, m in meta_derived.items()},
         )
 
+    keep_frames = writer is None and bool(cfg.output.recording)
+    # a run that may stop when its deposit settles keeps the recording's frames itself: the rollout's own
+    # trajectory is lost with the exception that ends it
+    own_frames: list | None = [] if keep_frames and plan is not None and plan.stop_when_settled else None
+
     def on_frame(i, npstate):   # runs whole (signals.deferred in the rollout): every output gets the frame
         t0 = time.perf_counter()
         clock(i, npstate, npstate["step"])
@@ -171,15 +225,33 @@ def run(cfg, ctx) -> dict:
             writer(i, apply_derived(npstate, derived, scene.dim) if derived else npstate)
         series(i, npstate)
         walls.update(npstate["x"], int(npstate["step"]))
+        if own_frames is not None:
+            own_frames.append({k: npstate[k] for k in ("x", "v", *fields) if k in npstate})
+        if plan is not None:
+            plan.monitor.update(float(npstate["time"]), npstate["x"], npstate["v"])
         clock.output(time.perf_counter() - t0)
+        if plan is not None and plan.stop_when_settled and plan.monitor.settled:
+            raise _Settled()
 
     ended: BaseException | None = None     # what stopped the rollout before its last step
+    stopped_early = False                  # task.runout.stop_when_settled ended it (a clean stop)
     traj = None
     try:
         traj = stepper.rollout(steps=steps, every=every, fields=fields, progress=ctx.progress, on_frame=on_frame,
-                               keep_frames=writer is None and bool(cfg.output.recording))
+                               keep_frames=keep_frames)
+    except _Settled:
+        stopped_early = True
+        if own_frames is not None:
+            n = len(own_frames)
+            traj = stepper._trajectory(own_frames, list(clock.steps[:n]), fields, list(clock.times_s[:n]))
     except BaseException as exc:           # diverged, interrupted (SIGINT/SIGTERM), disk full, ...
         ended = exc
+    if stopped_early and writer is not None and writer._f is not None:
+        # a complete file of the steps actually run: 'steps' is what was run, the plan beside it
+        a = writer._f.attrs
+        a["steps_planned"] = steps
+        a["steps"] = int(clock.steps[-1])
+        a["stopped_when_settled"] = True
     if writer is not None:
         try:
             writer.close(ended)            # frames so far kept, complete = False, the reason recorded
@@ -205,9 +277,24 @@ def run(cfg, ctx) -> dict:
     if kept:
         outputs["trajectory"] = TRAJECTORY
     notes = []
+    runout = None
+    rec_metrics, overlays = metrics, None
+    if plan is not None and plan.monitor.times:
+        from ..analysis.runout import profile_points, register_metrics
+
+        try:
+            runout = runout_result(plan, stopped_early)
+            register_metrics()
+            n = min(frames, len(plan.monitor.times))
+            rec_metrics = {**metrics, **{k: np.concatenate([a[:n], np.full(frames - n, np.nan)])
+                                         for k, a in plan.monitor.series().items()}}
+            overlays = {"world/deposit_profile": (max(0, min(len(plan.monitor.times), frames) - 1),
+                                                  profile_points(runout, plan.monitor.geometry, plan.lateral))}
+        except Exception as exc:           # noqa: BLE001 - the analysis must not cost the run its summary
+            runout = {"error": f"{type(exc).__name__}: {exc}"}
     try:
         if cfg.output.recording and frames and status in ("ok", "diverged"):
-            _write_recording(cfg, ctx, out, scene, traj if not kept else None, metrics)
+            _write_recording(cfg, ctx, out, scene, traj if not kept else None, rec_metrics, overlays)
             outputs["recording"] = RECORDING
         elif cfg.output.recording and frames:
             notes.append(f"recording.rrd was not written ({status}); make it from the frames kept with "
@@ -219,6 +306,9 @@ def run(cfg, ctx) -> dict:
                 title += f"\nDIVERGED at step {diverged.step} (frames before it shown)"
             if plot_energy(out / ENERGY_PLOT, time_s, metrics, title, ctx.overwrite, dim=scene.dim) is not None:
                 outputs["energy_plot"] = ENERGY_PLOT
+            if runout is not None and "L_f" in runout:
+                plot_runout(out / RUNOUT_PLOT, plan, runout, title, ctx.overwrite)
+                outputs["runout_plot"] = RUNOUT_PLOT
     except BaseException as exc:           # the recording or plot could not be written (or a signal)
         if ended is None:
             ended = exc
@@ -254,6 +344,9 @@ def run(cfg, ctx) -> dict:
         **timing,
         **(drift(metrics, time_s, scene.gravity) if metrics else {}),
         "containment": walls.summary(),
+        **({"runout": runout} if runout is not None else {}),
+        **({"stopped_when_settled": {"step": int(done), "time": float(time_s[-1]) if frames else 0.0,
+                                     "steps_planned": steps}} if stopped_early else {}),
         "seed": int(cfg.seed),
         "host": platform.node(),
         "pid": os.getpid(),
@@ -294,8 +387,15 @@ def run(cfg, ctx) -> dict:
             log.warning("run %s %s.", stop_reason(interrupted), detail)
         ended.mpmlab_detail = detail       # the CLI's closing line says what was kept
         raise ended
-    log.info("run completed: %d steps, %d frames, %.2f s.", steps, frames, summary["wall_time_s"])
-    print(f"mpmlab: {scene.name} {backend}/{transfer.name}/{precision}: {P.count} particles x {steps} steps in "
+    if runout is not None:
+        _log_runout(runout)
+    if stopped_early:
+        log.info("run stopped at step %d of %d (t = %.4g s): the deposit settled (task.runout.stop_when_settled); "
+                 "%d frames, %.2f s.", done, steps, summary["last_frame"]["time"], frames, summary["wall_time_s"])
+    else:
+        log.info("run completed: %d steps, %d frames, %.2f s.", steps, frames, summary["wall_time_s"])
+    print(f"mpmlab: {scene.name} {backend}/{transfer.name}/{precision}: {P.count} particles x {summary['steps_done']} "
+          f"steps in "
           f"{timing['rollout_time_s']:.2f} s ("
           + (f"compile {timing['compile_time_s']:.2f} s" if timing["compile_time_s"] is not None else "incl. compile")
           + "), "
@@ -303,7 +403,21 @@ def run(cfg, ctx) -> dict:
     return summary
 
 
-def _write_recording(cfg, ctx, out: Path, scene, traj, metrics) -> None:
+def _log_runout(r: dict) -> None:
+    if "error" in r:
+        log.warning("run-out analysis failed: %s", r["error"])
+        return
+    dn = f" (d_n = {r['d_n']:.3f})" if r.get("d_n") is not None else ""
+    how = (f"settled at t = {r['settled_time']:.4g} s" if r["settled"] else
+           "NOT settled: the front moved "
+           + (f"{r['front_moved_last_window_cells']:.2f} cells" if r["front_moved_last_window_cells"] is not None
+              else "(the run is shorter than the window)")
+           + f" over the last {r['stop_rule']['window_s']:g} s, so L_f is not final")
+    log.info("run-out at t = %.4g s: L_f = %.4g m%s, height at the wall %.4g m; %s; %d particle(s) left out of "
+             "the deposit.", r["time"], r["L_f"], dn, r["H_wall"], how, r["particles_left_out"])
+
+
+def _write_recording(cfg, ctx, out: Path, scene, traj, metrics, overlays=None) -> None:
     """recording.rrd from the frames in memory (``traj``) or, frame by frame, from trajectory.h5."""
     import contextlib
     import warnings
@@ -317,7 +431,165 @@ def _write_recording(cfg, ctx, out: Path, scene, traj, metrics) -> None:
         with source as t:
             write_recording(out / RECORDING, t, color_by=cfg.output.color_by, every=int(cfg.output.record_every),
                             metrics=metrics, recording_id=unique_recording_id(scene.name, out.name),
-                            overwrite=ctx.overwrite)
+                            overwrite=ctx.overwrite, line_strips=overlays)
+
+
+# ---- run-out analysis (task.runout; mpmlab.analysis.runout) -------------------------------------
+RUNOUT_PLOT = "runout.png"
+_RUNOUT_SCENE_KEYS = ("axis", "up", "wall", "direction", "base", "center", "L0", "H0")
+
+
+class _Settled(Exception):
+    """Raised from on_frame to end a rollout whose deposit has settled (task.runout.stop_when_settled)."""
+
+
+@dataclass
+class RunoutPlan:
+    monitor: "object"
+    L0: Optional[float]
+    H0: Optional[float]
+    stop_when_settled: bool
+    lateral: list
+
+
+def runout_plan(cfg, scene) -> RunoutPlan | None:
+    """The run-out monitor this run feeds, or None (``task.runout.enabled`` false, or null on a scene
+    without ``scene.vars.runout``). Every option is checked here, before anything is written."""
+    from omegaconf import OmegaConf
+
+    from ..analysis.runout import RunoutGeometry, RunoutMonitor, axis_index
+
+    opts = cfg.task.get("runout")
+    if opts is None:
+        return None
+    vars_ = cfg.scene.get("vars") or {}
+    declared = vars_.get("runout") if hasattr(vars_, "get") else None
+    if declared is not None and not OmegaConf.is_dict(declared):
+        raise ConfigError(f"scene.vars.runout must be a mapping of {', '.join(_RUNOUT_SCENE_KEYS)} "
+                          f"(got {declared!r}).")
+    declared = OmegaConf.to_container(declared, resolve=True) if declared is not None else {}
+    unknown = sorted(set(declared) - set(_RUNOUT_SCENE_KEYS))
+    if unknown:
+        raise ConfigError(f"scene.vars.runout: unknown key(s) {unknown}; the run-out geometry takes "
+                          f"{', '.join(_RUNOUT_SCENE_KEYS)}.")
+    enabled = opts.enabled if opts.enabled is not None else bool(declared)
+    if not enabled:
+        if opts.stop_when_settled:
+            raise ConfigError("task.runout.stop_when_settled=true needs the run-out analysis: set "
+                              "task.runout.enabled=true (and its geometry, task.runout.axis=..., on a scene "
+                              "without scene.vars.runout).")
+        return None
+
+    def get(key):
+        v = opts.get(key)
+        return declared.get(key) if v is None else (OmegaConf.to_container(v) if OmegaConf.is_config(v) else v)
+
+    dim = int(scene.dim)
+    lo, hi = (list(cfg.scene.domain.lo), list(cfg.scene.domain.hi))
+    g = np.asarray(scene.gravity, dtype=np.float64)
+    up = get("up")
+    if up is None:
+        if not np.any(g):
+            raise ConfigError(f"task.runout: scene '{scene.name}' has no gravity; give the up axis "
+                              f"(task.runout.up=x|y|z).")
+        up = int(np.argmax(np.abs(g)))
+        if g[up] > 0:
+            raise ConfigError(f"task.runout: gravity points along +{'xyz'[up]}; the run-out measures heights "
+                              f"above a floor at the lower face, so set task.runout.up and task.runout.base.")
+    up = axis_index(up, dim, "task.runout.up")
+    # the mode (a wall or a centre) given in task.runout wins over the scene's
+    if opts.center is not None and opts.axis is not None:
+        raise ConfigError("task.runout: give either a flow axis (axis, wall: flow away from a wall) or a center "
+                          "(radial flow), not both.")
+    if opts.center is not None:
+        center, axis = get("center"), None
+    elif opts.axis is not None:
+        center, axis = None, get("axis")
+    else:
+        center, axis = declared.get("center"), declared.get("axis")
+        if center is not None and axis is not None:
+            raise ConfigError("scene.vars.runout: give either a flow axis (axis, wall) or a center, not both.")
+    if center is None and axis is None:
+        raise ConfigError(f"task.runout: scene '{scene.name}' declares no run-out geometry (scene.vars.runout); "
+                          f"give the flow axis (task.runout.axis=x|y|z) or a center (task.runout.center=[...]).")
+
+    def number(key, default):
+        v = get(key)
+        if v is None:
+            return default
+        try:
+            return float(v)
+        except (TypeError, ValueError):
+            raise ConfigError(f"task.runout.{key} = {v!r} is not a number.") from None
+
+    direction = get("direction")
+    if center is None:
+        axis = axis_index(axis, dim, "task.runout.axis")
+        direction = 1 if direction is None else direction
+        if direction not in (1, -1, "1", "-1", "+1"):
+            raise ConfigError(f"task.runout.direction = {direction!r} must be +1 or -1.")
+        direction = int(direction)
+        wall = number("wall", lo[axis] if direction > 0 else hi[axis])
+    else:
+        if not isinstance(center, (list, tuple)) or not all(isinstance(c, (int, float)) for c in center):
+            raise ConfigError(f"task.runout.center = {center!r} must be a list of numbers.")
+        axis, wall, direction = None, 0.0, 1
+    base = number("base", lo[up])
+    cell = number("cell", float(scene.dx))
+    L0, H0 = number("L0", None), number("H0", None)
+    for key, v in (("L0", L0), ("H0", H0)):
+        if v is not None and not v > 0:
+            raise ConfigError(f"task.runout.{key} = {v} must be positive (or null: not known).")
+    geometry = RunoutGeometry(dim=dim, up=up, axis=axis, wall=wall, direction=direction, base=base,
+                              center=None if center is None else tuple(float(c) for c in center))
+    P = scene.particles()
+    size = np.asarray(P.volume, dtype=np.float64) ** (1.0 / dim)
+    monitor = RunoutMonitor(geometry, cell, mass=np.asarray(P.mass, dtype=np.float64), particle_size=size,
+                            window_s=float(opts.window_s), tol_cells=float(opts.tol_cells),
+                            ke_fraction=float(opts.ke_fraction))
+    # where the profile is drawn in 3D: across the middle of the domain's other horizontal axis
+    lateral = [0.5 * (a + b) for a, b in zip(lo, hi)]
+    return RunoutPlan(monitor, L0, H0, bool(opts.stop_when_settled), lateral)
+
+
+def runout_result(plan: RunoutPlan, stopped_early: bool) -> dict:
+    from ..analysis.runout import summarize
+
+    out = summarize(plan.monitor, plan.L0, plan.H0)
+    out["stopped_early"] = bool(stopped_early)
+    out["stop_when_settled"] = plan.stop_when_settled
+    return out
+
+
+def plot_runout(path: Path, plan: RunoutPlan, result: dict, title: str, overwrite: bool) -> Path:
+    """runout.png: the front and the height at the wall over time (the settling time marked) and the
+    final deposit profile."""
+    from matplotlib.figure import Figure
+
+    from ..io.files import write_atomically
+
+    m = plan.monitor
+    fig = Figure(figsize=(11, 4), dpi=110)
+    a, b = fig.subplots(1, 2)
+    t = np.asarray(m.times)
+    a.plot(t, m.fronts, label="front L(t)")
+    a.plot(t, m.heights, label="height at the wall H(t)")
+    if m.settled:
+        a.axvline(m.settled_time, color="k", ls="--", lw=1, label=f"settled, t = {m.settled_time:.3g} s")
+    a.set_xlabel("time [s]"); a.set_ylabel("[m]"); a.grid(alpha=0.3); a.legend(fontsize=8)
+    a.set_title("front and wall height")
+    p = result["profile"]
+    b.step(p["distance"], p["height"], where="mid", label=f"t = {result['time']:.3g} s")
+    b.axvline(result["L_f"], color="C3", lw=1, label=f"L_f = {result['L_f']:.4g} m")
+    if plan.L0 is not None:
+        b.axvline(plan.L0, color="0.5", ls=":", lw=1, label=f"L0 = {plan.L0:.4g} m")
+    b.set_xlabel("distance from the wall [m]"); b.set_ylabel("deposit height [m]"); b.grid(alpha=0.3)
+    b.set_aspect("equal", adjustable="datalim"); b.legend(fontsize=8)
+    dn = result.get("d_n")
+    b.set_title("final deposit profile" + (f", d_n = {dn:.3f}" if dn is not None else ""))
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return write_atomically(path, lambda tmp: fig.savefig(tmp, format="png", metadata={"Title": title}), overwrite)
 
 
 def check_output_sizes(cfg, scene, out: Path, steps: int, every: int, fields) -> None:
