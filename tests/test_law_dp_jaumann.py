@@ -87,19 +87,28 @@ def test_rest_stays_stress_free(backend, dim):
 @pytest.mark.parametrize("dim", DIMS)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_elastic_increment_zone1(backend, dim):
-    """Zone I: sigma + lambda tr(dd) I + 2 G dd (+ Jaumann rotation), no plastic strain."""
+    """Zone I: the A.1-A.2 increment on the Kirchhoff stress, (R J sigma R^T + lambda tr(dd) I + 2 G dd) / J_new
+    with the Hughes-Winget rotation R, no plastic strain; within O(dt^2 |L|^2 + tr(dd)) of A.2's literal
+    first-order form at J = 1."""
     rng = np.random.default_rng(0)
     G, lam = REF.moduli(K, NU)
     sig = stress(dim, -2.0 * SCALE, 0.1 * SCALE, rng)
     L = 0.01 * rng.standard_normal((dim, dim))
     dt = 1e-3
     dd, dw = 0.5 * (L + L.T) * dt, 0.5 * (L - L.T) * dt
-    want = sig + sig @ dw.T + dw @ sig + lam * np.trace(dd) * np.eye(dim) + 2 * G * dd
-    assert zone_of(want) == 1
-    n = update(backend, dim, [{"J": 1.0, "sigma": sig, "eps_p": 0.01}], [L], dt)[0]
-    assert np.max(np.abs(n["sigma"] - want)) <= 1e-12 * SCALE
-    assert n["eps_p"] == 0.01
-    assert abs(n["J"] - np.linalg.det(np.eye(dim) + dt * L)) <= 1e-15
+    I = np.eye(dim)
+    R = np.linalg.solve(I - 0.5 * dw, I + 0.5 * dw)                 # Cayley, by a solve (the law: closed form)
+    for J in (1.0, 0.93):
+        J_new = J * np.linalg.det(I + dt * L)
+        want = (R @ (J * sig) @ R.T + lam * np.trace(dd) * I + 2 * G * dd) / J_new
+        assert zone_of(want) == 1
+        n = update(backend, dim, [{"J": J, "sigma": sig, "eps_p": 0.01}], [L], dt)[0]
+        assert np.max(np.abs(n["sigma"] - want)) <= 1e-12 * SCALE
+        assert n["eps_p"] == 0.01
+        assert abs(n["J"] - J_new) <= 1e-15
+    literal = sig + sig @ dw.T + dw @ sig + lam * np.trace(dd) * I + 2 * G * dd    # A.1-A.2 as printed
+    n = update(backend, dim, [{"J": 1.0, "sigma": sig, "eps_p": 0.0}], [L], dt)[0]
+    assert np.max(np.abs(n["sigma"] - literal)) <= 2.0 * np.max(np.abs(sig)) * (np.max(np.abs(L)) * dt * dim)
 
 
 @pytest.mark.parametrize("dim", DIMS)

@@ -147,8 +147,8 @@ class Scene:
     # Safety factor rule: cfl = min(0.3, C*_min / 2), C*_min = the smallest measured stable CFL factor
     # over transfers x laws x {vibrating bar, falling cube} on both backends (benchmarks/stress.md).
     # Elastic, elastoplastic-Hencky and fluid laws: C* >= 0.89 (PIC/FLIP on the bar), a margin of ~3.
-    # drucker_prager_jaumann with APIC/MLS/TPIC has C* = 0.19-0.20 (J <= 0 after 400-900 steps;
-    # stress.py --full): the law declares stable_cfl, and effective_cfl caps dt: auto at C*/2 there.
+    # A law with a lower measured C* declares stable_cfl, and effective_cfl caps dt: auto at C*/2 there
+    # (none does now: drucker_prager_jaumann's C* 0.19-0.20 was fixed in issue 17 item 3).
     cfl: float = 0.3
     cfl_limit: float = 0.5
     substeps: int = 1

@@ -12,8 +12,8 @@ from . import reference as _reference
 
 
 class Law(AbstractConstitutiveLaw):
-    """Hypo-elastic Drucker-Prager: Jaumann-rotated Cauchy stress + isotropic elastic increment, then the
-    three-zone return map of JAX-MPM App. A (elastic / shear failure / tensile failure).
+    """Hypo-elastic Drucker-Prager: Jaumann-rotated Kirchhoff stress + isotropic elastic increment, then the
+    three-zone return map of JAX-MPM App. A (elastic / shear failure / tensile failure) on the Cauchy stress.
 
     State: ``J`` (volume ratio), ``sigma`` (Cauchy stress, tension positive) and ``eps_p`` (equivalent
     plastic strain, A.15 / A.18; never decreases). Kirchhoff stress tau = J sigma.
@@ -32,7 +32,20 @@ class Law(AbstractConstitutiveLaw):
       stress beyond the apex, A.12-A.13 literally return to sigma_m > sigma_t with tau < 0 (the deviator
       flips sign and one step of spurious tension follows). mpmlab caps the returned sigma_m at sigma_t,
       i.e. returns to the corner (sigma_t, tau_P) of the shear surface and the tension cutoff.
-    * The Jaumann update (A.2, Eq. 21) is first order in dt, as in the paper.
+    * The elastic trial (A.1-A.2, Eq. 21) is integrated on the Kirchhoff stress tau = J sigma, the stress
+      the grid force uses: tau_trial = R tau_n R^T + lambda tr(dd) I + 2 G dd, sigma_trial = tau_trial / J_new
+      (the Jaumann rate of tau with constant K, G), and R is the Hughes-Winget rotation
+      (I - dw/2)^-1 (I + dw/2) instead of A.2's first-order I + dw. At J = 1 both agree with A.1-A.2 to
+      first order in dt (the granular collapse of Sec. 4.1.2 is unchanged to 2e-5 m, benchmarks/stress.md).
+      Why: with A.1 on the Cauchy stress (constant K, G) a particle dilated to J has the grid stiffness
+      J K per unit mass, i.e. the wave speed sqrt(J) c_p; a cohesionless body thrown apart reaches
+      J = 30-300 and blew up at C ~ 2 / sqrt(J) (the stress sweep's C* was 0.19-0.20; now >= 1.4). A rigid
+      rotation now rotates tau exactly (the first-order A.2 changes its invariants by O((w dt)^2) a step).
+    * Zone III (A.17) keeps the trial deviator; in the wedge tau_P < tau <= tau_P + alpha_P (sigma_m - sigma_t)
+      that h <= 0 admits, that leaves a stress outside the cone (c = sigma_t = 0: any tau > 0 at sigma_m = 0,
+      a tensile principal stress, on most particles of a free-flying cohesionless body). mpmlab returns
+      the wedge to the corner (sigma_t, tau_P), adding the shear part (tau - tau_P) / (G sqrt 3) (A.15 with
+      q_psi = 0) to eps_p.
     """
 
     name: ClassVar[str] = "drucker_prager_jaumann"
@@ -50,9 +63,10 @@ class Law(AbstractConstitutiveLaw):
     test_params = {"bulk_modulus": 2e4, "nu": 0.3, "friction_angle": 30.0}
     plastic = True
     reference = _reference
-    # benchmarks/stress.md (--full): the thrown granular square diverges (J <= 0 after 400-900 steps)
-    # above C = 0.19-0.20 with APIC, MLS and TPIC (FLIP 0.42, PIC 1.0), on both backends
-    stable_cfl: ClassVar[float] = 0.19
+    # benchmarks/stress.md (--full): the thrown granular square used to diverge (J <= 0 after 400-900 steps)
+    # above C = 0.19-0.20 with APIC, MLS and TPIC; with the Kirchhoff-rate integration (see above) its C* is
+    # at or above the other laws' (0.89), so dt: auto keeps the library-wide C = 0.3 (no stable_cfl)
+    stable_cfl: ClassVar[float | None] = None
     implementations: ClassVar[dict] = builtin_implementations("drucker_prager_jaumann")
 
     @classmethod

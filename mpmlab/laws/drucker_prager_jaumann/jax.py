@@ -29,11 +29,14 @@ def make(law, dim: int) -> SimpleNamespace:
         k_phi = 6.0 * c * jnp.cos(phi) / (R3 * (3.0 + sp))
         q_psi = 6.0 * ss / (R3 * (3.0 + ss))
 
-        # A.1-A.2 (Eq. 21): Jaumann rotation + isotropic elastic increment
-        sigma = state["sigma"]
+        # A.1-A.2 (Eq. 21) on the Kirchhoff stress J sigma (see Law): Hughes-Winget rotation R (exactly
+        # orthogonal, = I + dw + O(dw^2)) + isotropic elastic increment, then sigma_trial = tau_trial / J_new
+        J = state["J"]
+        J_new = J * jnp.linalg.det(eye + dt * grad_v)
         dd = 0.5 * (grad_v + grad_v.T) * dt
         dw = 0.5 * (grad_v - grad_v.T) * dt
-        trial = sigma + sigma @ dw.T + dw @ sigma + lam * jnp.trace(dd) * eye + 2.0 * G * dd
+        R = eye + (dw + 0.5 * dw @ dw) / (1.0 + 0.125 * jnp.sum(dw * dw))
+        trial = (R @ (J * state["sigma"]) @ R.T + lam * jnp.trace(dd) * eye + 2.0 * G * dd) / J_new
 
         # A.3-A.4 (2D: tr/2, see Law)
         sm = jnp.trace(trial) / dim
@@ -59,13 +62,14 @@ def make(law, dim: int) -> SimpleNamespace:
         ratio = jnp.where(tpos, tau2 / jnp.where(tpos, tau, 1.0), 0.0)
         sig2 = ratio * s + sm2 * eye
         de2 = dl_s * jnp.sqrt(1.0 / 3.0 + 2.0 / 9.0 * q_psi * q_psi)
-        # Zone III, A.17-A.19
-        sig3 = trial + (st - sm) * eye
-        de3 = math.sqrt(2.0) / 3.0 * (sm - st) / K
+        # Zone III, A.17-A.19, the wedge tau > tau_P returned to the corner (sigma_t, tau_P) (see reference)
+        tau3 = jnp.minimum(tau, tau_p)
+        ratio3 = jnp.where(tpos, tau3 / jnp.where(tpos, tau, 1.0), 0.0)
+        sig3 = ratio3 * s + st * eye
+        de3 = math.sqrt(2.0) / 3.0 * (sm - st) / K + (tau - tau3) / G * math.sqrt(1.0 / 3.0)
 
         new_sigma = jnp.where(zone2, sig2, jnp.where(zone3, sig3, trial))
         deps = jnp.where(zone2, de2, jnp.where(zone3, de3, 0.0))
-        J = state["J"] * jnp.linalg.det(eye + dt * grad_v)
-        return {"J": J, "sigma": new_sigma, "eps_p": state["eps_p"] + deps}
+        return {"J": J_new, "sigma": new_sigma, "eps_p": state["eps_p"] + deps}
 
     return SimpleNamespace(kirchhoff=kirchhoff, update=update)

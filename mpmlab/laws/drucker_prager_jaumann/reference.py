@@ -38,16 +38,31 @@ def invariants(sig):
     return sm, s, math.sqrt(0.5 * float(np.sum(s * s)))
 
 
-def jaumann_trial(sigma, grad_v, dt, prm):
-    """A.1-A.2: sigma_R = sigma + sigma dw^T + dw sigma, trial = sigma_R + lambda tr(dd) I + 2 G dd."""
+def rotation_increment(dw):
+    """Hughes-Winget (Cayley) rotation of the spin increment dw = skew(grad_v) dt:
+    R = (I - dw/2)^-1 (I + dw/2) = I + (dw + dw dw / 2) / (1 + |w|^2 / 4), |w|^2 = dw:dw / 2 (the axial
+    vector's squared norm; the closed form holds in 2D and 3D). R is orthogonal for any dw, and
+    R = I + dw + O(dw^2): A.2's first-order rotation sigma + sigma dw^T + dw sigma, made exact."""
+    d = len(dw)
+    return np.eye(d) + (dw + 0.5 * dw @ dw) / (1.0 + 0.125 * float(np.sum(dw * dw)))
+
+
+def jaumann_trial(sigma, grad_v, dt, prm, J=1.0):
+    """Trial Cauchy stress of A.1-A.2 (Eq. 21), integrated on the Kirchhoff stress tau = J sigma:
+
+        tau_trial = R (J sigma) R^T + lambda tr(dd) I + 2 G dd,   sigma_trial = tau_trial / J_new,
+
+    dd = sym(grad_v) dt, R = rotation_increment(skew(grad_v) dt), J_new = J det(I + dt grad_v). At J = 1 and
+    to first order in dt this is A.1-A.2 (the differences are O(dt^2) rotation terms and sigma tr(dd), a
+    relative O(sigma / K) change); see the Law docstring for why the elastic increment is on tau."""
     prm = _named(prm)
     G, lam = moduli(prm["bulk_modulus"], prm["nu"])
     d = len(sigma)
     dd = 0.5 * (grad_v + grad_v.T) * dt
-    dw = 0.5 * (grad_v - grad_v.T) * dt
-    # (A.2) sigma_ik dw_jk = (sigma dw^T)_ij, sigma_jk dw_ik = (dw sigma^T)_ij = (dw sigma)_ij
-    sigma_r = sigma + sigma @ dw.T + dw @ sigma
-    return sigma_r + lam * np.trace(dd) * np.eye(d) + 2.0 * G * dd
+    R = rotation_increment(0.5 * (grad_v - grad_v.T) * dt)
+    J_new = J * np.linalg.det(np.eye(d) + dt * grad_v)
+    tau = R @ (J * sigma) @ R.T + lam * np.trace(dd) * np.eye(d) + 2.0 * G * dd
+    return tau / J_new
 
 
 def zone(sm, tau, prm):
@@ -86,8 +101,16 @@ def return_map(trial, prm):
         tau_new = k_phi - q_phi * sm_new                            # A.13
         ratio = tau_new / tau if tau > 0.0 else 0.0
         return ratio * s + sm_new * np.eye(d), dl * math.sqrt(1.0 / 3.0 + 2.0 / 9.0 * q_psi * q_psi)  # A.14-15
+    # Zone III: A.17 sets sigma_m = sigma_t and keeps the deviator; where the trial lies in the wedge
+    # tau_P < tau <= tau_P + alpha_P (sigma_m - sigma_t) (h <= 0 admits it) that leaves f_s = tau - tau_P > 0,
+    # a stress outside the cone (c = sigma_t = 0: any tau > 0 at sigma_m = 0, i.e. a tensile principal
+    # stress). mpmlab returns those to the corner (sigma_t, tau_P), the deviator scaled as in A.14.
     dl = (sm - st) / K                                              # A.19
-    return trial + (st - sm) * np.eye(d), math.sqrt(2.0) / 3.0 * dl  # A.17-18
+    tau_p = k_phi - q_phi * st                                      # A.8
+    tau_new = min(tau, tau_p)
+    ratio = tau_new / tau if tau > 0.0 else 0.0
+    dl_s = (tau - tau_new) / G                                      # deviatoric part of the corner return
+    return ratio * s + st * np.eye(d), math.sqrt(2.0) / 3.0 * dl + dl_s * math.sqrt(1.0 / 3.0)  # A.17-18 (+A.15)
 
 
 def kirchhoff(state, prm, w=None):
@@ -97,8 +120,8 @@ def kirchhoff(state, prm, w=None):
 
 
 def update(state, grad_v, dt, prm, w=None):
-    """Eq. 21 / App. A: Jaumann trial stress, three-zone return map, J <- J det(I + dt grad_v)."""
+    """Eq. 21 / App. A: Jaumann trial stress (on tau = J sigma), three-zone return map, J <- J det(I + dt grad_v)."""
     prm = _named(prm)
-    sigma, deps = return_map(jaumann_trial(state["sigma"], grad_v, dt, prm), prm)
+    sigma, deps = return_map(jaumann_trial(state["sigma"], grad_v, dt, prm, state["J"]), prm)
     J = state["J"] * np.linalg.det(np.eye(len(grad_v)) + dt * grad_v)
     return {"J": J, "sigma": sigma, "eps_p": state["eps_p"] + deps}

@@ -11,6 +11,7 @@ from ...backends.warp.law_structs import law_types
 DEG = math.pi / 180.0
 R3 = math.sqrt(3.0)
 SQRT2_3 = math.sqrt(2.0) / 3.0
+SQRT1_3 = math.sqrt(1.0 / 3.0)
 
 
 @lru_cache(maxsize=None)
@@ -40,11 +41,13 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
         q_psi = scalar(6.0) * sps / (scalar(R3) * (scalar(3.0) + sps))
         eye = wp.identity(dim, scalar)
 
-        # A.1-A.2 (Eq. 21): Jaumann rotation + isotropic elastic increment
-        sig = s.sigma
+        # A.1-A.2 (Eq. 21) on the Kirchhoff stress J sigma (see Law): Hughes-Winget rotation R (exactly
+        # orthogonal, = I + dw + O(dw^2)) + isotropic elastic increment, then sigma_trial = tau_trial / J_new
+        J_new = s.J * wp.determinant(eye + dt * grad_v)
         dd = scalar(0.5) * dt * (grad_v + wp.transpose(grad_v))
         dw = scalar(0.5) * dt * (grad_v - wp.transpose(grad_v))
-        trial = sig + sig @ wp.transpose(dw) + dw @ sig + lam * wp.trace(dd) * eye + scalar(2.0) * G * dd
+        R = eye + (dw + scalar(0.5) * (dw @ dw)) / (scalar(1.0) + scalar(0.125) * wp.ddot(dw, dw))
+        trial = (R @ (s.J * s.sigma) @ wp.transpose(R) + lam * wp.trace(dd) * eye + scalar(2.0) * G * dd) / J_new
 
         # A.3-A.4 (2D: tr/2, see Law)
         sm = wp.trace(trial) / scalar(DIMF)
@@ -79,11 +82,16 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
             new_sig = ratio * dev + sm2 * eye                     # A.14
             deps = dl * wp.sqrt(scalar(1.0) / scalar(3.0) + scalar(2.0) / scalar(9.0) * q_psi * q_psi)  # A.15
         elif ft >= scalar(0.0):
-            new_sig = trial + (st - sm) * eye                     # A.17
-            deps = scalar(SQRT2_3) * (sm - st) / K                # A.18-A.19
+            # A.17-A.19, the wedge tau > tau_P returned to the corner (sigma_t, tau_P) (see reference)
+            tau3 = wp.min(tau, tau_p)
+            ratio3 = scalar(0.0)
+            if tau > scalar(0.0):
+                ratio3 = tau3 / tau
+            new_sig = ratio3 * dev + st * eye                     # A.17 (+ corner)
+            deps = scalar(SQRT2_3) * (sm - st) / K + (tau - tau3) / G * scalar(SQRT1_3)   # A.18-A.19 (+ A.15)
         out.sigma = new_sig
         out.eps_p = s.eps_p + deps
-        out.J = s.J * wp.determinant(eye + dt * grad_v)
+        out.J = J_new
         return out
 
     return SimpleNamespace(kirchhoff=kirchhoff, update=update)
