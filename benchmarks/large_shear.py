@@ -48,9 +48,10 @@ def configs(full: bool):
                 for dx in dxs:
                     yield {"solution": sol, "A": LS.SOLUTIONS[sol].A, "transfer": tr, "shape_function": sf, "dx": dx,
                            "dt_scale": 1.0}
-    for dx in dxs:                                    # a tenth of the amplitude (shear 0.71)
-        yield {"solution": "annulus", "A": 0.1, "transfer": "apic", "shape_function": "quadratic", "dx": dx,
-               "dt_scale": 1.0}
+    for sol, A in (("annulus", 0.1), ("annulus", 0.25), ("vortex", 1.5), ("vortex", 0.6)):
+        for dx in dxs:                                # smaller amplitudes: shear 0.71 / 1.77 / 1.5 / 0.6
+            yield {"solution": sol, "A": A, "transfer": "apic", "shape_function": "quadratic", "dx": dx,
+                   "dt_scale": 1.0}
     for dx in dxs[:2]:                                # halving dt (the old message's advice)
         yield {"solution": "annulus", "A": 1.0, "transfer": "apic", "shape_function": "quadratic", "dx": dx,
                "dt_scale": 0.5}
@@ -167,12 +168,78 @@ def write_md(res: dict) -> None:
         MD.write_text(text)
 
 
+def modes(dx: float = 0.05, transfer: str = "apic", solution: str = "annulus", nbins: int = 64) -> dict:
+    """Evidence for the failure mode: roll the solution out, keeping every frame's J; per frame, the rms
+    of J - 1 in radial bands (of the reference radius) and the angular spectrum of J - 1 over the
+    current angle in the band where |J - 1| is largest (mode numbers; multiples of 4 are grid-aligned
+    on a square grid). Writes benchmarks/results/large_shear_modes.json."""
+    from mpmlab.core.errors import SimulationDiverged
+    from mpmlab.simulator import build_stepper
+
+    tw = LS.solution(solution)
+    sc = LS.scene(tw, dx=dx, t_end=0.55, affine=transfer in ("apic", "mls", "tpic"), step_multiple=FRAMES * 4)
+    st = build_stepper(sc, backend="jax", transfer=LS.make_transfer_for(transfer), precision="fp64")
+    X0 = sc.particles().x
+    R0 = np.linalg.norm(X0, axis=1)
+    edges = np.linspace(tw.r_in, tw.r_out, 11)
+    band = np.clip(np.digitize(R0, edges) - 1, 0, 9)
+    rows = []
+
+    def on_frame(i, npstate):
+        F = np.asarray(npstate["F"], float)
+        J = F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
+        x = np.asarray(npstate["x"], float)
+        t = float(npstate["time"])
+        gam = np.abs(LS.exact(tw, X0, t)["gamma"])
+        rms = [float(np.sqrt(np.mean((J[band == b] - 1) ** 2))) for b in range(10)]
+        b = int(np.argmax(rms))
+        sel = band == b
+        th = np.arctan2(x[sel, 1], x[sel, 0])
+        k = np.clip(((th + np.pi) / (2 * np.pi) * nbins).astype(int), 0, nbins - 1)
+        prof = np.bincount(k, weights=J[sel] - 1, minlength=nbins) / np.maximum(np.bincount(k, minlength=nbins), 1)
+        spec = np.abs(np.fft.rfft(prof)) / nbins
+        top = [int(m) for m in np.argsort(spec[1:])[::-1][:4] + 1]
+        sp = np.linalg.norm(np.asarray(npstate["v"], float), axis=1)
+        ex = np.linalg.norm(LS.exact(tw, X0, t)["v"], axis=1)
+        rows.append({"t": t, "rms_J_minus_1_by_band": rms, "band_R": [float(edges[b]), float(edges[b + 1])],
+                     "band_shear": float(np.max(gam[sel])), "max_shear": float(np.max(gam)),
+                     "top_angular_modes": top, "mode_amplitudes": [float(spec[m]) for m in top],
+                     "mean_mode_0": float(spec[0]), "max_speed": float(sp.max()), "max_exact_speed": float(ex.max()),
+                     "cells_crossed_per_step_max": float(ex.max() * st.dt / dx)})
+
+    out = {"dx": dx, "transfer": transfer, "solution": solution, "band_edges": edges.tolist(), "dt": st.dt,
+           "shear_wave_speed": tw.wave_speeds()[0]}
+    try:
+        st.rollout(steps=int(round(0.55 / st.dt)), every=int(round(0.55 / st.dt)) // (FRAMES * 4), progress=False,
+                   on_frame=on_frame, keep_frames=False)
+        out["diverged"] = None
+    except SimulationDiverged as e:
+        out["diverged"] = {"step": e.step, "t": e.step * st.dt, "cause": e.cause, "message": str(e)}
+    out["frames"] = rows
+    path = ROOT / "results" / f"large_shear_modes_{solution}_{transfer}_{dx:g}.json"
+    path.write_text(json.dumps(out, indent=1))
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--full", action="store_true", help="add dx = 0.0125")
     ap.add_argument("--report", action="store_true", help="table and plot from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")
+    ap.add_argument("--modes", nargs="*", metavar="SOLUTION:TRANSFER:DX",
+                    help="failure-mode evidence runs (J - 1 by radius and angular mode), e.g. annulus:apic:0.05")
     args = ap.parse_args()
+    if args.modes is not None:
+        for spec in args.modes or ["annulus:apic:0.05"]:
+            sol, tr, dx = spec.split(":")
+            o = modes(float(dx), tr, sol)
+            for r in o["frames"][::4]:
+                print(f"t={r['t']:.3f} band R {r['band_R'][0]:.3f}-{r['band_R'][1]:.3f} (shear {r['band_shear']:.2f}, "
+                      f"max {r['max_shear']:.2f}) rms|J-1| by band {[round(v, 3) for v in r['rms_J_minus_1_by_band']]} "
+                      f"modes {r['top_angular_modes']} amp {[round(a, 4) for a in r['mode_amplitudes']]} "
+                      f"speed {r['max_speed']:.2f}/{r['max_exact_speed']:.2f}")
+            print(o["diverged"])
+        return
     res = load()
     if not args.report:
         for c in configs(args.full):

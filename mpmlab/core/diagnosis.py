@@ -21,23 +21,29 @@ Measured quantities (all reported in ``Diagnosis.measures``):
   deviation from 1 it is (``ripple_share``: ripple / (ripple + smooth deviation)); and its value at
   the chunk start (growth).
 
+* ``frames``: the J range and largest speed of the recent kept frames (``frame_note``, recorded by the
+  rollout at every kept frame: O(N), no sort), so a collapse long before the failing chunk is seen.
+
 Causes, checked in this order (the first that the numbers support):
 
-``law``          a non-finite value one step after a sound, quiet state (CFL fine, nothing moving a
-                 cell per step, J fine at that particle): the law (or a body force) produced it, e.g.
-                 an out-of-range parameter or an overflow in the precision used.
-``cfl``          the time step: cfl_wave or cfl_start above the limit (min(scene.cfl_limit, 1, the law's
-                 measured C*)): reduce dt / dt: auto.
-``compression``  J of the failing particle (or the smallest J) collapsed (<= 0.1) or inverted while the
-                 field of J stays smooth (ripple share < 0.5), CFL fine: large compression/shear;
-                 another shape function/transfer, more particles per cell, finer grid.
-``cell_crossing``J ripples cell to cell (largest ripple >= 0.05 and ripple share >= 0.5), CFL fine:
-                 grid-aligned modes from particles crossing cell boundaries (the ringing/cell-crossing
-                 instability of B-spline MPM); another shape function or transfer; dt does not help.
-``velocity``     a particle moved more than ~1 cell in one step (or left its stencil neighbourhood),
-                 CFL fine otherwise: its velocity blew up locally.
-``domain``       a particle reached the domain edge at a modest speed: enlarge the domain or add walls.
-``unknown``      none of the above: the numbers are still reported.
+``law``           a non-finite value one step after a sound, quiet state (CFL fine, nothing moving half
+                  a cell per step, J of the particle in (0.1, 10), no J ripple): the law (or a body force)
+                  produced it, e.g. an out-of-range parameter or an overflow in the precision used.
+``cfl``           the time step: dt c / dx above the limit (min(scene.cfl_limit, 1, the law's measured
+                  C*)), or dt (c + |v|_99) / dx at the chunk start above it with a smooth velocity field
+                  (grid-scale share < 0.05: the speeds are the motion's, not noise): reduce dt / dt: auto.
+``cell_crossing`` J ripples cell to cell (largest ripple >= 0.05, about a linear fit through the 3^D
+                  neighbouring cells) and either dominates J's deviation (share >= 0.5), or J swings both
+                  ways (J_min <= 0.8 and J_max >= 1.2), or the velocity field is noisy (share >= 0.05):
+                  grid-aligned modes from particles crossing cells (the ringing/cell-crossing instability
+                  of B-spline MPM); another shape function or transfer; dt does not help.
+``velocity``      a particle moved more than 1 cell in one step (left its stencil neighbourhood) while
+                  its J was not already collapsed: its velocity blew up locally.
+``compression``   J of the failing particle (or the smallest J) collapsed (<= 0.1) or inverted, or a
+                  recent kept frame had J_min <= 0.1 with no J above 1.2 at a fine CFL: large
+                  compression/shear; another shape function/transfer, more particles per cell, finer grid.
+``domain``        a particle reached the domain edge at a modest speed: enlarge the domain or add walls.
+``unknown``       none of the above: the numbers are still reported.
 """
 from __future__ import annotations
 
@@ -66,20 +72,40 @@ class Diagnosis:
     measures: dict[str, Any] = field(default_factory=dict)
 
 
+def _det(F: np.ndarray) -> np.ndarray:
+    """det of [N, D, D] by the explicit 2x2 / 3x3 formula (a batched LU is ~20x slower)."""
+    F = np.asarray(F)
+    if F.shape[-1] == 2:
+        return F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
+    if F.shape[-1] == 3:
+        a, b, c = F[:, 0, 0], F[:, 0, 1], F[:, 0, 2]
+        return (a * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1]) - b * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
+                + c * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
+    return np.linalg.det(F)
+
+
 def volume_ratio(stepper, npstate: dict[str, np.ndarray]) -> np.ndarray:
     """Per-particle J (the law's scalar J, else det F; NaN for particles whose law keeps neither)."""
     n = len(npstate["x"])
-    J = np.full(n, np.nan)
+    J = None
     for name, f in getattr(stepper, "state_fields", {}).items():
         if name not in npstate or f.check not in ("positive", "positive_det"):
             continue
-        a = np.asarray(npstate[name], float)
-        val = a if f.check == "positive" else np.linalg.det(a)
-        idx = npstate.get(name + "_particles", np.arange(len(val)))
+        a = np.asarray(npstate[name])
+        val = a.reshape(len(a)) if f.check == "positive" else _det(a)
+        idx = npstate.get(name + "_particles")
+        if J is None and (idx is None or len(val) == n):
+            J = np.array(val, float)            # one field covers every particle (the common case)
+            if idx is not None:
+                J[np.asarray(idx)] = val
+            continue
+        if J is None:
+            J = np.full(n, np.nan)
+        idx = np.arange(len(val)) if idx is None else np.asarray(idx)
         fill = np.isnan(J[idx])
-        J[idx[fill]] = val.reshape(len(idx))[fill]
-    if np.all(np.isnan(J)) and "F" in npstate:
-        J = np.linalg.det(np.asarray(npstate["F"], float))
+        J[idx[fill]] = val[fill]
+    if J is None:
+        J = np.asarray(_det(npstate["F"]), float) if "F" in npstate else np.full(n, np.nan)
     return J
 
 
@@ -87,11 +113,11 @@ def frame_note(stepper, npstate: dict, step: int) -> dict[str, float]:
     """What the rollout remembers of a kept frame for a later diagnosis (O(N), no sort): step, J range,
     largest speed."""
     J = volume_ratio(stepper, npstate)
-    sp = np.linalg.norm(np.asarray(npstate["v"], float), axis=1)
-    ok = np.isfinite(J)
-    return {"step": int(step), "J_min": float(np.min(J[ok])) if ok.any() else float("nan"),
-            "J_max": float(np.max(J[ok])) if ok.any() else float("nan"),
-            "speed_max": float(np.max(sp, initial=0.0))}
+    v = npstate["v"]
+    sp2 = np.einsum("ij,ij->i", v, v)
+    return {"step": int(step), "J_min": float(np.nanmin(J, initial=np.inf)) if len(J) else float("nan"),
+            "J_max": float(np.nanmax(J, initial=-np.inf)) if len(J) else float("nan"),
+            "speed_max": float(np.sqrt(np.max(sp2, initial=0.0)))}
 
 
 def _cells(x: np.ndarray, origin: np.ndarray, dx: float) -> np.ndarray:
