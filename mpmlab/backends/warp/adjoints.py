@@ -264,3 +264,238 @@ class RecordedP2G:
                   adj_inputs=[g(s.x), g(s.v), g(C) if p.affine else None, g(s.tau), g(ctl.mass), g(ctl.volume),
                               g(self.ext) if p.has_ext else None] + [None] * 7,
                   adj_outputs=[sc.ones], adjoint=True, device=p.dev, record_tape=False)
+
+
+# ---- G2P fused with the law update ----------------------------------------------------------------------
+@lru_cache(maxsize=None)
+def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
+    """G2P + law update (``kernels.g2p_law_kernel``) with the stencil's adjoint written by hand, as one
+    kernel launched in Warp's adjoint mode with the forward kernel's arguments plus the node adjoint
+    arrays ``adj_grid_v``, ``adj_grid_v_old``. The stencil gather is a function (``gather``) returning
+    its moments packed in one matrix -- columns v_pic, v_old, B (``first``), sum v_i (grad w_i)^T
+    (``gradient``) -- whose hand-written gradient (``wp.func_grad``) scatters the moments' adjoints
+    back onto the nodes (adds: atomic on CUDA; the CPU gradient path is single-threaded) and into the
+    position through the weights (gradient and Hessian). Everything after the gather -- the scheme's
+    ``g2p``, the law update and its stress, the stores -- is the forward kernel's code and keeps Warp's
+    generated adjoint (the law's replay is needed anyway: nothing of it is saved)."""
+    T = warp_types(dim, precision)
+    S = K.stencil_funcs(dim, precision)
+    L = K.law_types(law, dim, precision)
+    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
+    need_grad = "gradient" in tr.moments
+    apic = "first" in tr.moments
+    flip = tr.split_force
+    F = tr.funcs
+    vec3s = wp.types.vector(3, scalar)
+    NC = 2 + 2 * dim
+    pmat = wp.types.matrix((dim, NC), scalar)         # packed moments
+    impl = law.implementation("warp", "law")(law, dim, precision)
+
+    @wp.func
+    def cols(a: vec, b: vec, c: vec):
+        if wp.static(dim == 3):
+            return wp.matrix_from_cols(a, b, c)
+        else:
+            return wp.matrix_from_cols(a, b)
+
+    @wp.func
+    def col(M: pmat, j: int):
+        if wp.static(dim == 3):
+            return vec(M[0, j], M[1, j], M[2, j])
+        else:
+            return vec(M[0, j], M[1, j])
+
+    @wp.func
+    def gather_node(M: pmat, w: scalar, gw: vec, o: vec, g: vec, go: vec):
+        """M += node's share of the moments (v_pic, v_old, B, sum v (grad w)^T), built as columns."""
+        c0 = w * g
+        c1 = vec()
+        if wp.static(flip):
+            c1 = w * go
+        B = mat()
+        if wp.static(apic):
+            B = wp.outer(w * g, o)
+        Gs = mat()
+        if wp.static(need_grad):
+            Gs = wp.outer(g, gw)
+        if wp.static(dim == 3):
+            return M + pmat(c0[0], c1[0], B[0, 0], B[0, 1], B[0, 2], Gs[0, 0], Gs[0, 1], Gs[0, 2],
+                            c0[1], c1[1], B[1, 0], B[1, 1], B[1, 2], Gs[1, 0], Gs[1, 1], Gs[1, 2],
+                            c0[2], c1[2], B[2, 0], B[2, 1], B[2, 2], Gs[2, 0], Gs[2, 1], Gs[2, 2])
+        else:
+            return M + pmat(c0[0], c1[0], B[0, 0], B[0, 1], Gs[0, 0], Gs[0, 1],
+                            c0[1], c1[1], B[1, 0], B[1, 1], Gs[1, 0], Gs[1, 1])
+
+    @wp.func
+    def gather(x: vec, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
+               grid_v_old: wp.array(dtype=vec), adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec)):
+        inv_dx = scalar(1.0) / dx
+        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))
+        base, fx = S.locate(x, origin, inv_dx)
+        W, DW = S.bspline(fx)
+        nb = int(0)
+        for d in range(dim):
+            nb = nb + base[d] * strides[d]
+        M = pmat()
+        go = vec()
+        gw = vec()
+        if wp.static(dim == 3):
+            for i in range(3):
+                for j in range(3):
+                    nij = nb + i * strides[0] + j * strides[1]
+                    wxy = W[i, 0] * W[j, 1]
+                    for k in range(3):
+                        if wp.static(need_grad):
+                            gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
+                        if wp.static(flip):
+                            go = grid_v_old[nij + k]
+                        M = gather_node(M, wxy * W[k, 2], gw, vec(OFF[i], OFF[j], OFF[k]), grid_v[nij + k], go)
+        else:
+            for i in range(3):
+                ni = nb + i * strides[0]
+                for j in range(3):
+                    if wp.static(need_grad):
+                        gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
+                    if wp.static(flip):
+                        go = grid_v_old[ni + j]
+                    M = gather_node(M, W[i, 0] * W[j, 1], gw, vec(OFF[i], OFF[j]), grid_v[ni + j], go)
+        return M
+
+    @wp.func
+    def scatter_node(adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec), node: int, w: scalar, gw: vec,
+                     H: mat, o: vec, g: vec, go: vec, a_vp: vec, a_vo: vec, aB: mat, aG: mat):
+        """Adds the node's adjoints (adds: atomic on CUDA) and returns its share of adj fx."""
+        ag = w * a_vp
+        s = wp.dot(a_vp, g)
+        if wp.static(apic):
+            Bo = aB @ o
+            ag = ag + w * Bo
+            s = s + wp.dot(g, Bo)
+        afx = s * gw
+        if wp.static(need_grad):
+            ag = ag + aG @ gw
+            afx = afx + H @ (wp.transpose(aG) @ g)
+        wp.atomic_add(adj_gv, node, ag)
+        if wp.static(flip):
+            wp.atomic_add(adj_gvo, node, w * a_vo)
+            afx = afx + wp.dot(a_vo, go) * gw
+        return afx
+
+    @wp.func_grad(gather)
+    def adj_gather(x: vec, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
+                   grid_v_old: wp.array(dtype=vec), adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec),
+                   adj_ret: pmat):
+        inv_dx = scalar(1.0) / dx
+        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))
+        DD = vec3s(scalar(1.0), scalar(-2.0), scalar(1.0))      # W'' of the quadratic B-spline
+        base, fx = S.locate(x, origin, inv_dx)
+        W, DW = S.bspline(fx)
+        nb = int(0)
+        for d in range(dim):
+            nb = nb + base[d] * strides[d]
+        a_vp = col(adj_ret, 0)
+        a_vo = col(adj_ret, 1)
+        aB = mat()
+        aG = mat()
+        if wp.static(apic):
+            aB = cols(col(adj_ret, 2), col(adj_ret, 3), col(adj_ret, 1 + dim))
+        if wp.static(need_grad):
+            aG = cols(col(adj_ret, 2 + dim), col(adj_ret, 3 + dim), col(adj_ret, 1 + 2 * dim))
+        afx = vec()
+        go = vec()
+        H = mat()
+        if wp.static(dim == 3):
+            for i in range(3):
+                for j in range(3):
+                    nij = nb + i * strides[0] + j * strides[1]
+                    wxy = W[i, 0] * W[j, 1]
+                    for k in range(3):
+                        gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
+                        if wp.static(need_grad):
+                            hxy = DW[i, 0] * DW[j, 1] * W[k, 2]
+                            hxz = DW[i, 0] * W[j, 1] * DW[k, 2]
+                            hyz = W[i, 0] * DW[j, 1] * DW[k, 2]
+                            H = mat(DD[i] * W[j, 1] * W[k, 2], hxy, hxz,
+                                    hxy, W[i, 0] * DD[j] * W[k, 2], hyz,
+                                    hxz, hyz, wxy * DD[k])
+                        if wp.static(flip):
+                            go = grid_v_old[nij + k]
+                        afx = afx + scatter_node(adj_gv, adj_gvo, nij + k, wxy * W[k, 2], gw, H,
+                                                 vec(OFF[i], OFF[j], OFF[k]), grid_v[nij + k], go, a_vp, a_vo, aB, aG)
+        else:
+            for i in range(3):
+                ni = nb + i * strides[0]
+                for j in range(3):
+                    gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
+                    if wp.static(need_grad):
+                        hxy = DW[i, 0] * DW[j, 1]
+                        H = mat(DD[i] * W[j, 1], hxy, hxy, W[i, 0] * DD[j])
+                    if wp.static(flip):
+                        go = grid_v_old[ni + j]
+                    afx = afx + scatter_node(adj_gv, adj_gvo, ni + j, W[i, 0] * W[j, 1], gw, H, vec(OFF[i], OFF[j]),
+                                             grid_v[ni + j], go, a_vp, a_vo, aB, aG)
+        wp.adjoint[x] += inv_dx * afx
+
+    @wp.kernel(module="unique", module_options=K.law_module_options(impl))
+    def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
+            grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
+            tp: wp.array(dtype=scalar), goff: int, start: int,
+            state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights,
+            x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
+            state_out: L.StateArrays, tau: wp.array(dtype=mat),
+            adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec)):
+        q = wp.tid() + start
+        p = goff + q
+        inv_dx = scalar(1.0) / dx
+        xp = x[p]
+        if S.in_grid(xp, origin, inv_dx, strides, grid_v.shape[0]) == 0:
+            x_out[p] = xp + dt * v[p]
+            v_out[p] = v[p]
+            P0 = L.load_params(prm, q)
+            s0 = L.load_state(state, q)
+            L.store_state(state_out, q, s0)
+            tau[p] = impl.kirchhoff(s0, P0, w)
+            return
+        base, fx = S.locate(xp, origin, inv_dx)
+        M = gather(xp, origin, dx, strides, grid_v, grid_v_old, adj_gv, adj_gvo)
+        vp = col(M, 0)
+        vo = col(M, 1)
+        Gv = mat()
+        if wp.static(need_grad):
+            Gv = inv_dx * cols(col(M, 2 + dim), col(M, 3 + dim), col(M, 1 + 2 * dim))     # JAX-MPM Eq. 18
+        B = mat()
+        if wp.static(apic):
+            B = cols(col(M, 2), col(M, 3), col(M, 1 + dim))
+        vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, tp)
+        v_out[p] = vnew
+        x_out[p] = xp + dt * vp                                                      # JAX-MPM Eq. 17
+        if wp.static(tr.carries_C):
+            C_out[p] = Cn
+        P = L.load_params(prm, q)
+        n = impl.update(L.load_state(state, q), grad_v, dt, P, w)
+        L.store_state(state_out, q, n)
+        tau[p] = impl.kirchhoff(n, P, w)
+
+    return g2p
+
+
+class RecordedG2P:
+    """A G2P + law launch recorded on a ``wp.Tape`` with the hand-written stencil adjoint
+    (:func:`g2p_adjoint_kernel`): calling it runs the adjoint; :meth:`forward` reruns the forward."""
+
+    name = "g2p+law"
+
+    def __init__(self, path, kernel, adj_kernel, dim, inputs, grid_v, grid_v_old):
+        self.path, self.kernel, self.adj_kernel, self.dim, self.inputs = path, kernel, adj_kernel, dim, inputs
+        self.grid_v, self.grid_v_old = grid_v, grid_v_old
+
+    def forward(self):
+        wp.launch(self.kernel, dim=self.dim, inputs=self.inputs, device=self.path.dev, record_tape=False)
+
+    def __call__(self):
+        get = wp.Tape().get_adjoint
+        adj = [get(a) for a in self.inputs]
+        adj[2] = adj[3] = None                      # the node adjoints go through adj_gv / adj_gvo instead
+        gvo = self.grid_v_old.grad if self.grid_v_old.requires_grad else self.path.empty_vec
+        wp.launch(self.adj_kernel, dim=self.dim, inputs=self.inputs + [self.grid_v.grad, gvo],
+                  adj_inputs=adj + [None, None], adjoint=True, device=self.path.dev, record_tape=False)

@@ -167,6 +167,13 @@ class GradPath:
                                                                         self.st.warp_transfer, self.has_ext)
         return k
 
+    def k_g2p_adj(self, i: int):
+        """Group i's G2P + law kernel with the hand-written stencil adjoint (compiled on first use)."""
+        ks = self.__dict__.setdefault("_k_g2p_adj", {})
+        if i not in ks:
+            ks[i] = ADJ.g2p_adjoint_kernel(self.st.groups[i].law, self.dim, self.st.precision, self.st.warp_transfer)
+        return ks[i]
+
     def p2g_adj_scratch(self):
         """Scratch of the hand-written P2G adjoint: its (unused) output and the seed 1 of its adjoint."""
         sc = self.__dict__.get("_p2g_scratch")
@@ -393,9 +400,16 @@ class GradPath:
             grid_v = out
         o = SimpleNamespace(**vars(buf.state))
         for i, (g, k, ls, lo) in enumerate(zip(st.groups, self.k_g2p, s.law, o.law)):
-            wp.launch(k, dim=g.count, inputs=[s.x, s.v, grid_v, grid_v_old, st.origin, st.dx_s, st.dt_s, st.strides,
-                                              st.transfer_scalars, g.start, 0, *st._law_args(i, ls, ctl.law[i], ctl.weights_struct[i]),
-                                              o.x, o.v, o.C, self.law_types[i].state_arrays(lo), o.tau], device=dev)
+            g2p_in = [s.x, s.v, grid_v, grid_v_old, st.origin, st.dx_s, st.dt_s, st.strides, st.transfer_scalars,
+                      g.start, 0, *st._law_args(i, ls, ctl.law[i], ctl.weights_struct[i]),
+                      o.x, o.v, o.C, self.law_types[i].state_arrays(lo), o.tau]
+            if tape is not None and grid_v.requires_grad:
+                # the forward off the tape, the adjoint with the hand-written stencil part on it
+                wp.launch(k, dim=g.count, inputs=g2p_in, device=dev, record_tape=False)
+                tape.record_func(ADJ.RecordedG2P(self, k, self.k_g2p_adj(i), g.count, g2p_in, grid_v, grid_v_old),
+                                 arrays=[grid_v] + ([grid_v_old] if self.split else []))
+            else:
+                wp.launch(k, dim=g.count, inputs=g2p_in, device=dev)
         t_end = t + st.dt
         pv = iter(buf.pv)
         for bc, c in zip(self.bcs, ctl.bc):
