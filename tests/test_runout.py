@@ -221,7 +221,7 @@ def test_granular_collapse_run_records_the_runout(tmp_path):
 
     from mpmlab.cli import main
     from mpmlab.io.h5 import read_trajectory
-    from mpmlab.io.rerun import read_recording_metrics
+    from mpmlab.io.rerun import read_blueprint_views, read_recording_metrics
     from rerun.chunk import RrdReader
 
     run = tmp_path / "run"
@@ -256,6 +256,8 @@ def test_granular_collapse_run_records_the_runout(tmp_path):
     frames, front = m["runout_front"]
     assert list(frames) == list(range(s["frames"])) and len(m["runout_height_at_wall"][1]) == s["frames"]
     assert front[0] == pytest.approx(0.2, abs=1e-6) and front[-1] == pytest.approx(r["L_f"], rel=1e-6)
+    views = {v["name"]: v for v in read_blueprint_views(run / "recording.rrd")}
+    assert views["run-out [m]"]["contents"] == ["/metrics/runout_front", "/metrics/runout_height_at_wall"]
     logged = []
     for ch in RrdReader(str(run / "recording.rrd")).stream().filter(content="/world/deposit_profile",
                                                                     components="LineStrips2D:strips"):

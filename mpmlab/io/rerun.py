@@ -519,7 +519,8 @@ class RecordingWriter(AtomicWriter):
             unit = {"energy": metric_info("kinetic_energy", self.dim)[2],
                     "linear_momentum": metric_info("linear_momentum", self.dim)[2],
                     "angular_momentum": metric_info("angular_momentum", self.dim)[2],
-                    "mass": metric_info("mass", self.dim)[2], "step_time": "ms/step"}.get(family, "")
+                    "mass": metric_info("mass", self.dim)[2], "step_time": "ms/step",
+                    "runout": "m"}.get(family, "")
             title = FAMILY_TITLES.get(family, family.replace("_", " "))
             title = f"{title} [{unit}]" if unit else title
             views[family] = rrb.TimeSeriesView(origin="/", contents=families[family], name=title,

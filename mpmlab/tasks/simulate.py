@@ -5,7 +5,13 @@ Outputs in the run directory: ``config.yaml`` (composed config, resolved), ``tra
 keeps the frames before it, ``complete = False`` and the reason recorded), ``recording.rrd`` (made
 from trajectory.h5 after the rollout, frame by frame), ``energy.png`` and ``summary.json`` (status
 ``ok | diverged | interrupted | failed``, the last frame's real step and time, timings, throughput on
-the steady-state steps, mass/momentum drift, particles beyond the walls). Every check that can fail is
+the steady-state steps, mass/momentum drift, particles beyond the walls). With the run-out analysis
+(``task.runout``; on by default for scenes that declare ``scene.vars.runout``, the granular collapses)
+also ``runout.png``, a ``runout`` block in summary.json (L_f, d_n, height at the wall, deposit profile,
+whether and when the deposit settled: :mod:`mpmlab.analysis.runout`), the ``metrics/runout_*`` series
+and the final ``world/deposit_profile`` in the recording; ``task.runout.stop_when_settled=true`` ends
+the run at the first frame where the deposit has settled, every output closed as complete up to that
+frame (trajectory.h5 ``steps`` = the steps run, ``steps_planned`` beside it). Every check that can fail is
 done before the first step (outputs already there, sizes that cannot fit), and an output that already
 exists is refused unless ``output.overwrite=true``; memory stays bounded on any horizon (only
 per-frame scalars are kept).
