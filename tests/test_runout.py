@@ -207,6 +207,14 @@ def test_plan_defaults_and_off_switch():
     assert runout_plan(off, build_scene(off)) is None
     dam = compose(["scene=dam_break_2d", "scene.resolution=tiny"])
     assert runout_plan(dam, build_scene(dam)) is None     # a scene without scene.vars.runout: off
+    col = compose(["scene=granular_column_3d", "scene.resolution=tiny", "scene.vars.aspect_ratio=3"])
+    plan = runout_plan(col, build_scene(col))
+    g = plan.monitor.geometry
+    assert (g.axis, g.up, g.wall, plan.L0, plan.H0) == (0, 2, 0.0, 0.08, pytest.approx(0.24))
+    cyl = compose(["scene=granular_cylinder_3d", "scene.resolution=tiny"])
+    plan = runout_plan(cyl, build_scene(cyl))
+    g = plan.monitor.geometry
+    assert (g.radial, g.center, g.up, plan.L0, plan.H0) == (True, (0.5, 0.5, 0.0), 2, 0.1, 0.17)
     on = compose(["scene=dam_break_2d", "scene.resolution=tiny", "task.runout.enabled=true", "task.runout.axis=x"])
     g = runout_plan(on, build_scene(on)).monitor.geometry  # up against gravity, wall and floor at the domain's lo
     assert (g.axis, g.up, g.wall, g.base) == (0, 1, 0.0, 0.0)

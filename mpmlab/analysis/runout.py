@@ -47,8 +47,8 @@ from ..core.errors import ConfigError
 _AXES = "xyz"
 #: per-frame series the simulate task records (name -> (family, label, unit)); see register_metrics
 METRICS = {
-    "runout_front": ("runout", "front L(t) (from the wall)", "m"),
-    "runout_height_at_wall": ("runout", "height at the wall H(t)", "m"),
+    "runout_front": ("runout", "front L(t)", "m"),
+    "runout_height_at_wall": ("runout", "height at the wall (radial: the centre) H(t)", "m"),
 }
 FAMILY_TITLE = "run-out"
 

@@ -419,8 +419,9 @@ def _log_runout(r: dict) -> None:
            + (f"{r['front_moved_last_window_cells']:.2f} cells" if r["front_moved_last_window_cells"] is not None
               else "(the run is shorter than the window)")
            + f" over the last {r['stop_rule']['window_s']:g} s, so L_f is not final")
-    log.info("run-out at t = %.4g s: L_f = %.4g m%s, height at the wall %.4g m; %s; %d particle(s) left out of "
-             "the deposit.", r["time"], r["L_f"], dn, r["H_wall"], how, r["particles_left_out"])
+    at = "the centre" if "center" in r["geometry"] else "the wall"
+    log.info("run-out at t = %.4g s: L_f = %.4g m%s, height at %s %.4g m; %s; %d particle(s) left out of "
+             "the deposit.", r["time"], r["L_f"], dn, at, r["H_wall"], how, r["particles_left_out"])
 
 
 def _write_recording(cfg, ctx, out: Path, scene, traj, metrics, overlays=None) -> None:
@@ -578,18 +579,20 @@ def plot_runout(path: Path, plan: RunoutPlan, result: dict, title: str, overwrit
     fig = Figure(figsize=(11, 4), dpi=110)
     a, b = fig.subplots(1, 2)
     t = np.asarray(m.times)
-    a.plot(t, m.fronts, label="front L(t)")
-    a.plot(t, m.heights, label="height at the wall H(t)")
+    where = "the axis" if m.geometry.radial else "the wall"
+    at = "the centre" if m.geometry.radial else "the wall"
+    a.plot(t, m.fronts, label=f"front L(t) (from {where})")
+    a.plot(t, m.heights, label=f"height at {at} H(t)")
     if m.settled:
         a.axvline(m.settled_time, color="k", ls="--", lw=1, label=f"settled, t = {m.settled_time:.3g} s")
     a.set_xlabel("time [s]"); a.set_ylabel("[m]"); a.grid(alpha=0.3); a.legend(fontsize=8)
-    a.set_title("front and wall height")
+    a.set_title(f"front and height at {at}")
     p = result["profile"]
     b.step(p["distance"], p["height"], where="mid", label=f"t = {result['time']:.3g} s")
     b.axvline(result["L_f"], color="C3", lw=1, label=f"L_f = {result['L_f']:.4g} m")
     if plan.L0 is not None:
         b.axvline(plan.L0, color="0.5", ls=":", lw=1, label=f"L0 = {plan.L0:.4g} m")
-    b.set_xlabel("distance from the wall [m]"); b.set_ylabel("deposit height [m]"); b.grid(alpha=0.3)
+    b.set_xlabel(f"distance from {where} [m]"); b.set_ylabel("deposit height [m]"); b.grid(alpha=0.3)
     b.set_aspect("equal", adjustable="datalim"); b.legend(fontsize=8)
     dn = result.get("d_n")
     b.set_title("final deposit profile" + (f", d_n = {dn:.3f}" if dn is not None else ""))
