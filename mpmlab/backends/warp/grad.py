@@ -148,6 +148,7 @@ class GradPath:
         #: use it to check that ``segment="auto"`` skips the recomputation
         self.steps_run = 0
         self._pool_owner = None             # weakref to the kept recording that holds the step buffers
+        self._pool_generation = 0           # bumped whenever the shared step buffers are taken
 
     @property
     def adjoints(self):
@@ -459,13 +460,14 @@ class GradPath:
         return b
 
     def _take_pool(self, count: int):
-        """(``count`` step buffers with gradients, shared): the kept pool (:meth:`grad_buffers`), unless
-        a kept recording (``segment="auto"``) whose backward pass has not run yet still holds it; then
-        fresh ones (not shared)."""
+        """(``count`` step buffers with gradients, token): the kept pool (:meth:`grad_buffers`) and its
+        new generation number, unless a kept recording (``segment="auto"``) whose first backward pass has
+        not run yet holds it; then fresh buffers and token None."""
         owner = self._pool_owner() if self._pool_owner is not None else None
-        if owner is not None and owner.pool is not None:
-            return [self.alloc_buffers(True) for _ in range(count)], False
-        return self.grad_buffers(count), True
+        if owner is not None and owner.busy:
+            return [self.alloc_buffers(True) for _ in range(count)], None
+        self._pool_generation += 1
+        return self.grad_buffers(count), self._pool_generation
 
     def _record(self, ctl, k0, k1, start, times, want, obs, pool, guard=False):
         """Steps k0 -> k1 under one ``wp.Tape`` per step (the initial state's stress and observation on
@@ -516,12 +518,13 @@ class GradPath:
             t = t + self.st.dt            # accumulated like the fast path's state.t (boundary windows)
         if keep:
             ctl = self.to_warp(names, flat, grad=True)
-            pool, shared = self._take_pool(n)
+            pool, token = self._take_pool(n)
             rec = self._record(ctl, 0, n, None, times, want, obs, pool, guard=True)
+            rec.token, rec.busy = token, True
             for k, o in rec.outs.items():
                 out[want[k]] = wp.to_torch(o).reshape(L, d).clone()
             saved = SimpleNamespace(saved={}, times=times, record=rec, ctl=ctl)
-            if shared:
+            if token is not None:
                 self._pool_owner = weakref.ref(rec)
             return out, saved
         ctl = self.to_warp(names, flat, grad=False)
@@ -555,8 +558,15 @@ class GradPath:
         L, d = obs.shape
         ovec = wp.types.vector(d, self.T.scalar)
         kept = saved.record
+        if kept is not None and kept.token is not None and kept.token != self._pool_generation:
+            raise RuntimeError("observe(segment='auto'): this kept Warp rollout's step buffers were reused by a "
+                               "later gradient before this backward pass; run its backward passes before the next "
+                               "gradient, or give an integer segment.")
         ctl = saved.ctl if kept is not None else self.to_warp(names, flat, grad=True)
         ctl_arrays = self.control_arrays(ctl)
+        if kept is not None:                            # a repeated backward pass (retain_graph) starts afresh
+            for _, a, _ in ctl_arrays:
+                a.grad.zero_()
         n = int(steps[-1])
         want = {int(k): i for i, k in enumerate(steps)}
         g_out = grad_out.detach().to(device=_torch_device(self.dev)).contiguous()
@@ -615,7 +625,9 @@ class GradPath:
                     self._raise(k0 + slot, states[slot - 1] if slot > 0 else None, ctl_arrays)
             finally:
                 if kept is not None:
-                    kept.pool = None              # the buffers are free again (the tapes die with ``saved``)
+                    # the buffers may be taken again; a further backward pass through this recording
+                    # (retain_graph) is still exact until they are (checked by the generation above)
+                    kept.busy = False
             adj_end = [wp.clone(a.grad) for _, a, _ in self.state_arrays(states[0])] if k0 > 0 else None
             del tapes, states, outs, init_tape, rec
         grads = []
@@ -703,14 +715,7 @@ def _function():
         @staticmethod
         def backward(ctx, grad_out):
             flat = ctx.saved_tensors
-            saved = ctx.saved
-            if saved.record is not None:                # a kept recording (segment="auto") is used once
-                if saved.record.pool is None:
-                    raise RuntimeError("observe(segment='auto'): a second backward pass through the same kept Warp "
-                                       "rollout is not supported (its step buffers are released after the first); "
-                                       "call observe() again, or give an integer segment.")
-                ctx.saved = None
-            grads = ctx.path.backward(ctx.names, flat, ctx.observation, ctx.steps, ctx.segment, saved, grad_out)
+            grads = ctx.path.backward(ctx.names, flat, ctx.observation, ctx.steps, ctx.segment, ctx.saved, grad_out)
             grads = [g if need else None for g, need in zip(grads, ctx.needs_input_grad[6:])]
             return (None, None, None, None, None, None, *grads)
 
