@@ -112,6 +112,19 @@ def test_3d_slab_and_radial_cylinder():
     np.testing.assert_allclose(h, 0.05)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_lookup_table_and_sort_label_alike(dim):
+    """Clumps scattered over a large region, some touching: the labelling through a lookup table and the
+    one through np.unique (positions too spread for a table) find the same deposit."""
+    rng = np.random.default_rng(dim)
+    centres = rng.uniform(0, 40 * CELL, (30, dim))
+    x = np.concatenate([c + rng.normal(0, 1.5 * CELL, (rng.integers(1, 60), dim)) for c in centres])
+    x = np.vstack([x, np.full((1, dim), 1e4)])            # one particle 10 km away
+    dense, sort = deposit_mask(x, CELL), deposit_mask(x, CELL, dense_limit=0)
+    np.testing.assert_array_equal(dense, sort)
+    assert 0 < dense.sum() < len(x) - 1 and not dense[-1]
+
+
 def test_non_finite_particles_and_bad_input():
     x = lattice([0, 0], [0.2, 0.1])
     xn = np.vstack([x, [[np.nan, 0.0]], [[np.inf, 0.01]]])
@@ -178,7 +191,9 @@ def test_monitor_waits_for_the_energy_and_for_a_full_window():
     (["task.runout.center=[0.1,0.1,0.1]"], "needs 2 coordinates"),
     (["task.runout.enabled=false", "task.runout.stop_when_settled=true"], "needs the run-out analysis"),
     (["task.runout.L0=-1"], "task.runout.L0 = -1.0 must be positive"),
-    (["task.runout.window_s=0"], "window_s = 0.0 must be a positive number"),
+    (["task.runout.window_s=0"], "task.runout.window_s = 0.0 must be a positive number"),
+    (["task.runout.ke_fraction=2"], "task.runout.ke_fraction = 2.0 must be in"),
+    (["task.runout.up=q"], "task.runout.up = 'q' is not an axis"),
     (["scene=dam_break_2d", "scene.resolution=tiny", "task.runout.enabled=true"], "declares no run-out geometry"),
 ])
 def test_bad_options_are_one_line_errors(overrides, match):

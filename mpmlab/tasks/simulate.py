@@ -547,6 +547,13 @@ def runout_plan(cfg, scene) -> RunoutPlan | None:
     for key, v in (("L0", L0), ("H0", H0)):
         if v is not None and not v > 0:
             raise ConfigError(f"task.runout.{key} = {v} must be positive (or null: not known).")
+    for key in ("window_s", "tol_cells", "cell"):
+        v = cell if key == "cell" else float(opts[key])
+        if not (v > 0 and np.isfinite(v)):
+            raise ConfigError(f"task.runout.{key} = {v} must be a positive number.")
+    if not 0.0 <= float(opts.ke_fraction) <= 1.0:
+        raise ConfigError(f"task.runout.ke_fraction = {opts.ke_fraction} must be in [0, 1] (a fraction of the "
+                          f"peak kinetic energy).")
     geometry = RunoutGeometry(dim=dim, up=up, axis=axis, wall=wall, direction=direction, base=base,
                               center=None if center is None else tuple(float(c) for c in center))
     P = scene.particles()
