@@ -291,3 +291,23 @@ def test_granular_collapse_run_records_the_runout(tmp_path):
     assert frame == s["frames"] - 1 and pts.shape == (len(prof["distance"]) + 3, 2)
     assert pts[:, 0].max() == pytest.approx(r["L_f"], rel=1e-6)
     assert pts[:, 1].max() == pytest.approx(max(prof["height"]), rel=1e-6)
+
+
+def test_settled_stop_without_a_trajectory_keeps_the_recordings_frames(tmp_path):
+    """output.trajectory=false: the rollout's own frames are lost with the stop, so the task keeps them for
+    the recording; every frame up to the stop is in it, the last one the deposit measured."""
+    from mpmlab.cli import main
+    from mpmlab.io.rerun import read_recording_metrics, read_recording_positions
+
+    run = tmp_path / "run"
+    rc = main(["scene=granular_collapse_2d", "scene.resolution=tiny", "backend=jax", "steps=10000",
+               "frame_every=100", "output.trajectory=false", "task.runout.stop_when_settled=true",
+               f"hydra.run.dir={run}"])
+    assert rc == 0
+    s = json.loads((run / "summary.json").read_text())
+    assert s["runout"]["stopped_early"] and s["steps_done"] < 10000 and "trajectory" not in s["outputs"]
+    pos = read_recording_positions(run / "recording.rrd")
+    assert sorted(pos) == list(range(s["frames"]))
+    size = np.full(len(pos[0]), 0.01)                       # tiny: one particle per 1 cm cell
+    assert runout(pos[s["frames"] - 1].astype(np.float64), G2, 0.01, size) == pytest.approx(s["runout"]["L_f"], rel=1e-6)
+    assert read_recording_metrics(run / "recording.rrd")["runout_front"][1][-1] == pytest.approx(s["runout"]["L_f"])
