@@ -6,6 +6,9 @@ One command regenerates everything::
     python benchmarks/stress.py --quick            # a smoke-sized run (a few minutes)
     python benchmarks/stress.py --full             # + every registered law (solids and fluids) in the sweep, 1000-step horizon
     python benchmarks/stress.py --backends jax --parts sweep,cases
+    python benchmarks/stress.py --full --parts sweep --laws drucker_prager_jaumann --no-readme   # one law's rows
+    python benchmarks/stress.py --parts dpj_study --study-label NAME   # why drucker_prager_jaumann had C* = 0.2
+    python benchmarks/stress.py --render-only      # rewrite stress.md from the results files
 
 and writes ``benchmarks/results/stress.json``, ``benchmarks/stress.md`` (C* table + outcomes table) and
 the ``stress`` section of ``benchmarks/README.md``.
@@ -211,6 +214,126 @@ def sweep(backends, laws_by_scene, horizon) -> list[dict]:
     return rows
 
 
+# ---- (a') why drucker_prager_jaumann had C* = 0.2 (issue 17 item 3) --------------------------------
+DPJ_STUDY = HERE / "results" / "stress_dpj_study.json"
+DPJ_C = (0.2, 0.3, 0.5, 1.0)
+
+
+def _cone(sig, prm):
+    """(sigma_m, tau, f_s, f_t) per particle (A.3-A.6; tr/D in 2D as the law)."""
+    from mpmlab.laws.drucker_prager_jaumann import reference as R
+
+    d = sig.shape[-1]
+    sm = np.trace(sig, axis1=-2, axis2=-1) / d
+    dev = sig - sm[..., None, None] * np.eye(d)
+    tau = np.sqrt(0.5 * np.sum(dev * dev, axis=(-2, -1)))
+    q, k, _ = R.cone_constants(prm["friction_angle"], prm["dilation_angle"], prm["cohesion"])
+    return sm, tau, tau - k + q * sm, sm - prm["tensile_strength"]
+
+
+def dpj_study(backend: str = "jax", transfer: str = "apic", steps: int = 1000) -> dict:
+    """The thrown granular square (the sweep's falling_cube, drucker_prager_jaumann) at fixed C, fp64:
+    outcome, the largest J reached, the diverging particle's J and its local CFL number C sqrt(J) (the
+    wave speed of a hypo-elastic law integrated on the Cauchy stress at dilation J is sqrt(J) c_p), how
+    many particles sit outside the cone in free flight (steps 1-40, before the impact), and the law's
+    Kirchhoff stiffness |d(J sigma)| / |C:dd| for a particle held at J (1 for a law whose grid stiffness
+    does not depend on J). Runs on whatever law the tree has: run it on two commits for before/after."""
+    import mpmlab
+    from mpmlab.core.errors import SimulationDiverged
+    from mpmlab.laws.drucker_prager_jaumann import reference as R
+    from mpmlab.core import registry
+
+    law = registry.laws.get("drucker_prager_jaumann")
+    rows = []
+    for C in DPJ_C:
+        sc = cube_scene("drucker_prager_jaumann", dt_every=0)
+        prm = law.resolve_params(sc.bodies[0].params, "study", density=sc.bodies[0].density)
+        st = mpmlab.build_stepper(sc, backend, transfer, "fp64", check_every=10)
+        P = st.particles
+        vmax = float(np.max(np.linalg.norm(P.v, axis=1)))
+        st._set_dt(C * sc.dx / (sc.wave_speed() + vmax))
+        r = {"C": C, "backend": backend, "transfer": transfer, "steps": steps}
+        try:
+            traj = st.rollout(steps=steps, every=1, fields=("J", "sigma"))
+            r["outcome"] = "ok"
+        except SimulationDiverged as e:
+            traj = e.trajectory
+            r.update(outcome="diverged", step=int(e.step), particle=int(e.particle), field=e.field)
+        J, sig, x = traj.fields["J"], traj.fields["sigma"], traj.x
+        T = len(J)
+        pre = T if r["outcome"] == "ok" else max(1, T - 10)     # frames before the blow-up (J <= 0 is seen up to 10 steps late)
+        r["J_max"], r["J_min"] = float(np.max(J[:pre])), float(np.min(J[:pre]))
+        sm, tau, fs, ft = _cone(sig, prm)
+        # free flight: the frames before the impact (the first frame with min J < 0.99)
+        hit = np.nonzero(np.min(J, axis=1) < 0.99)[0]
+        t_imp = int(hit[0]) if len(hit) else T
+        r["impact_step"] = t_imp
+        scale = max(float(np.max(np.abs(sig[:t_imp]))), 1.0)
+        r["free_flight_outside_cone"] = float(np.mean(fs[1:t_imp] > 1e-9 * scale)) if t_imp > 1 else 0.0
+        r["free_flight_max_fs"] = float(np.max(fs[1:t_imp])) if t_imp > 1 else 0.0
+        # the largest local CFL C sqrt(J) of a particle in compression (sigma_m < 0): over the whole run, or
+        # over the 10 frames before that window
+        w0 = 0 if r["outcome"] == "ok" else max(0, pre - 10)
+        loc = np.where(sm[w0:pre] < 0.0, J[w0:pre], 0.0)
+        r["max_local_cfl_in_compression"] = float(C * math.sqrt(max(float(np.max(loc)), 0.0)))
+        if r["outcome"] == "diverged" and r.get("particle", -1) >= 0:
+            p = r["particle"]
+            r["particle_J"] = float(np.max(J[w0:pre, p]))
+            r["neighbours_within_dx"] = int(np.sum(np.linalg.norm(x[pre - 1] - x[pre - 1, p], axis=1) < sc.dx)) - 1
+        rows.append(r)
+        log(f"  [dpj study] C={C}: {r['outcome']}{'@' + str(r.get('step')) if r['outcome'] != 'ok' else ''} "
+            f"J_max {r['J_max']:.3g} outside cone in free flight {100 * r['free_flight_outside_cone']:.0f} %")
+    # law-level: Kirchhoff stiffness of a particle held at J (NumPy reference, uniaxial compression dd)
+    prm = {"bulk_modulus": 1e6, "nu": 0.3, "friction_angle": 30.0, "dilation_angle": 0.0, "cohesion": 1e6,
+           "tensile_strength": 0.0}
+    G, lam = R.moduli(1e6, 0.3)
+    L, dt = np.diag([-1.0, 0.0]), 1e-5
+    want = lam * np.trace(L * dt) * np.eye(2) + 2 * G * L * dt
+    stiff = {}
+    for Jp in (1.0, 10.0, 100.0):
+        n = R.update({"J": Jp, "sigma": np.zeros((2, 2)), "eps_p": 0.0}, L, dt, prm)
+        stiff[str(Jp)] = float(np.linalg.norm(n["J"] * n["sigma"]) / np.linalg.norm(want))
+    return {"rows": rows, "kirchhoff_stiffness_ratio": stiff}
+
+
+def render_dpj(study: dict) -> str:
+    if not study:
+        return ""
+    L = ["### Why `drucker_prager_jaumann` had C* = 0.2 (issue 17 item 3)\n",
+         "`python benchmarks/stress.py --parts dpj_study [--study-label NAME]` (`results/stress_dpj_study.json`; "
+         "run it on two commits for before/after). Thrown granular square (the sweep's `falling_cube`: "
+         "cohesionless, phi 30 deg, c_p 3.67 m/s, spin 2 rad/s), APIC, JAX, fp64, fixed C, 1000 steps. "
+         "*J max* and the diverging particle's J: more than 10 steps before the failure; *local CFL* = the largest "
+         "C sqrt(J) of a particle in compression (sigma_m < 0) over the run, or over steps 20-10 before the "
+         "failure (the wave speed of a hypo-elastic law integrated on the Cauchy stress at dilation J is "
+         "sqrt(J) c_p, since the grid force uses J sigma); *outside cone* = share of particle-steps with "
+         "f_s > 0 in free flight (before the impact, the first step with min J < 0.99; cohesionless: the stress "
+         "must be 0 there); *K_tau(J)* = |d(J sigma)| / |C:dd| for a particle held at J (the grid stiffness per "
+         "unit mass relative to J = 1).\n"]
+    L += H.md_table(["code", "C", "outcome", "J max", "diverging particle: J max, neighbours < dx",
+                     "local CFL C sqrt(J), sigma_m < 0", "outside cone (free flight)", "K_tau(J = 10, 100)"])
+    for label, run in study.items():
+        if label.startswith("_"):
+            continue
+        k = run.get("kirchhoff_stiffness_ratio", {})
+        for r in run["rows"]:
+            part = (f"{r['particle_J']:.3g}, {r['neighbours_within_dx']}" if "particle_J" in r else "")
+            L.append(H.md_row([label, r["C"], r["outcome"] + (f"@{r['step']}" if r["outcome"] != "ok" else ""),
+                               f"{r['J_max']:.3g}", part, f"{r['max_local_cfl_in_compression']:.2f}",
+                               f"{100 * r['free_flight_outside_cone']:.0f} % (max f_s {r['free_flight_max_fs']:.3g} Pa)",
+                               f"{k.get('10.0', float('nan')):.3g}, {k.get('100.0', float('nan')):.3g}"]))
+    abl = study.get("_ablation")
+    if abl:
+        L.append("\n" + abl["note"] + "\n")
+        L += H.md_table(["variant", *[f"C = {c}" for c in abl["C"]]])
+        for name, outs in abl["rows"].items():
+            L.append(H.md_row([name, *outs]))
+    notes = study.get("_notes")
+    if notes:
+        L.append("\n" + notes + "\n")
+    return "\n".join(L) + "\n"
+
+
 # ---- (b) stress cases -----------------------------------------------------------------------------
 def stress_cases():
     """(name, what, scene builder, transfer, steps). Built lazily so a ConfigError is an outcome."""
@@ -382,6 +505,11 @@ def render(res: dict) -> str:
     if kept:
         L.append(f"Parts {', '.join(kept['parts'])} are from the previous run (`python benchmarks/stress.py"
                  f"{kept.get('argv') or ''}`, {kept.get('wall_s') or 0:.0f} s); this run redid the others.\n")
+    rk = meta.get("sweep_rows_kept_from_previous_run")
+    if rk:
+        L.append(f"Sweep rows of {', '.join(f'`{l}`' for l in rk['laws'])} are from the previous run (`python "
+                 f"benchmarks/stress.py{rk.get('argv') or ''}`, horizon {rk.get('horizon')}); this run redid the "
+                 "other laws' rows (`--laws`).\n")
     if res.get("sweep"):
         L.append("### Largest stable CFL factor C*\n")
         L.append(f"dt = C dx / (c_p + |v|max(t=0)), fixed for the run. **Stable** = no `SimulationDiverged` "
@@ -458,6 +586,16 @@ def render(res: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def _head() -> str:
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True,
+                              check=True).stdout.strip() or "unknown"
+    except Exception:
+        return "unknown"
+
+
 def main(argv=None):
     ap = H.parser(__doc__.split("\n")[0])
     H.add_quick(ap, "smoke-sized: short horizons, fewer cases and scenes")
@@ -467,7 +605,21 @@ def main(argv=None):
     ap.add_argument("--long-steps", type=int, default=None, help="long-run steps (default 100000; --quick 5000)")
     ap.add_argument("--random", type=int, default=None, help="random scenes (default 12; --quick 4)")
     ap.add_argument("--no-write", action="store_true", help="print only; leave results and README alone")
+    ap.add_argument("--laws", default=None,
+                    help="comma list: sweep only these laws (of the chosen scene sets); the other laws' sweep rows "
+                         "are kept from the previous results/stress.json")
+    ap.add_argument("--no-readme", action="store_true", help="write results/stress.json and stress.md only")
+    ap.add_argument("--render-only", action="store_true",
+                    help="rewrite stress.md from results/stress.json and results/stress_dpj_study.json; run nothing")
+    ap.add_argument("--study-label", default=None,
+                    help="dpj_study: the row label in results/stress_dpj_study.json (default: git HEAD's short hash)")
     a = ap.parse_args(argv)
+    if a.render_only:
+        res = H.read_json(H.RESULTS / "stress.json")
+        md = render(res) + "\n" + render_dpj(H.read_json(DPJ_STUDY, {}) or {})
+        (HERE / "stress.md").write_text("# Stability stress suite\n\n" + (__doc__.split("\n\n", 2)[2]) + "\n" + md)
+        log(f"[stress] rewrote {HERE / 'stress.md'} from {H.RESULTS / 'stress.json'} and {DPJ_STUDY}")
+        return res
     backends = H.csv(a.backends)
     parts = set(a.parts.split(","))
     horizon = 150 if a.quick else (1000 if a.full else 500)
@@ -478,6 +630,12 @@ def main(argv=None):
                                  "weakly_compressible", "newtonian_fluid"]}
     elif a.quick:
         laws = {"vibrating_bar": ["fixed_corotated"], "falling_cube": ["fixed_corotated"]}
+    only = set(H.csv(a.laws)) if a.laws else None
+    if only:
+        laws = {sc: [l for l in ls if l in only] for sc, ls in laws.items()}
+        laws = {sc: ls for sc, ls in laws.items() if ls}
+        if not laws:
+            ap.error(f"--laws {a.laws}: none of these is in the sweep's scene sets (use --full for every law)")
     import mpmlab
     from mpmlab.core.scene import Scene
 
@@ -491,6 +649,13 @@ def main(argv=None):
         log(f"[stress] C* sweep: horizon {horizon} steps, {sum(map(len, laws.values()))} scene/law pairs x "
             f"{len(backends)} backends x {len(TRANSFERS)} transfers")
         res["sweep"] = sweep(backends, laws, horizon)
+    if "dpj_study" in parts:
+        log("[stress] drucker_prager_jaumann study (issue 17 item 3)")
+        label = a.study_label or _head()
+        study = H.read_json(DPJ_STUDY, {}) or {}
+        study[label] = dpj_study()
+        if not a.no_write:
+            H.write_json(DPJ_STUDY, study, default=float)
     if "cases" in parts:
         log("[stress] stress cases")
         res["cases"] = cases(backends, 0.25 if a.quick else 1.0)
@@ -507,19 +672,32 @@ def main(argv=None):
     if not a.no_write and prev_path.exists():
         # a partial run (--parts) keeps the other parts of the last full run, and says which came from where
         prev = json.loads(prev_path.read_text())
+        if only and "sweep" in res and prev.get("sweep"):
+            res["sweep"] = H.keep_rows(prev["sweep"], res["sweep"], lambda r: r["law"] not in only)
+            res["meta"]["sweep_rows_kept_from_previous_run"] = {
+                "laws": sorted({r["law"] for r in prev["sweep"] if r["law"] not in only}),
+                "argv": prev.get("meta", {}).get("argv"), "horizon": prev.get("meta", {}).get("horizon")}
         kept = H.keep_parts(res, prev, ("sweep", "cases", "random", "long"))
         if kept:
-            res["meta"]["kept_from_previous_run"] = {"parts": kept, "argv": prev.get("meta", {}).get("argv"),
-                                                    "wall_s": prev.get("meta", {}).get("wall_s")}
+            src = prev.get("meta", {})
+            pk = src.get("kept_from_previous_run")
+            if pk and set(kept) <= set(pk.get("parts", ())):
+                src = pk        # those parts were themselves kept from an earlier run: keep its provenance
+            res["meta"]["kept_from_previous_run"] = {"parts": kept, "argv": src.get("argv"), "wall_s": src.get("wall_s")}
     md = render(res)
+    if "dpj_study" in parts and not (parts - {"dpj_study"}):
+        print(render_dpj(H.read_json(DPJ_STUDY, {}) or {}))
+        return res                 # the study alone: results/stress_dpj_study.json; stress.md on the next write
+    md_full = md + "\n" + render_dpj(H.read_json(DPJ_STUDY, {}) or {})
     print(md)
     if a.no_write:
         return res
     out = H.write_json(H.RESULTS / "stress.json", res, default=float)
-    (HERE / "stress.md").write_text("# Stability stress suite\n\n" + (__doc__.split("\n\n", 2)[2]) + "\n" + md)
-    write_readme_section(HERE / "README.md", "stress", "Stability stress suite (benchmarks/stress.py)",
-                         "`python benchmarks/stress.py` (`--quick`, `--full`, `--backends`, `--parts`); full "
-                         "tables in [stress.md](stress.md).\n\n" + md)
+    (HERE / "stress.md").write_text("# Stability stress suite\n\n" + (__doc__.split("\n\n", 2)[2]) + "\n" + md_full)
+    if not a.no_readme:
+        write_readme_section(HERE / "README.md", "stress", "Stability stress suite (benchmarks/stress.py)",
+                             "`python benchmarks/stress.py` (`--quick`, `--full`, `--backends`, `--parts`); full "
+                             "tables in [stress.md](stress.md).\n\n" + md)
     log(f"[stress] wrote {out}, {HERE / 'stress.md'}, README section ({res['meta']['wall_s']:.0f} s)")
     return res
 
