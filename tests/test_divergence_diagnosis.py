@@ -12,6 +12,7 @@ Cases (2D, dx = 0.05, a 0.3 m square of 4 particles per cell unless said):
 * ``velocity`` -- one particle of a square at rest thrown at 400 m/s (20 cells per step);
 * ``law`` -- fp32 and E = 1e39 (beyond float32: mu = inf, and 2 mu (F - R) = inf * 0 at rest) with the
   dt of CFL 0.3: NaN from a quiet state in one step;
+* ``domain`` -- a square sliding at 5 m/s off a domain without walls (0.2 cells per step);
 * ``cell_crossing`` -- the twisted annulus of ``mpmlab.scenes.large_shear`` at dx = 0.1 (APIC, fp64): J
   rings in grid-aligned modes long before the peak shear; halving dt fails the same way.
 """
@@ -112,3 +113,11 @@ def test_cell_crossing_twisted_annulus_is_not_cfl():
         assert "shape function" in r["message"] and "reduce dt" not in r["message"]
     # halving dt does not remove it: the failure time moves by less than 25 %
     assert runs[1]["t_diverged"] < 1.25 * runs[0]["t_diverged"] < runs[0]["t_end"]
+
+
+def test_domain_edge_at_a_modest_speed():
+    """A square sliding at 5 m/s (0.2 cells per step, CFL 0.37) off a wall-less domain: 'domain', not 'cfl'."""
+    sc = square(dt=2e-3, E=1e4, walls=False, gravity=(0.0, 0.0), velocity=[5.0, 0.0])
+    e = diverge(mpmlab.build_stepper(sc, "jax", "pic", "fp64", check_every=5), steps=100, every=10)
+    assert e.cause == "domain" and e.field.startswith("x (outside"), str(e)
+    assert e.measures["move_cells_prev"] < 0.5 and "enlarge the domain or add walls" in str(e)
