@@ -257,6 +257,7 @@ def test_granular_collapse_run_records_the_runout(tmp_path):
     assert s["steps_done"] < 10000 and s["stopped_when_settled"]["step"] == s["steps_done"]
     assert r["settled_time"] == pytest.approx(s["last_frame"]["time"]) == pytest.approx(r["time"])
     assert r["L0"] == 0.2 and r["d_n"] == pytest.approx((r["L_f"] - 0.2) / 0.2)
+    assert r["L_initial"] == pytest.approx(0.2, abs=1e-6)                 # the box column measures L0
     assert 0.2 < r["L_f"] < 0.6 and 0.0 < r["H_wall"] <= 0.1 + 1e-6
     assert r["front_moved_last_window_cells"] < 0.1 and r["particles_in_deposit"] + r["particles_left_out"] == 200
     prof = r["profile"]

@@ -454,6 +454,9 @@ def summarize(monitor: RunoutMonitor, L0: float | None = None, H0: float | None 
         "particles_left_out": m["particles_left_out"],
         "settled": monitor.settled,
         "settled_time": monitor.settled_time,
+        # the same measure on the first frame: L0 for a box column; a curved one (a cylinder) measures
+        # up to half a particle spacing more, its outermost particle centres lying close to the surface
+        "L_initial": float(monitor.fronts[0]),
         "L_f_at_settled": None if not monitor.settled else float(monitor.fronts[monitor.settled_index]),
         "front_moved_last_window_cells": None if math.isnan(df) else df,
         "height_moved_last_window_cells": None if math.isnan(dh) else dh,
