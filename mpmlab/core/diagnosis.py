@@ -124,66 +124,90 @@ def _cells(x: np.ndarray, origin: np.ndarray, dx: float) -> np.ndarray:
     return np.floor((x - origin) / dx).astype(np.int64)
 
 
-def ripple(x: np.ndarray, J: np.ndarray, origin: np.ndarray, dx: float, ref: float = 1.0) -> dict[str, Any]:
-    """Grid-scale oscillation of J: per-cell mean J minus the mean over its occupied 3^D neighbourhood.
+#: the ripple measures work on a dense block of cells; above this many they use the block around ``center``
+MAX_CELLS = 1 << 17
 
-    Returns ``ripple`` (largest |.|), ``ripple_rms``, ``smooth_dev`` (largest |neighbourhood mean - 1|),
-    ``ripple_share`` = ripple_rms / (ripple_rms + rms smooth deviation from ``ref``), and ``ripple_at`` (the
-    cell centre of the largest ripple)."""
-    ok = np.isfinite(J) & np.all(np.isfinite(x), axis=1)
+
+def _ripple_fields(x: np.ndarray, vals: np.ndarray, origin: np.ndarray, dx: float, center=None):
+    """Per occupied cell: the cell mean of each column of ``vals`` [N, K] and its least-squares linear fit
+    a + b . o through the occupied cells o of the cell's 3^D neighbourhood (exact for a linear field, so a
+    smooth gradient, a rotation or a uniform compression has no ripple). Returns (cell means [C, K],
+    fits [C, K], cell centres [C, D]) or None. Memory is bounded: above ``MAX_CELLS`` cells only the block
+    around ``center`` (default: the median particle) is used."""
+    ok = np.all(np.isfinite(vals), axis=1) & np.all(np.isfinite(x), axis=1)
     if ok.sum() < 2:
-        return {"ripple": 0.0, "ripple_rms": 0.0, "smooth_dev": 0.0, "ripple_share": 0.0, "ripple_at": None}
-    x, J = x[ok], J[ok]
+        return None
+    x, vals = x[ok], vals[ok]
     c = _cells(x, origin, dx)
+    span = c.max(axis=0) - c.min(axis=0) + 3
+    if float(np.prod(span.astype(float))) > MAX_CELLS:
+        half = int(MAX_CELLS ** (1.0 / c.shape[1]) / 2) - 2
+        mid = (_cells(np.asarray(center, float)[None], origin, dx)[0] if center is not None
+               and np.all(np.isfinite(center)) else np.median(c, axis=0).astype(np.int64))
+        keep = np.all(np.abs(c - mid) <= half, axis=1)
+        if keep.sum() < 2:
+            return None
+        vals, c = vals[keep], c[keep]
     lo = c.min(axis=0) - 1
     c = c - lo
     shape = tuple(int(s) for s in c.max(axis=0) + 2)
+    dim, K = len(shape), vals.shape[1]
     lin = np.ravel_multi_index(c.T, shape)
     size = int(np.prod(shape))
     cnt = np.bincount(lin, minlength=size).astype(float)
-    tot = np.bincount(lin, weights=J, minlength=size)
     occ = cnt > 0
-    Jc = np.where(occ, tot / np.maximum(cnt, 1), 0.0).reshape(shape)
+    Vc = np.stack([np.bincount(lin, weights=vals[:, k], minlength=size) for k in range(K)], -1)
+    Vc = (Vc / np.maximum(cnt, 1)[:, None]).reshape(shape + (K,))
     occ_g = occ.reshape(shape).astype(float)
-    dim = len(shape)
-    # per cell: least-squares linear fit a + b . o through the occupied cells o of its 3^D neighbourhood
-    # (exact for a linear field, so a smooth gradient, a rotation or a uniform compression has no ripple)
     M = np.zeros(shape + (dim + 1, dim + 1))
-    rhs = np.zeros(shape + (dim + 1,))
+    rhs = np.zeros(shape + (dim + 1, K))
     for off in np.ndindex(*(3,) * dim):
         o = np.array([1.0, *(np.asarray(off) - 1.0)])
         sl_dst = tuple(slice(max(0, 1 - q), s - max(0, q - 1)) for q, s in zip(off, shape))
         sl_src = tuple(slice(max(0, q - 1), s - max(0, 1 - q)) for q, s in zip(off, shape))
         wgt = occ_g[sl_src]
         M[sl_dst] += wgt[..., None, None] * np.outer(o, o)
-        rhs[sl_dst] += (wgt * Jc[sl_src])[..., None] * o
+        rhs[sl_dst] += (wgt[..., None] * Vc[sl_src])[..., None, :] * o[:, None]
     occ = occ.reshape(shape)
-    Mo, ro = M[occ], rhs[occ]
-    Mo = Mo + 1e-9 * np.eye(dim + 1)
+    Mo, ro = M[occ] + 1e-9 * np.eye(dim + 1), rhs[occ]
     n_nb = Mo[:, 0, 0]
-    few = n_nb < dim + 2                      # too few neighbours for a fit: use their mean
-    coef = np.linalg.solve(Mo, ro[..., None])[..., 0]
-    smooth = np.where(few, ro[:, 0] / np.maximum(n_nb, 1e-300), coef[:, 0])
-    r = Jc[occ] - smooth
-    dev = smooth - ref
+    coef = np.linalg.solve(Mo, ro)                       # [C, D + 1, K]
+    few = (n_nb < dim + 2)[:, None]                      # too few neighbours for a fit: their mean
+    fit = np.where(few, ro[:, 0, :] / np.maximum(n_nb, 1e-300)[:, None], coef[:, 0, :])
+    centres = (np.argwhere(occ) + lo + 0.5) * dx + origin
+    return Vc[occ], fit, centres
+
+
+def ripple(x: np.ndarray, J: np.ndarray, origin: np.ndarray, dx: float, ref: float = 1.0,
+           center=None) -> dict[str, Any]:
+    """Grid-scale oscillation of J: per-cell mean J minus its linear fit over the occupied 3^D
+    neighbourhood (:func:`_ripple_fields`).
+
+    Returns ``ripple`` (largest |.|), ``ripple_rms``, ``smooth_dev`` (largest |fit - ref|),
+    ``ripple_share`` = ripple_rms / (ripple_rms + rms smooth deviation from ``ref``), and ``ripple_at`` (the
+    cell centre of the largest ripple)."""
+    f = _ripple_fields(x, np.asarray(J, float)[:, None], origin, dx, center)
+    if f is None:
+        return {"ripple": 0.0, "ripple_rms": 0.0, "smooth_dev": 0.0, "ripple_share": 0.0, "ripple_at": None}
+    mean, fit, centres = f
+    r, dev = (mean - fit)[:, 0], fit[:, 0] - ref
     k = int(np.argmax(np.abs(r)))
-    where = (np.argwhere(occ)[k] + lo + 0.5) * dx + origin
     rr, dd = float(np.sqrt(np.mean(r * r))), float(np.sqrt(np.mean(dev * dev)))
     return {"ripple": float(abs(r[k])), "ripple_rms": rr, "smooth_dev": float(np.max(np.abs(dev))),
-            "ripple_share": rr / (rr + dd) if rr + dd > 0 else 0.0, "ripple_at": where.tolist()}
+            "ripple_share": rr / (rr + dd) if rr + dd > 0 else 0.0, "ripple_at": centres[k].tolist()}
 
 
-def velocity_noise(x: np.ndarray, v: np.ndarray, origin: np.ndarray, dx: float) -> float:
+def velocity_noise(x: np.ndarray, v: np.ndarray, origin: np.ndarray, dx: float, center=None) -> float:
     """Share of the velocity field that is grid-scale (cell-to-cell) oscillation: rms ripple of the
-    per-cell mean velocity / (rms ripple + rms smooth speed); 0 for a smooth field (a rigid motion,
+    per-cell mean velocity / (rms ripple + rms of its smooth fit); 0 for a smooth field (a rigid motion,
     a rotation, a uniform compression), growing towards 0.5 and beyond for noise."""
-    rr = dd = 0.0
-    for k in range(v.shape[1]):
-        r = ripple(x, v[:, k], origin, dx, ref=0.0)
-        rr += r["ripple_rms"] ** 2
-        dd += (r["ripple_rms"] / r["ripple_share"] - r["ripple_rms"]) ** 2 if r["ripple_share"] > 0 else 0.0
-    rr, dd = np.sqrt(rr), np.sqrt(dd)
-    return float(rr / (rr + dd)) if rr + dd > 0 else 0.0
+    f = _ripple_fields(x, np.asarray(v, float), origin, dx, center)
+    if f is None:
+        return 0.0
+    mean, fit, _ = f
+    rr = float(np.sqrt(np.mean(np.sum((mean - fit) ** 2, axis=1))))
+    dd = float(np.sqrt(np.mean(np.sum(fit**2, axis=1))))
+    return rr / (rr + dd) if rr + dd > 0 else 0.0
 
 
 def _fmt(p) -> str:
@@ -248,15 +272,17 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
     J_min = float(J_prev[k_min]) if have_J else float("nan")
     k_max = int(np.nanargmax(J_prev)) if have_J else -1
     J_max = float(J_prev[k_max]) if have_J else float("nan")
-    rip = ripple(xp_, J_prev, origin, dx) if have_J else ripple(xp_, np.full(len(xp_), np.nan), origin, dx)
-    rip0 = ripple(np.asarray(start["x"], float), volume_ratio(stepper, start), origin, dx) if have_J else rip
+    ctr = xp_[p] if 0 <= p < len(xp_) else None
+    rip = ripple(xp_, J_prev if have_J else np.full(len(xp_), np.nan), origin, dx, center=ctr)
+    rip0 = (ripple(np.asarray(start["x"], float), volume_ratio(stepper, start), origin, dx, center=ctr)
+            if have_J else rip)
 
     # the recent frames: did J collapse (smoothly: without J > 1 + TWO_SIDED elsewhere) before the failure?
     fr = [f for f in frames if np.isfinite(f["J_min"])]
     fr_collapse = next((f for f in fr if f["J_min"] <= J_COLLAPSE and f["J_max"] < 1.0 + TWO_SIDED
                         and dt * (c + f["speed_max"]) / dx <= limit), None)
-    vn_start = velocity_noise(np.asarray(start["x"], float), np.asarray(start["v"], float), origin, dx)
-    vn_prev = velocity_noise(xp_, np.asarray(prev["v"], float), origin, dx)
+    vn_start = velocity_noise(np.asarray(start["x"], float), np.asarray(start["v"], float), origin, dx, ctr)
+    vn_prev = velocity_noise(xp_, np.asarray(prev["v"], float), origin, dx, ctr)
     two_sided = have_J and (1.0 - J_min) >= TWO_SIDED and (J_max - 1.0) >= TWO_SIDED
     pos = np.asarray(prev["x"][p], float) if 0 <= p < len(xp_) else np.full(scene.dim, np.nan)
     speed_p = float(sp_prev[p]) if 0 <= p < len(sp_prev) else float("nan")
