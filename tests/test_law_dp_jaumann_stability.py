@@ -2,9 +2,9 @@
 Jaumann Drucker-Prager law had C* = 0.2").
 
 The law integrated A.1-A.2 (JAX-MPM Eq. 21) on the Cauchy stress with constant K, G while the grid force
-uses the Kirchhoff stress J sigma: a particle dilated to J (a cohesionless body thrown apart: J = 30-300
+uses the Kirchhoff stress J sigma: a particle dilated to J (a cohesionless body thrown apart: J = 10-800
 in the stress sweep's thrown square) then has the grid stiffness J K per unit mass, a wave speed
-sqrt(J) c_p, and blows up at C ~ 2 / sqrt(J). Zone III (A.17) also left a deviator outside the cone
+sqrt(J) c_p, and blew up once C sqrt(J) reached 2.6-4.3. Zone III (A.17) also left a deviator outside the cone
 (with c = sigma_t = 0 any tau > 0 at sigma_m = 0). The law now integrates the Jaumann rate of the
 Kirchhoff stress with a Hughes-Winget rotation and returns Zone III's wedge to the corner. Each test
 below fails on the previous integration (checked against commit f277f7d)."""

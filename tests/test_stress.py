@@ -182,7 +182,7 @@ def _thrown_granular_square(dt):
 
 def test_dt_auto_needs_no_cap_for_drucker_prager_jaumann():
     """drucker_prager_jaumann declared stable_cfl 0.19 (dt: auto capped at C = 0.095) until its trial stress
-    was integrated on the Kirchhoff stress (issue 17 item 3, stress.md: C* 0.19-0.20 -> >= 1.4 with APIC):
+    was integrated on the Kirchhoff stress (issue 17 item 3, stress.md: C* 0.19-0.20 -> 1.67 with APIC):
     dt: auto now keeps the library-wide C = 0.3 and runs 1000 steps, and so does a fixed dt at C = 0.3,
     which diverged (J <= 0) before."""
     auto = _thrown_granular_square("auto")
