@@ -8,7 +8,7 @@ One command regenerates everything::
     python benchmarks/stress.py --backends jax --parts sweep,cases
     python benchmarks/stress.py --full --parts sweep --laws drucker_prager_jaumann --no-readme   # one law's rows
     python benchmarks/stress.py --parts dpj_study --study-label NAME   # why drucker_prager_jaumann had C* = 0.2
-    python benchmarks/stress.py --render-only      # rewrite stress.md from the results files
+    python benchmarks/stress.py --render-only      # rewrite stress.md (+ README section) from the results files
 
 and writes ``benchmarks/results/stress.json``, ``benchmarks/stress.md`` (C* table + outcomes table) and
 the ``stress`` section of ``benchmarks/README.md``.
@@ -610,7 +610,8 @@ def main(argv=None):
                          "are kept from the previous results/stress.json")
     ap.add_argument("--no-readme", action="store_true", help="write results/stress.json and stress.md only")
     ap.add_argument("--render-only", action="store_true",
-                    help="rewrite stress.md from results/stress.json and results/stress_dpj_study.json; run nothing")
+                    help="rewrite stress.md (and, without --no-readme, the README section) from results/stress.json and "
+                         "results/stress_dpj_study.json; run nothing")
     ap.add_argument("--study-label", default=None,
                     help="dpj_study: the row label in results/stress_dpj_study.json (default: git HEAD's short hash)")
     a = ap.parse_args(argv)
@@ -618,7 +619,12 @@ def main(argv=None):
         res = H.read_json(H.RESULTS / "stress.json")
         md = render(res) + "\n" + render_dpj(H.read_json(DPJ_STUDY, {}) or {})
         (HERE / "stress.md").write_text("# Stability stress suite\n\n" + (__doc__.split("\n\n", 2)[2]) + "\n" + md)
-        log(f"[stress] rewrote {HERE / 'stress.md'} from {H.RESULTS / 'stress.json'} and {DPJ_STUDY}")
+        if not a.no_readme:
+            write_readme_section(HERE / "README.md", "stress", "Stability stress suite (benchmarks/stress.py)",
+                                 "`python benchmarks/stress.py` (`--quick`, `--full`, `--backends`, `--parts`); full "
+                                 "tables in [stress.md](stress.md).\n\n" + render(res))
+        log(f"[stress] rewrote {HERE / 'stress.md'}" + ("" if a.no_readme else " and the README section")
+            + f" from {H.RESULTS / 'stress.json'} and {DPJ_STUDY}")
         return res
     backends = H.csv(a.backends)
     parts = set(a.parts.split(","))
