@@ -53,6 +53,10 @@ def configs(full: bool):
         for dx in dxs:                                # smaller amplitudes: shear 0.71 / 1.77 / 1.5 / 0.6
             yield {"solution": sol, "A": A, "transfer": "apic", "shape_function": "quadratic", "dx": dx,
                    "dt_scale": 1.0}
+    for extra in ({"law": "hencky"}, {"ppa": 3}):     # another law; 3 x 3 particles per cell
+        for dx in dxs[:3]:
+            yield {"solution": "annulus", "A": 1.0, "transfer": "apic", "shape_function": "quadratic", "dx": dx,
+                   "dt_scale": 1.0, **extra}
     for dx in dxs[:2]:                                # halving dt (the old message's advice)
         yield {"solution": "annulus", "A": 1.0, "transfer": "apic", "shape_function": "quadratic", "dx": dx,
                "dt_scale": 0.5}
@@ -74,9 +78,10 @@ def save(res: dict) -> None:
 
 
 def run_one(c) -> dict:
-    tw = LS.solution(c["solution"], A=c["A"])
+    tw = LS.solution(c["solution"], A=c["A"], law=c.get("law", "fixed_corotated"))
     out = LS.run(tw, dx=c["dx"], backend="jax", transfer=c["transfer"], precision="fp64",
-                 shape_function=c["shape_function"], frames=FRAMES, dt_scale=c["dt_scale"])
+                 shape_function=c["shape_function"], frames=FRAMES, dt_scale=c["dt_scale"],
+                 particles_per_axis=c.get("ppa", 2))
     m = out.pop("measures", None) or {}
     out["measures"] = {k: v for k, v in m.items() if not k.startswith("frames_")}
     out["frames_J"] = {k: m.get(k) for k in ("frames_step", "frames_J_min", "frames_J_max", "frames_speed_max")}
@@ -107,18 +112,20 @@ def table(res: dict) -> str:
     rows = list(res.values())
     groups: dict = {}
     for r in rows:
-        g = (r["solution"], r["A"], r["transfer"], r["shape_function"], r.get("dt_scale", 1.0))
+        g = (r["solution"], r["A"], r["transfer"], r["shape_function"], r.get("dt_scale", 1.0),
+             r.get("law", "fixed_corotated"), r.get("ppa", 2))
         groups.setdefault(g, []).append(r)
-    lines = ["| solution | A (peak shear) | shape fn | transfer | dt | dx | particles | survives to t = 0.55? | "
+    lines = ["| solution | A (peak shear) | law | ppc | shape fn | transfer | dt | dx | particles | survives to t = 0.55? | "
              "t diverged | cause | " + " | ".join(f"L2 err t={t:g} [m] | order" for t in T_SCORE) + " |",
-             "|---|---|---|---|---|---|---|---|---|---|" + "---|---|" * len(T_SCORE)]
-    for g in sorted(groups, key=lambda g: (g[0], -g[1], g[3], g[2], -g[4])):
+             "|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|---|" * len(T_SCORE)]
+    for g in sorted(groups, key=lambda g: (g[0], -g[1], g[5], g[6], g[3], g[2], -g[4])):
         rs = sorted(groups[g], key=lambda r: -r["dx"])
         od = {t: orders(rs, t) for t in T_SCORE}
         for i, r in enumerate(rs):
             cols = " | ".join(f"{fmt(err_at(r, t))} | {fmt(od[t][i - 1] if i else None, '{:.2f}')}" for t in T_SCORE)
             lines.append(
-                f"| {r['solution']} | {r['A']:g} ({r['peak_shear']:.2f}) | {r['shape_function']} | {r['transfer']} | "
+                f"| {r['solution']} | {r['A']:g} ({r['peak_shear']:.2f}) | {r.get('law', 'fixed_corotated')} | "
+                f"{r.get('ppa', 2) ** 2} | {r['shape_function']} | {r['transfer']} | "
                 f"{'dt/2' if r.get('dt_scale', 1.0) != 1.0 else 'dt'} | {r['dx']:g} | {r['particles']} | "
                 f"{'no' if r['diverged'] else 'yes'} | {fmt(r.get('t_diverged'), '{:.3f}')} | "
                 f"{r.get('cause') or '--'} | {cols} |")
@@ -135,7 +142,7 @@ def plot(res: dict) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     groups: dict = {}
     for r in res.values():
-        if r.get("dt_scale", 1.0) != 1.0:
+        if r.get("dt_scale", 1.0) != 1.0 or r.get("law", "fixed_corotated") != "fixed_corotated" or r.get("ppa", 2) != 2:
             continue
         groups.setdefault((r["solution"], r["A"], r["transfer"], r["shape_function"]), []).append(r)
     for (sol, A, tr, sf), rs in sorted(groups.items()):

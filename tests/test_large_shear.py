@@ -2,7 +2,7 @@
 
 * the closed forms are self-consistent: the body force equals a - div(P) / rho0 computed by central
   finite differences of the closed-form motion (P from F by the law's own formula), for both solutions
-  and both laws; v and F are the finite-difference derivatives of x;
+  and both laws; v and F are the finite-difference derivatives of x, L (the initial C) is grad_x v;
 * the ``expression`` strings (what JAX and Warp compile) evaluate to the NumPy oracle;
 * JAX and Warp agree on a short fp64 run of the annulus (<= 1e-9 m);
 * a short low-amplitude run converges: the L2 displacement error falls by > 2.5x from dx 0.1 to 0.05.
@@ -55,6 +55,9 @@ def test_body_force_is_the_momentum_residual(name, law):
         Ffd = np.stack([(LS.exact(tw, X + h * e, t)["x"] - LS.exact(tw, X - h * e, t)["x"]) / (2 * h)
                         for e in np.eye(2)], -1)
         assert np.allclose(Ffd, ex["F"], atol=1e-5)
+        dv = np.stack([(LS.exact(tw, X + h * e, t)["v"] - LS.exact(tw, X - h * e, t)["v"]) / (2 * h)
+                       for e in np.eye(2)], -1)                   # dv/dX; grad_x v = dv/dX F^-1 (APIC's C)
+        assert np.allclose(dv @ np.linalg.inv(ex["F"]), ex["L"], atol=1e-5 * np.max(np.abs(ex["L"])))
         assert np.allclose(np.linalg.det(ex["F"]), 1.0, atol=1e-12)      # isochoric
         vals = LS.body_force_expressions(tw)
         be = ExpressionField.evaluate(np, X, t, ExpressionField.pack(vals, 2), 2, ExpressionField.options(vals))

@@ -79,7 +79,8 @@ def _det(F: np.ndarray) -> np.ndarray:
         return F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
     if F.shape[-1] == 3:
         a, b, c = F[:, 0, 0], F[:, 0, 1], F[:, 0, 2]
-        return (a * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1]) - b * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
+        return (a * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1])
+                - b * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
                 + c * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
     return np.linalg.det(F)
 
@@ -328,7 +329,9 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
         return out("cell_crossing", f"cause: cell-crossing noise -- J ripples from cell to cell by up to "
                                     f"{rip['ripple']:.3g} (at {at}; {100 * rip['ripple_share']:.0f} % of J's "
                                     f"deviation, {rip0['ripple']:.3g} at the chunk start; J from {J_min:.3g} to "
-                                    f"{J_max:.3g}; grid-scale share of the velocity field {max(vn_start, vn_prev):.2g}) before {where} (J {Jp_prev:.4g}, speed {speed_p:.3g} m/s = "
+                                    f"{J_max:.3g}; grid-scale share of the velocity field "
+                                    f"{max(vn_start, vn_prev):.2g}) before {where} (J {Jp_prev:.4g}, speed "
+                                    f"{speed_p:.3g} m/s = "
                                     f"{speed_p / max(med, 1e-300):.3g} x the median) failed; {nums}: grid-aligned "
                                     f"modes from particles crossing cells (the ringing instability of B-spline MPM "
                                     f"under large deformation); try another shape function (smoother or "

@@ -255,7 +255,8 @@ def exact(tw: Twist, X: np.ndarray, t: float) -> dict[str, np.ndarray]:
     S = np.eye(2)[None] + f["gamma"][:, None, None] * np.einsum("ni,nj->nij", eT, eR)
     F = Q @ S
     J2 = np.array([[0.0, -1.0], [1.0, 0.0]])
-    Fdot = f["alpha_t"][:, None, None] * (J2[None] @ F) + f["gamma_t"][:, None, None] * (Q @ np.einsum("ni,nj->nij", eT, eR))
+    shear_dir = Q @ np.einsum("ni,nj->nij", eT, eR)          # e_theta (x) e_R
+    Fdot = f["alpha_t"][:, None, None] * (J2[None] @ F) + f["gamma_t"][:, None, None] * shear_dir
     return {"x": x, "U": x - X, "v": v, "F": F, "L": Fdot @ np.linalg.inv(F), "gamma": f["gamma"]}
 
 
