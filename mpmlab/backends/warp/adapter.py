@@ -1,7 +1,11 @@
 """The Warp backend's :class:`~mpmlab.core.autodiff.AutodiffAdapter`. The differentiable surface is torch
 tensors: ``stepper.observe`` is a ``torch.autograd.Function`` (``grad.py``) that recomputes segments
-under ``wp.Tape``. Gradients come from ``backward()``, optimisers are ``torch.optim`` (plus an optional
-``lr_scheduler``), and checkpoints are written with ``torch.save``.
+under ``wp.Tape`` -- or, with ``segment="auto"`` when the rollout's step buffers fit the memory budget
+(``mpmlab.core.budget.resolve_segment``), keeps the forward pass's recording and recomputes nothing;
+``segment`` passes through :meth:`WarpAdapter.observe` and the tracking loss unchanged. P2G and G2P
+run their hand-written adjoints on the tape (``adjoints.py``). Gradients come from ``backward()``,
+optimisers are ``torch.optim`` (plus an optional ``lr_scheduler``), and checkpoints are written with
+``torch.save``.
 
 A non-finite adjoint inside the rollout raises ``GradientError`` in the bridge itself, so
 ``locate_nan_gradient`` only has to name what the bridge cannot see: the loss or the parametrisation.

@@ -11,12 +11,25 @@ they are, and each boundary's own ``tape()`` implementation (``boundaries.py``; 
 one has no Warp gradient). The laws' spectral maps carry hand-written adjoints
 (``linalg.spectral_func``) so the derivative is finite at repeated singular values.
 
+Adjoints (issue 17): the forward launches of P2G and of G2P + law are the fast path's kernels, but on
+the tape they are recorded with hand-written adjoints (``adjoints.py``, ``Tape.record_func``): P2G's is
+a per-particle gather of the node adjoints (no atomics, no replay of the scatter), G2P's stencil part
+a scatter written by hand while the scheme's ``g2p`` and the law keep Warp's generated adjoint.
+``GradPath.adjoints = "generated"`` (module default ``ADJOINTS``) records Warp's generated adjoints
+instead; the two agree to rounding (``tests/test_warp_adjoints.py``). The grid update keeps its
+generated adjoint (measured: ~10 % of the backward, ``benchmarks/_adjoint_split_warp.py``).
+
 Memory (JAX-MPM Sec. 3.3.2, Remarks 4-5): the forward pass keeps only the states at segment starts
 (every ``segment`` steps) and the observations. The backward pass walks the segments from the last:
 it recomputes one segment under one ``wp.Tape`` per step from its saved start state, seeds the
 adjoint of the segment's end state (from the later segment) and of its observations, runs the tapes
 backwards (control adjoints accumulate in the control arrays' ``.grad``) and hands the start state's
-adjoint to the previous segment: O(steps / segment + segment) states.
+adjoint to the previous segment: O(steps / segment + segment) states. ``segment="auto"``
+(``core.budget.resolve_segment`` with :meth:`GradPath.bytes_per_step`): when every step's buffers fit
+the budget, the forward pass itself records the whole rollout on tapes (one segment) and the backward
+pass recomputes nothing: forward + adjoint instead of 2 forwards + adjoint (JAX-MPM Remark 5's
+trade-off decided by size). The kept step buffers are the path's shared pool; a second kept rollout
+alive at the same time gets buffers of its own.
 
 Non-finite adjoints: after each segment's backward pass a device-side check flags non-finite entries
 of the adjoints of the segment's start state and of the controls (a non-finite adjoint anywhere in
