@@ -63,6 +63,9 @@ class JaxAdapter:
 
     # ---- the differentiable rollout ---------------------------------------------------------------
     def observe(self, stepper, controls, observation, steps, segment=None):
+        """``segment``: steps per recomputed segment (None: ``DEFAULT_SEGMENT``) or ``"auto"``: keep every
+        step's state and residuals when they fit the memory budget (F + B instead of F + F + F + B;
+        ``mpmlab.core.budget.resolve_segment``), else ``DEFAULT_SEGMENT``."""
         return JD.observe(stepper, controls, observation, steps, segment, health=True)
 
     # ---- gradients -------------------------------------------------------------------------------
@@ -86,7 +89,8 @@ class JaxAdapter:
         return float("nan") if bool(bad) else float(val)
 
     def tracking_value_and_grad(self, stepper, controls, observations, weights, segment=None, grad=True):
-        """A fixed set of compiled pieces for every rollout length (``differentiable.tracking_value_and_grad``)."""
+        """A fixed set of compiled pieces for every rollout length (``differentiable.tracking_value_and_grad``;
+        ``segment="auto"`` keeps each call's chunk residuals when the rollout fits the memory budget)."""
         return JD.tracking_value_and_grad(stepper, controls, observations, weights, segment, grad, DIVERGED)
 
     def check_gradient(self, grad):

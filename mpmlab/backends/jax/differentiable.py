@@ -75,9 +75,17 @@ def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
     return stepper.to_layout(state, params)
 
 
-def advance(stepper, state, params, n: int, segment: int):
-    """``n`` steps as a scan over checkpointed segments of rematerialised steps (JAX-MPM Remarks 4-5)."""
-    step = jax.checkpoint(stepper.step_fn)
+def advance(stepper, state, params, n: int, segment: int, keep: bool = False, remat_steps: bool = True):
+    """``n`` steps as a scan over checkpointed segments of rematerialised steps (JAX-MPM Remarks 4-5).
+
+    ``keep=True`` (``segment="auto"`` when the rollout fits the memory budget: :func:`resolve`): one
+    plain scan, no ``jax.checkpoint`` anywhere, so reverse mode keeps every step's residuals and pays
+    forward + backward (F + B) instead of recomputing. ``remat_steps=False`` drops the per-step
+    checkpoint inside a recomputed segment (the segment's residuals are kept while it is
+    differentiated: F + F + B instead of F + F + F + B, segment x the residual bytes of a step)."""
+    if keep:
+        return jax.lax.scan(lambda c, _: (stepper.step_fn(c, params), None), state, None, length=n)[0] if n else state
+    step = jax.checkpoint(stepper.step_fn) if remat_steps else stepper.step_fn
 
     def run(s, p, length):
         return jax.lax.scan(lambda c, _: (step(c, p), None), s, None, length=length)[0]
@@ -91,6 +99,37 @@ def advance(stepper, state, params, n: int, segment: int):
     if rem:
         state = jax.checkpoint(lambda s, p: run(s, p, rem))(state, params)
     return state
+
+
+def step_bytes(stepper) -> int:
+    """Bytes one kept step costs a gradient: its state plus the residuals reverse mode saves for it
+    (``jax.ad_checkpoint`` 's list of a step's saved residuals, shapes only, traced once per stepper)."""
+    cache = stepper.__dict__.setdefault("_step_bytes", {})
+    if "b" not in cache:
+        state, params = split_controls(stepper, controls(stepper))
+        nbytes = lambda a: int(np.prod(a.shape)) * np.dtype(a.dtype).itemsize
+        total = sum(nbytes(a) for a in jax.tree_util.tree_leaves(state))
+        try:
+            from jax._src.ad_checkpoint import saved_residuals
+
+            res = saved_residuals(stepper.step_fn, state, params)
+            total += sum(nbytes(a) for a, _ in res)
+        except Exception:  # noqa: BLE001 -- a JAX without it: the per-particle scratch of a step, from shapes
+            N, D = stepper.particles.count, stepper.dim
+            K = D + 1 + (D if stepper.transfer.split_force else 0)
+            total += N * (3**D) * K * np.dtype(stepper.dtype).itemsize * 4
+        cache["b"] = int(total)
+    return cache["b"]
+
+
+def resolve(stepper, segment, steps: int) -> tuple[int, bool]:
+    """(segment length, keep every step) for a rollout of ``steps`` steps: ``segment`` an int, None
+    (``DEFAULT_SEGMENT``) or ``"auto"`` (keep the states and residuals when ``steps x step_bytes``
+    fits the budget of ``mpmlab.core.budget.resolve_segment``)."""
+    from ...core.budget import resolve_segment
+
+    auto = isinstance(segment, str)
+    return resolve_segment(segment, steps, step_bytes(stepper) if auto else 0, default=DEFAULT_SEGMENT)
 
 
 def schedule(steps) -> tuple[int, int, int, np.ndarray]:
@@ -113,29 +152,35 @@ def _invalid(stepper, state):
             | (x >= jnp.asarray(hi, x.dtype))))
 
 
-def observe_fn(stepper, observation, steps, segment: int | None = None, health: bool = False):
+def observe_fn(stepper, observation, steps, segment: int | str | None = None, health: bool = False,
+               remat_steps: bool = True):
     """A pure function ``controls -> [T, L, d]`` (jitted): the rollout observed after each of ``steps``.
 
+    ``segment``: steps per checkpointed segment (None: ``DEFAULT_SEGMENT``), or ``"auto"``: keep every
+    step (no recomputation, F + B) when the rollout's ``steps[-1] x step_bytes`` fits the memory budget
+    (``mpmlab.core.budget.resolve_segment``), else ``DEFAULT_SEGMENT``.
     ``health=True``: ``controls -> ([T, L, d], invalid)`` where ``invalid`` says whether any observed
     state had a non-finite position/velocity or a particle outside the domain interior."""
     impl = observation.implementation("jax", "observation")(observation, stepper)
     first, g, count, pick = schedule(steps)
-    segment = int(segment or DEFAULT_SEGMENT)
-    if segment < 1:
+    if not isinstance(segment, str) and segment is not None and int(segment) < 1:
         raise ConfigError(f"segment = {segment} must be >= 1 step.")
+    segment, keep = resolve(stepper, segment, int(np.asarray(steps).reshape(-1)[-1]))
     dense = len(pick) != count
+    adv = lambda s, p, n: advance(stepper, s, p, n, segment, keep, remat_steps)
+    ckpt = (lambda f: f) if keep else jax.checkpoint
 
     def fn(c):
         state, params = split_controls(stepper, c)
-        state = advance(stepper, state, params, first, segment)
+        state = adv(state, params, first)
         y0 = impl.fn(stepper.to_scene_order(state))
         bad0 = _invalid(stepper, state)
         if count == 1:
             return (y0[None], bad0) if health else y0[None]
 
-        @jax.checkpoint
+        @ckpt
         def interval(s, _):
-            s = advance(stepper, s, params, g, segment)
+            s = adv(s, params, g)
             return s, (impl.fn(stepper.to_scene_order(s)), _invalid(stepper, s))
 
         _, (ys, bad) = jax.lax.scan(interval, state, None, length=count - 1)
@@ -146,7 +191,7 @@ def observe_fn(stepper, observation, steps, segment: int | None = None, health: 
     return jax.jit(fn)
 
 
-def observe(stepper, c, observation, steps, segment: int | None = None, health: bool = False):
+def observe(stepper, c, observation, steps, segment: int | str | None = None, health: bool = False):
     key = (id(observation), tuple(np.asarray(steps).reshape(-1).tolist()), segment, health)
     cache = stepper.__dict__.setdefault("_observe_cache", {})
     if key not in cache:
@@ -155,7 +200,7 @@ def observe(stepper, c, observation, steps, segment: int | None = None, health: 
 
 
 # ---- tracking losses over rollouts of any length --------------------------------------------------
-def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment: int | None = None,
+def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment: int | str | None = None,
                             grad: bool = True, diverged: str = "diverged"):
     """``AutodiffAdapter.tracking_value_and_grad`` from a fixed set of compiled pieces.
 
@@ -165,13 +210,21 @@ def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment
     forward keeps each chunk's start state, the backward replays the chunks in reverse with
     ``jax.vjp`` (each chunk rematerialised, its steps ``jax.checkpoint``-ed: the memory and the
     recomputation of ``advance``). Four programs (k steps and 1 step, forward and adjoint) plus the
-    controls' parametrisation serve every length."""
+    controls' parametrisation serve every length.
+
+    ``segment="auto"``: chunks of ``DEFAULT_SEGMENT`` steps; when an L-step rollout's states and
+    residuals fit the memory budget (:func:`resolve`, decided per call), the forward keeps every chunk's
+    residuals (``jax.vjp`` of the plain, uncheckpointed chunk) and the backward applies them: F + B, no
+    recomputation; otherwise as above."""
     impls = [(o.implementation("jax", "observation")(o, stepper), float(w))
              for o, w in zip(observations, weights) if w]
-    k = max(1, int(segment or DEFAULT_SEGMENT))
-    step = jax.checkpoint(stepper.step_fn)
+    auto = isinstance(segment, str)
+    if auto:
+        resolve(stepper, segment, 1)          # validates the string
+    k = DEFAULT_SEGMENT if auto else max(1, int(segment or DEFAULT_SEGMENT))
+    remat = jax.checkpoint(stepper.step_fn)
 
-    def chunk(state, params, targets, scale):
+    def chunk(state, params, targets, scale, step=remat):
         """``len(targets[0])`` steps from ``state``: (state after them, their scaled loss, invalid)."""
         def body(carry, tgt):
             s, val, bad = carry
@@ -195,6 +248,17 @@ def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment
     prep_adjoint = jax.jit(lambda raw, init, ct: jax.vjp(lambda r: split_controls(stepper, controls_fn(r, init)), raw)[1](ct)[0])
     forward, adjoint = jax.jit(chunk), jax.jit(chunk_adjoint)
 
+    def chunk_keep(state, params, targets, scale):
+        """The chunk's outputs and its pullback (residuals of every step kept: no recomputation)."""
+        f = lambda s, p: (lambda o: ((o[0], o[1]), o[2]))(chunk(s, p, targets, scale, stepper.step_fn))
+        (state, val), pull, bad = jax.vjp(f, state, params, has_aux=True)
+        return state, val, bad, pull
+
+    def pull_adjoint(pull, ct_state, acc, one):
+        ct_in, ct_p = pull((ct_state, one))
+        return ct_in, jax.tree.map(jnp.add, acc, ct_p)
+    forward_keep, adjoint_keep = jax.jit(chunk_keep), jax.jit(pull_adjoint)
+
     def pieces(L):
         """(start, length) of the chunks of an L-step rollout."""
         out = [(i * k, k) for i in range(L // k)]
@@ -203,11 +267,17 @@ def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment
     def vg(raw, init, targets, scale):
         targets = [t for t, w in zip(targets, weights) if w]
         L = int(targets[0].shape[0])
+        keep = grad and auto and resolve(stepper, segment, L)[1]
         state, params = prep(raw, init)
         starts, total, bad = [], jnp.zeros((), stepper.dtype), jnp.asarray(False)
         for a, m in pieces(L):
-            starts.append(state)
-            state, val, b = forward(state, params, tuple(t[a:a + m] for t in targets), scale)
+            tg = tuple(t[a:a + m] for t in targets)
+            if keep:
+                state, val, b, pull = forward_keep(state, params, tg, scale)
+                starts.append(pull)
+            else:
+                starts.append(state)
+                state, val, b = forward(state, params, tg, scale)
             total, bad = total + val, bad | b
         value = float(total)
         if bool(bad):
@@ -218,8 +288,12 @@ def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment
             return value, None, None
         ct = jax.tree.map(jnp.zeros_like, state)
         acc = jax.tree.map(jnp.zeros_like, params)
+        one = jnp.ones((), stepper.dtype)
         for (a, m), s0 in zip(reversed(pieces(L)), reversed(starts)):
-            ct, acc = adjoint(s0, params, tuple(t[a:a + m] for t in targets), scale, ct, acc)
+            if keep:
+                ct, acc = adjoint_keep(s0, ct, acc, one)
+            else:
+                ct, acc = adjoint(s0, params, tuple(t[a:a + m] for t in targets), scale, ct, acc)
         return value, None, prep_adjoint(raw, init, (ct, acc))
     return vg
 
@@ -254,17 +328,18 @@ def check_gradient(grads) -> bool:
     return all(bool(np.all(np.isfinite(np.asarray(a)))) for a in jax.tree_util.tree_leaves(grads))
 
 
-def locate_nan_gradient(stepper, c, observation, steps, obs_cotangent, segment: int | None = None):
+def locate_nan_gradient(stepper, c, observation, steps, obs_cotangent, segment: int | str | None = None):
     """Replay the backward pass step by step and raise ``GradientError`` at the first step (counting
     backwards from the end, i.e. the order in which reverse mode runs) whose adjoint is non-finite.
 
     ``obs_cotangent``: dL/d(observations) [T, L, d]. States are recomputed from saved segment starts,
-    so memory stays O(steps / segment + segment) here too. A sharded stepper replays on one device
-    (its ``unsharded`` twin): the same step and particle, in scene order."""
+    so memory stays O(steps / segment + segment) here too (``segment="auto"``: every state is kept when
+    they fit, :func:`resolve`). A sharded stepper replays on one device (its ``unsharded`` twin): the
+    same step and particle, in scene order."""
     stepper = getattr(stepper, "unsharded", stepper)
     impl = observation.implementation("jax", "observation")(observation, stepper)
     s = np.asarray(steps, dtype=np.int64).reshape(-1)
-    segment = int(segment or DEFAULT_SEGMENT)
+    segment, _ = resolve(stepper, segment, int(s[-1]))
     state0, params = split_controls(stepper, c)
     step = jax.jit(stepper.step_fn)
     n = int(s[-1])

@@ -18,7 +18,10 @@ jax.config.update("jax_enable_x64", True)  # fp64 steppers need it; fp32 stepper
 import jax.numpy as jnp
 import numpy as np
 
+from ...core.errors import ConfigError
 from ...core.stepper import BaseStepper
+from .adjoints import ADJOINTS
+from . import adjoints
 from .laws import law_functions, weights_of
 from .transfers import transfer_functions
 
@@ -51,24 +54,20 @@ def bspline_weights(fx):
     return w, dw
 
 
-def _materialize(tree, pred):
-    """Compute the per-particle arrays of ``tree`` once, into memory, before a big fused consumer.
-
-    XLA CPU fuses cheap elementwise producers into their consumers and then recomputes them for every
-    element of the consumer -- here 3^D x K times per particle for the P2G block -- and it drops
-    ``optimization_barrier`` before fusion. Operands and results of a conditional are never fused
-    across, so the leaves pass through ``lax.cond`` on a runtime predicate whose branches both return
-    them (the ``False`` branch via a negation pair, so that the branches are not merged).
-    Differentiable, exact.
-    """
-    return jax.lax.cond(pred, lambda t: t, lambda t: jax.tree.map(lambda a: -(-a), t), tree)
+_materialize = adjoints.materialize      # (kept under its old name)
 
 
 class JaxStepper(BaseStepper):
     backend_name = "jax"
 
-    def __init__(self, scene, transfer, precision="fp32", check_every=None):
+    def __init__(self, scene, transfer, precision="fp32", check_every=None, adjoints="custom"):
         super().__init__(scene, transfer, precision, check_every)
+        if adjoints not in ADJOINTS:
+            raise ConfigError(f"adjoints = {adjoints!r}: 'custom' (hand-written P2G/G2P adjoints, "
+                              f"backends/jax/adjoints.py) or 'derived' (JAX's own).")
+        #: reverse mode through P2G / G2P: "custom" (hand-written transposes, adjoints.py) or "derived"
+        #: (XLA's); read when a step is traced, so set it before the first trace (tests build one of each)
+        self.adjoints = adjoints
         dtype = DTYPES[precision]
         self.dtype = dtype
         D = self.dim
@@ -165,8 +164,10 @@ class JaxStepper(BaseStepper):
         block (K = mass, momentum [, force]) at the particle's base node and G2P a single windowed
         ``lax.gather`` -- one index per particle instead of 3^D, and no [N*3^D] index arrays. Weights
         are separable products; the affine terms are folded into one per-particle matrix
-        (``A = m C - 4 dt V / dx^2 tau`` for MLS). Both primitives are differentiable (their transposes
-        are each other), so ``jax.grad`` runs through the step unchanged. The transfer scheme supplies
+        (``A = m C - 4 dt V / dx^2 tau`` for MLS). Both live in ``adjoints.py``; with ``self.adjoints ==
+        "custom"`` (the default) reverse mode uses their hand-written transposes (P2G's adjoint is a
+        gather + G2P-like contractions, G2P's a P2G-like expansion + scatter, no XLA ``reduce``), with
+        ``"derived"`` the ones XLA derives; the forward values are identical. The transfer scheme supplies
         the per-particle terms (``p2g``) and what becomes of the gathered sums (``g2p``); this function
         contracts only the terms it declares (``AbstractTransfer``), it never branches on a scheme.
 
@@ -191,7 +192,6 @@ class JaxStepper(BaseStepper):
         nb = len(self._grid_bcs)
         split = bool(T.split_force)
         gshape = tuple(self.grid_shape)
-        O = [jnp.asarray(o, dtype) for o in np.indices((3,) * D)]    # node offset along each axis, [3]*D
 
         # stencil -------------------------------------------------------------------------------------
         Xp = (x - self._node_x[0]) * inv_dx
@@ -199,13 +199,6 @@ class JaxStepper(BaseStepper):
         fx = Xp - base
         w1, dw1 = bspline_weights(fx)                                         # [N, 3, D]
         dw1 = dw1 * inv_dx                                                  # d w / d x (not cell units)
-
-        def outer(factors):                                                 # [N, 3] per axis -> [N, 3, .., 3]
-            out = None
-            for d, f in enumerate(factors):
-                f = f.reshape((N,) + tuple(3 if e == d else 1 for e in range(D)))
-                out = f if out is None else out * f
-            return out
 
         # stress (Kirchhoff) from each law present ----------------------------------------------------
         tau = jnp.concatenate([jax.vmap(law.kirchhoff, in_axes=(0, 0, None))(st, prm, w) for law, st, prm, w in
@@ -242,22 +235,10 @@ class JaxStepper(BaseStepper):
         lin = cat(lin)
         acol = [cat(c) for c in acol] if (A is not None or Fm is not None) else None
         gcol = [cat(c) for c in gcol] if (G is not None or Fg is not None) else None
-        w1, dw1, lin, acol, gcol = _materialize((w1, dw1, lin, acol, gcol), state["t"] >= 0)
-        W = outer([w1[:, :, d] for d in range(D)])                           # [N, 3^D]
-        lanes = (slice(None),) + (None,) * D + (slice(None),)                # [N, K] -> [N, 1.., K]
-        field = lin[lanes]
-        if acol is not None:
-            for d in range(D):
-                field = field + O[d][None, ..., None] * acol[d][lanes]
-        vals = W[..., None] * field
-        if gcol is not None:
-            for e in range(D):
-                GWe = outer([dw1[:, :, d] if d == e else w1[:, :, d] for d in range(D)])
-                vals = vals + GWe[..., None] * gcol[e][lanes]
-        K = vals.shape[-1]
-        dn = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, D + 2)), inserted_window_dims=(),
-                                             scatter_dims_to_operand_dims=tuple(range(D)))
-        grid = self._sum_grid(jax.lax.scatter_add(jnp.zeros(gshape + (K,), dtype), base, vals, dn))
+        pred = state["t"] >= 0
+        w1, dw1, lin, acol, gcol = _materialize((w1, dw1, lin, acol, gcol), pred)
+        K = lin.shape[-1]
+        grid = self._sum_grid(adjoints.p2g(base, w1, dw1, lin, acol, gcol, pred, gshape, self.adjoints))
         grid = grid.reshape(-1, K)
         grid_mv, grid_m = grid[:, :D], grid[:, D]
 
@@ -272,41 +253,18 @@ class JaxStepper(BaseStepper):
         for bc, bp in zip(self._grid_bcs, bc_params[:nb]):
             v_new = bc.apply(v_new, self._node_x, grid_m, state["t"], bp)
 
-        # G2P: one windowed gather per particle ---------------------------------------------------------------
+        # G2P: one windowed gather per particle (adjoints.g2p) -------------------------------------------------
         gfield = jnp.concatenate([v_new, v_old], axis=-1) if split else v_new
         Kg = gfield.shape[-1]
-        dn = jax.lax.GatherDimensionNumbers(offset_dims=tuple(range(1, D + 2)), collapsed_slice_dims=(),
-                                            start_index_map=tuple(range(D)))
-        vi_all = jax.lax.gather(gfield.reshape(gshape + (Kg,)), base, dn, slice_sizes=(3,) * D + (Kg,),
-                                mode=jax.lax.GatherScatterMode.CLIP)
-        # Separable contractions of the gathered block, one stencil axis at a time (z, then y, then x):
-        # each level is one stacked elementwise pass of explicit 3-term slice sums, materialised before
-        # the next (XLA CPU would otherwise fuse the levels into every consumer and redo the 3^D sums
-        # per output; jnp.sum over small middle axes is also slow there). Weight kinds per axis:
-        # "w" (weights), "o" (o_d w, first moment, APIC), "d" (d w / d x_d, velocity gradient).
-        kinds = {"w": [[w1[:, k, d] for k in range(3)] for d in range(D)],
-                 "o": [[None, w1[:, 1, d], 2.0 * w1[:, 2, d]] for d in range(D)],
-                 "d": [[dw1[:, k, d] for k in range(3)] for d in range(D)]}
+        # then separable contractions of the gathered block, one stencil axis at a time (adjoints.contract).
+        # Weight kinds per axis: "w" (weights), "o" (o_d w, first moment, APIC), "d" (d w / d x_d,
+        # velocity gradient).
         specs = {"v": ("w",) * D}
         if "first" in T.moments:
             specs.update({f"o{d}": tuple("o" if e == d else "w" for e in range(D)) for d in range(D)})
         if "gradient" in T.moments:
             specs.update({f"d{d}": tuple("d" if e == d else "w" for e in range(D)) for d in range(D)})
-        pred = state["t"] >= 0
-        cur = {(): vi_all}                                                      # key: kinds of the contracted axes
-        for d in reversed(range(D)):
-            keys = sorted({sp[d:] for sp in specs.values()})
-            level = {}
-            for key in keys:
-                src, wk = cur[key[1:]], kinds[key[0]][d]
-                terms = [src[(slice(None),) * (d + 1) + (k,)] * wk[k][(slice(None),) + (None,) * (d + 1)]
-                         for k in range(3) if wk[k] is not None]
-                acc = terms[0]
-                for t in terms[1:]:
-                    acc = acc + t
-                level[key] = acc
-            cur = _materialize(level, pred) if d > 0 else level
-        out = {name: cur[sp] for name, sp in specs.items()}                    # [N, Kg] each
+        out = adjoints.g2p(gfield.reshape(gshape + (Kg,)), base, w1, dw1, pred, specs, self.adjoints)  # [N, Kg] each
 
         v_pic = out["v"][:, :D]
         new = {"t": state["t"] + dt}
