@@ -100,8 +100,10 @@ def _record_tapes(st, kind: str, steps: int, pool):
     return tapes, ctl
 
 
-def _replay(path, tapes, f1, b1):
-    """Every launch of ``tapes`` alone, forward then adjoint, timed into f1 / b1 by kernel group."""
+def _replay(path, tapes, f1, b1, clock=time.perf_counter):
+    """Every launch of ``tapes`` alone, forward then adjoint, timed into f1 / b1 by kernel group with
+    ``clock`` (``time.perf_counter``: wall; ``time.thread_time``: this thread's CPU time, which a loaded
+    machine disturbs far less -- Warp runs CPU kernels on the launching thread)."""
     import warp as wp
 
     dev = path.dev
@@ -109,60 +111,60 @@ def _replay(path, tapes, f1, b1):
         for launch in tape.launches:
             name = _label(path, launch)
             if callable(launch):
-                t0 = time.perf_counter()
+                t0 = clock()
                 launch.forward()
                 wp.synchronize_device(dev)
-                t1 = time.perf_counter()
+                t1 = clock()
                 launch()
                 wp.synchronize_device(dev)
             else:
                 kernel, dim, _, inputs, outputs, device = launch[:6]
-                t0 = time.perf_counter()
+                t0 = clock()
                 wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, record_tape=False)
                 wp.synchronize_device(device)
-                t1 = time.perf_counter()
+                t1 = clock()
                 wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, adjoint=True,
                           adj_inputs=[tape.get_adjoint(a) for a in inputs],
                           adj_outputs=[tape.get_adjoint(a) for a in outputs], record_tape=False)
                 wp.synchronize_device(device)
             f1[name] = f1.get(name, 0.0) + (t1 - t0)
-            b1[name] = b1.get(name, 0.0) + (time.perf_counter() - t1)
+            b1[name] = b1.get(name, 0.0) + (clock() - t1)
 
 
 def kernel_split(st, kinds=KINDS, steps: int = 20, reps: int = 5) -> dict:
-    """{kind: {group: {"fwd_ms", "adj_ms", "ratio", "fwd_med_ms", "adj_med_ms"}}}, ms per step, plus "all":
-    the two kinds' tapes (separate step buffers) are replayed alternately, ``reps`` rounds after a warm-up
-    round; the headline numbers are the minimum over rounds (the least-disturbed replay on a shared
-    machine), the medians are kept beside them."""
+    """{kind: {group: {...}}}, ms per step, plus "all": the two kinds' tapes (separate step buffers) are
+    replayed alternately, ``reps`` rounds after a warm-up round, each round once timed by the wall clock
+    and once by CPU time (``thread_time``). Per group: ``fwd_ms`` / ``adj_ms`` = minimum wall time over the
+    rounds (the least-disturbed replay), ``*_med_ms`` the median wall time, ``*_cpu_ms`` the minimum CPU
+    time; ``ratio`` = adj_ms / fwd_ms, ``ratio_cpu`` likewise."""
     from mpmlab.backends.warp import grad as wgrad
 
     path = wgrad.path_of(st)
     pool = path.grad_buffers(steps * len(kinds))
     rec = {kind: _record_tapes(st, kind, steps, pool[i * steps:(i + 1) * steps]) for i, kind in enumerate(kinds)}
-    fw = {kind: {} for kind in kinds}
-    bw = {kind: {} for kind in kinds}
+    T = {(kind, c, fb): {} for kind in kinds for c in ("wall", "cpu") for fb in "fb"}
     for rep in range(reps + 1):
-        for kind in kinds:
-            f1, b1 = {}, {}
-            _replay(path, rec[kind][0], f1, b1)
-            if rep == 0:
-                continue
-            for k in f1:
-                fw[kind].setdefault(k, []).append(f1[k])
-                bw[kind].setdefault(k, []).append(b1[k])
+        for clock, c in ((time.perf_counter, "wall"), (time.thread_time, "cpu")):
+            for kind in kinds:
+                f1, b1 = {}, {}
+                _replay(path, rec[kind][0], f1, b1, clock)
+                if rep == 0:
+                    continue
+                for k in f1:
+                    T[kind, c, "f"].setdefault(k, []).append(f1[k] / steps * 1e3)
+                    T[kind, c, "b"].setdefault(k, []).append(b1[k] / steps * 1e3)
     out = {}
     for kind in kinds:
         r = {}
-        for k in fw[kind]:
-            f, b = min(fw[kind][k]) / steps * 1e3, min(bw[kind][k]) / steps * 1e3
-            r[k] = {"fwd_ms": f, "adj_ms": b, "ratio": b / f,
-                    "fwd_med_ms": float(np.median(fw[kind][k])) / steps * 1e3,
-                    "adj_med_ms": float(np.median(bw[kind][k])) / steps * 1e3}
-        F = sum(v["fwd_ms"] for v in r.values())
-        B = sum(v["adj_ms"] for v in r.values())
-        r["all"] = {"fwd_ms": F, "adj_ms": B, "ratio": B / F,
-                    "fwd_med_ms": sum(v["fwd_med_ms"] for v in r.values()),
-                    "adj_med_ms": sum(v["adj_med_ms"] for v in r.values())}
+        for k in T[kind, "wall", "f"]:
+            r[k] = {"fwd_ms": min(T[kind, "wall", "f"][k]), "adj_ms": min(T[kind, "wall", "b"][k]),
+                    "fwd_med_ms": float(np.median(T[kind, "wall", "f"][k])),
+                    "adj_med_ms": float(np.median(T[kind, "wall", "b"][k])),
+                    "fwd_cpu_ms": min(T[kind, "cpu", "f"][k]), "adj_cpu_ms": min(T[kind, "cpu", "b"][k])}
+        r["all"] = {f: sum(v[f] for v in r.values()) for f in next(iter(r.values()))}
+        for v in r.values():
+            v["ratio"] = v["adj_ms"] / v["fwd_ms"]
+            v["ratio_cpu"] = v["adj_cpu_ms"] / v["fwd_cpu_ms"]
         out[kind] = r
     return out
 
@@ -213,19 +215,22 @@ def ratio(st, N: int, segments=(20, "auto"), kinds=KINDS, reps: int = 5) -> dict
     for _ in range(reps):
         for (kind, n), (_, g) in runs.items():
             path.adjoints = kind
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             fwd()
-            t1 = time.perf_counter()
+            c1, t1 = time.process_time(), time.perf_counter()
             g()
-            t2 = time.perf_counter()
+            c2, t2 = time.process_time(), time.perf_counter()
             r = res[f"{kind}/{n}"]
             r["fwd_s"].append(t1 - t0)
             r["grad_s"].append(t2 - t1)
+            r.setdefault("fwd_cpu_s", []).append(c1 - c0)
+            r.setdefault("grad_cpu_s", []).append(c2 - c1)
     for r in res.values():
         r["fwd_median_s"] = float(np.median(r["fwd_s"]))
         r["grad_median_s"] = float(np.median(r["grad_s"]))
         r["ratio"] = r["grad_median_s"] / r["fwd_median_s"]
         r["ratio_min"] = min(r["grad_s"]) / min(r["fwd_s"])
+        r["ratio_cpu"] = float(np.median(r["grad_cpu_s"])) / float(np.median(r["fwd_cpu_s"]))
     return res
 
 
@@ -261,18 +266,20 @@ def table(res) -> str:
          "|---|---|---|---|---|---|---|"]
     K = res["kernels"]
     gen, hand = K.get("generated", {}), K.get("hand", {})
-    cell = lambda r: f"{r['fwd_ms']:.3f} | {r['adj_ms']:.3f} | {r['ratio']:.2f}" if r else "- | - | -"
-    for k in list(gen) + [k for k in hand if k not in gen]:
-        L.append(f"| {k} | {cell(gen.get(k))} | {cell(hand.get(k))} |")
+    for sfx, what in (("", "wall time"), ("_cpu", "CPU time")):
+        cell = lambda r: (f"{r['fwd' + sfx + '_ms']:.3f} | {r['adj' + sfx + '_ms']:.3f} | {r['ratio' + sfx]:.2f}"
+                          if r else "- | - | -")
+        for k in list(gen) + [k for k in hand if k not in gen]:
+            L.append(f"| {k} ({what}) | {cell(gen.get(k))} | {cell(hand.get(k))} |")
     if not res["ratio"]:
         return "\n".join(L)
     L += ["", f"fwd+bwd / forward (N = {res['N']}, medians of {res['reps']} alternating repeats):", "",
-          "| adjoints | segment | forward (s) | fwd+bwd (s) | ratio | ratio of minima | steps run per gradient | "
-          "|dL/dv| diff |", "|---|---|---|---|---|---|---|---|"]
+          "| adjoints | segment | forward (s) | fwd+bwd (s) | ratio | ratio of minima | CPU time ratio | "
+          "steps run per gradient | |dL/dv| diff |", "|---|---|---|---|---|---|---|---|---|"]
     for key, r in res["ratio"].items():
         kind, n = key.split("/")
         L.append(f"| {kind} | {n} | {r['fwd_median_s']:.3f} | {r['grad_median_s']:.3f} | **{r['ratio']:.2f}x** | "
-                 f"{r['ratio_min']:.2f}x | {r['steps_run']} | {r['grad_v_rel_diff_vs_first']:.1e} |")
+                 f"{r['ratio_min']:.2f}x | {r['ratio_cpu']:.2f}x | {r['steps_run']} | {r['grad_v_rel_diff_vs_first']:.1e} |")
     return "\n".join(L)
 
 

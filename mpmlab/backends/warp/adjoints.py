@@ -71,6 +71,7 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
     ext_grad = has_ext and f_grad and not f_affine      # f_grad's node term carries w fext
     ext_affine = has_ext and f_affine                   # f_affine's node term carries w fext
     any_grad = m_grad or f_grad
+    has_f = ext_grad or f_affine or ext_alone         # a force term whose weight sum w a_f is needed
     carries_C = tr.carries_C
 
     @wp.func
@@ -163,13 +164,18 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
                         a, b, c, e, f, g, h, r = node(w, gw, H, o, adj_mm[nij + k], af, q, A, Tg, Fm, Fg, m, fext,
                                                       fxd, dx)
                         s_q = s_q + a
-                        s_qo = s_qo + b
-                        s_T = s_T + c
                         s_m = s_m + e
-                        s_fo = s_fo + f
-                        s_f = s_f + g
-                        s_Fg = s_Fg + h
                         afx = afx + r
+                        if wp.static(m_affine):
+                            s_qo = s_qo + b
+                        if wp.static(m_grad):
+                            s_T = s_T + c
+                        if wp.static(f_affine):
+                            s_fo = s_fo + f
+                        if wp.static(has_f):
+                            s_f = s_f + g
+                        if wp.static(f_grad):
+                            s_Fg = s_Fg + h
         else:
             for i in range(3):
                 ni = nb + i * strides[0]
@@ -184,13 +190,18 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
                     o = vec(OFF[i], OFF[j])
                     a, b, c, e, f, g, h, r = node(w, gw, H, o, adj_mm[ni + j], af, q, A, Tg, Fm, Fg, m, fext, fxd, dx)
                     s_q = s_q + a
-                    s_qo = s_qo + b
-                    s_T = s_T + c
                     s_m = s_m + e
-                    s_fo = s_fo + f
-                    s_f = s_f + g
-                    s_Fg = s_Fg + h
                     afx = afx + r
+                    if wp.static(m_affine):
+                        s_qo = s_qo + b
+                    if wp.static(m_grad):
+                        s_T = s_T + c
+                    if wp.static(f_affine):
+                        s_fo = s_fo + f
+                    if wp.static(has_f):
+                        s_f = s_f + g
+                    if wp.static(f_grad):
+                        s_Fg = s_Fg + h
         # the fx inside A (o - fx) dx: -dx A^T sum_o w_o a_q (likewise Fm)
         if wp.static(m_affine):
             afx = afx - dx * (wp.transpose(A) @ s_q)
