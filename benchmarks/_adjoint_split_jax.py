@@ -14,15 +14,17 @@ hand-written ones of ``mpmlab/backends/jax/adjoints.py``; ``JaxStepper(..., adjo
   ``jax.profiler``; every executed XLA thunk is attributed to a stage through the stack frames of the
   compiled HLO (``stage_profile.py``'s machinery: the comment-headed sections of ``step_fn``, and the
   functions of ``adjoints.py``: P2G, G2P), and the stage shares of the summed thunk time are scaled
-  to the measured wall time of the program (best of ``reps``), per step. Forward = the plain forward
+  to the measured wall time of the program (best of ``reps``), per step (XLA runs independent thunks
+  concurrently: the shares are of summed thunk time). Forward = the plain forward
   scan (no residuals); backward = the pullback. B/F per stage and for the step.
 * **Whole gradient** (``ratios``): ``L = sum(observe(c, Lagrangian("x"), steps=[N], segment=s)**2)``
   differentiated w.r.t. (v0, law parameters) with ``jax.value_and_grad`` (jitted), against the forward
   ``observe`` with segment = N (as ``gradients.py``), for s = ``segment`` (recompute segments, the
   steps rematerialised: F + F + F + B), s = ``segment`` without the per-step remat (F + F + B, the
   segment's residuals kept while it is differentiated) and s = "auto" (every step kept when it fits
-  the memory budget: F + B). Interleaved repeats; min and median reported, ratio of the minima (the
-  machine is shared: the minimum is the least disturbed run; ``load`` records the load average).
+  the memory budget: F + B). All programs of both implementations are compiled first and then timed
+  in interleaved rounds; min and median reported, ratio of the minima (the machine is shared: the
+  minimum is the least disturbed run; ``load`` records the load average before and after).
 
 ``jax_split(...) -> dict`` runs it; ``python benchmarks/_adjoint_split_jax.py`` prints the table and
 writes ``benchmarks/results/adjoint_split_jax.json``::
@@ -108,21 +110,14 @@ def _classifier(text):
     return stage_of, containers
 
 
-def _profile(compiled, args, module_prefix, reps):
-    """(best wall seconds, {stage: seconds}) of one compiled program, stages scaled to the wall time."""
+def _shares(compiled, args, module_prefix):
+    """{stage: share of the summed XLA thunk time} of one run of a compiled program under jax.profiler."""
     import jax
 
     stage_of, containers = _classifier(compiled.as_text())
-    run = lambda: jax.block_until_ready(compiled(*args))
-    run()
-    ts = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        run()
-        ts.append(time.perf_counter() - t0)
     with tempfile.TemporaryDirectory() as d:
         with jax.profiler.trace(d):
-            run()
+            jax.block_until_ready(compiled(*args))
         trace = next(Path(d).rglob("*.trace.json.gz"))
         events = json.load(gzip.open(trace))["traceEvents"]
     thunk = defaultdict(float)
@@ -133,14 +128,13 @@ def _profile(compiled, args, module_prefix, reps):
                 continue
             thunk[stage_of(a["hlo_op"])] += e.get("dur", 0.0) * 1e-6
     total = sum(thunk.values()) or 1.0
-    wall = min(ts)
-    return wall, {k: v / total * wall for k, v in thunk.items()}, float(sorted(ts)[len(ts) // 2])
+    return {k: v / total for k, v in thunk.items()}
 
 
-def _stages(st, steps, reps):
+def _stage_programs(st, steps):
+    """{name: (compiled, args, hlo module prefix)}: the forward scan and the pullback of the kept-residual VJP."""
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     from mpmlab.backends.jax import differentiable as JD
 
@@ -159,27 +153,15 @@ def _stages(st, steps, reps):
     def stage_bwd(pull, ct):
         return pull(ct)
 
-    fwd = jax.jit(stage_fwd).lower(s0, p).compile()
-    fr = jax.jit(stage_fwd_res)
-    y, pull = fr(s0, p)
+    y, pull = jax.jit(stage_fwd_res)(s0, p)
     ct = jax.tree.map(lambda a: jnp.ones_like(a) if jnp.issubdtype(a.dtype, jnp.floating) else a, y)
-    bwd = jax.jit(stage_bwd).lower(pull, ct).compile()
-    F, fs, Fmed = _profile(fwd, (s0, p), "jit_stage_fwd", reps)
-    B, bs, Bmed = _profile(bwd, (pull, ct), "jit_stage_bwd", reps)
-    out = {"steps": steps, "fwd_ms_per_step": 1e3 * F / steps, "bwd_ms_per_step": 1e3 * B / steps,
-           "fwd_median_ms_per_step": 1e3 * Fmed / steps, "bwd_median_ms_per_step": 1e3 * Bmed / steps,
-           "B_over_F": B / F, "per_stage": {}}
-    for k in STAGES:
-        f, b = fs.get(k, 0.0) / steps, bs.get(k, 0.0) / steps
-        out["per_stage"][k] = {"fwd_ms": 1e3 * f, "bwd_ms": 1e3 * b, "B_over_F": (b / f) if f > 0 else None}
-    del np
-    return out
+    return {"stage fwd": (jax.jit(stage_fwd).lower(s0, p).compile(), (s0, p), "jit_stage_fwd"),
+            "stage bwd": (jax.jit(stage_bwd).lower(pull, ct).compile(), (pull, ct), "jit_stage_bwd")}
 
 
-def _ratios(st, N, segment, reps):
+def _ratio_programs(st, N, segment):
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     from mpmlab.backends.jax import differentiable as JD
     from mpmlab.observations import Lagrangian
@@ -201,44 +183,63 @@ def _ratios(st, N, segment, reps):
                 "segment auto": ("auto", True)}
     for name, (s, r) in variants.items():
         progs[name] = jax.jit(jax.value_and_grad(make(s, r)))
-    compiled = {k: f.lower(p0).compile() for k, f in progs.items()}
-    times = {k: [] for k in compiled}
-    for k, f in compiled.items():
-        jax.block_until_ready(f(p0))
-    for _ in range(reps):                                       # interleaved
-        for k, f in compiled.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(p0))
-            times[k].append(time.perf_counter() - t0)
-    F = min(times["forward"])
-    seg_auto, keep = JD.resolve(st, "auto", N)
-    out = {"N": N, "auto_keeps": bool(keep), "step_bytes": JD.step_bytes(st), "variants": {}}
-    for k, ts in times.items():
-        out["variants"][k] = {"min_s": min(ts), "median_s": float(np.median(ts)), "ratio": min(ts) / F,
-                              "ratio_median": float(np.median(ts)) / float(np.median(times["forward"])),
-                              "temp_mib": compiled[k].memory_analysis().temp_size_in_bytes / 2**20}
-    return out
+    return {k: (f.lower(p0).compile(), (p0,), None) for k, f in progs.items()}
 
 
 def worker(spec):
+    """Both adjoint implementations in one process: every program compiled first, then timed in
+    interleaved rounds (derived and custom alternate, so load changes hit both alike)."""
     import jax
+    import numpy as np
 
+    from mpmlab.backends.jax import differentiable as JD
     from mpmlab.scenes.validation import ritter_dam_break
     from mpmlab.simulator import build_stepper
 
     res = {"ynn": spec["ynn"], "xla_flags": os.environ.get("XLA_FLAGS", ""), "load_before": _load(), "rows": []}
+    progs, steppers = {}, {}
     for mode in spec["adjoints"]:
         st = build_stepper(ritter_dam_break(dx=spec["dx"]), "jax", spec["transfer"], spec["precision"], adjoints=mode)
+        steppers[mode] = st
+        for k, v in {**_stage_programs(st, spec["stage_steps"]), **_ratio_programs(st, spec["N"], spec["segment"])}.items():
+            progs[(mode, k)] = v
+    times = {k: [] for k in progs}
+    for k, (f, args, _) in progs.items():
+        jax.block_until_ready(f(*args))
+    for _ in range(spec["reps"]):
+        for k, (f, args, _) in progs.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(*args))
+            times[k].append(time.perf_counter() - t0)
+    steps = spec["stage_steps"]
+    for mode, st in steppers.items():
         row = {"adjoints": mode, "particles": int(st.particles.count), "grid": list(st.grid_shape)}
-        t0 = time.perf_counter()
-        row["stages"] = _stages(st, spec["stage_steps"], spec["reps"])
-        row["ratios"] = _ratios(st, spec["N"], spec["segment"], spec["reps"])
-        row["seconds"] = time.perf_counter() - t0
+        F, B = min(times[(mode, "stage fwd")]), min(times[(mode, "stage bwd")])
+        fs = _shares(*progs[(mode, "stage fwd")])
+        bs = _shares(*progs[(mode, "stage bwd")])
+        sg = {"steps": steps, "fwd_ms_per_step": 1e3 * F / steps, "bwd_ms_per_step": 1e3 * B / steps,
+              "fwd_median_ms_per_step": 1e3 * float(np.median(times[(mode, "stage fwd")])) / steps,
+              "bwd_median_ms_per_step": 1e3 * float(np.median(times[(mode, "stage bwd")])) / steps,
+              "B_over_F": B / F, "per_stage": {}}
+        for k in STAGES:
+            f, b = fs.get(k, 0.0) * F / steps, bs.get(k, 0.0) * B / steps
+            sg["per_stage"][k] = {"fwd_ms": 1e3 * f, "bwd_ms": 1e3 * b, "B_over_F": (b / f) if f > 0 else None}
+        row["stages"] = sg
+        Ff = min(times[(mode, "forward")])
+        Fm = float(np.median(times[(mode, "forward")]))
+        seg_auto, keep = JD.resolve(st, "auto", spec["N"])
+        rat = {"N": spec["N"], "auto_keeps": bool(keep), "step_bytes": JD.step_bytes(st), "variants": {}}
+        for (m, k), ts in times.items():
+            if m != mode or k.startswith("stage"):
+                continue
+            rat["variants"][k] = {"min_s": min(ts), "median_s": float(np.median(ts)), "ratio": min(ts) / Ff,
+                                  "ratio_median": float(np.median(ts)) / Fm,
+                                  "temp_mib": progs[(m, k)][0].memory_analysis().temp_size_in_bytes / 2**20}
+        row["ratios"] = rat
         res["rows"].append(row)
-        print(f"[adjoint split] ynn {spec['ynn']} {mode}: B/F {row['stages']['B_over_F']:.2f}, ratios "
-              + ", ".join(f"{k} {v['ratio']:.2f}" for k, v in row["ratios"]["variants"].items() if k != "forward"),
+        print(f"[adjoint split] ynn {spec['ynn']} {mode}: B/F {sg['B_over_F']:.2f}, ratios "
+              + ", ".join(f"{k} {v['ratio']:.2f}" for k, v in rat["variants"].items() if k != "forward"),
               file=sys.stderr, flush=True)
-        del st
     res["load_after"] = _load()
     res["jax"] = jax.__version__
     return res
