@@ -11,11 +11,17 @@ the ones JAX derives (``JaxStepper(..., adjoints="derived")``), fp64, and ``segm
 * Forward mode (``jax.jvp``, ``jax.jacfwd`` through the ``linear_call`` batching rule) gives the derived
   tangents.
 * ``segment="auto"`` (every step kept: no ``jax.checkpoint``) gives the same gradient as ``segment=k``
-  through ``observe``, ``tracking_value_and_grad`` and the adapter; ``locate_nan_gradient`` takes it.
+  through ``observe`` and ``tracking_value_and_grad``; ``locate_nan_gradient`` takes it.
 
-Checked that these tests can fail: with the cotangent of the first-moment ("o") weights dropped in
-``adjoints.contract_transpose`` (``add(gw, d, k, float(k) * dot)`` -> nothing) the APIC/TPIC cases fail
-at ~1e-1 relative on x; with the G2P scatter's cotangent block zeroed every case fails.
+Default run: every transfer in 2D and APIC / MLS in 3D with two laws (fixed_corotated, weakly_compressible),
+every law on APIC 2D, three boundary kinds, forward mode on MLS, the segment checks; ``-m slow`` adds the
+full law x transfer x dim matrix, every boundary kind (2D, and three in 3D) and forward mode on APIC /
+FLIP. (Default run: 17 tests, 773 s on the 2 shared cores at load 9-12; most of it XLA compilation.)
+
+Checked that these tests can fail (mutations of a copy of adjoints.py, 2026-12-06): with the
+first-moment ("o") weights' cotangent dropped in ``contract_transpose`` the APIC 2D case fails at 1.8e1
+relative on x; with the P2G force term's weight-gradient cotangent (``ct_dw1`` of ``_p2g_transpose``)
+zeroed the PIC 2D case fails at 2.4e-2 relative on x.
 """
 import functools
 
