@@ -61,6 +61,7 @@ Usage::
     python benchmarks/gradients.py --quick             # small sizes, a smoke run
     python benchmarks/gradients.py --N 400 --segments 10,20,50,100,400 --scaling-N 100,200,400,800
     python benchmarks/gradients.py --render            # README table and plot from the JSON only
+    python benchmarks/gradients.py --baseline f277f7d  # + the before/after table: that commit measured in the same run
     python benchmarks/gradients.py --elastic-only      # the JAX elastic step, SVD before / after (~2 min)
     python benchmarks/gradients.py --elastic-only --render
 """
@@ -576,7 +577,18 @@ def _xla_temp(res, r):
     return x.get("temp_size_in_bytes")
 
 
+def n_steps(N, n) -> int:
+    """The segment length a row ran with: ``"auto"`` keeps every step state when it fits (n = N)."""
+    return N if isinstance(n, str) else n
+
+
+def n_key(N, n) -> float:
+    """Sort key: segments by length, ``"auto"`` after n = N."""
+    return N + 0.5 if n == "auto" else float(n)
+
+
 def model_mib(res, N, n):
+    n = n_steps(N, n)
     return (np.ceil(N / n) + n) * res["state_bytes"] / MiB
 
 
@@ -585,7 +597,8 @@ def row_md(res, r):
     comp = res.get("compile", {}).get(r["label"], {}).get("grad", {}).get(f"{r['N']},{r['n']}", {}).get("compile_s")
     first = f"{comp:.1f} (compile)" if (r["backend"] == "jax" and comp is not None) else \
         f"{r['grad_load_s']:.2f} (load)"
-    return (f"| {r['label']} | {r['N']} | {r['n']} | {np.ceil(r['N'] / r['n']) + r['n']:.0f} | "
+    nn = n_steps(r["N"], r["n"])
+    return (f"| {r['label']} | {r['N']} | {r['n']} | {np.ceil(r['N'] / nn) + nn:.0f} | "
             f"{r['peak_mib']:.1f} | {r['peak_sampled_mib']:.1f} | "
             f"{(f'{xt / MiB:.1f}' if xt is not None else '-')} | {model_mib(res, r['N'], r['n']):.1f} | "
             f"{r['maxrss_base_mib']:.0f} / {r['maxrss_grad_mib']:.0f} | "
@@ -625,13 +638,14 @@ def tables(res) -> str:
              "JAX compile time of the gradient program (fresh, in the compile process); Warp: a 2-step "
              "gradient that loads the backward kernels from Warp's disk cache.\n")
     order = {lab: i for i, lab in enumerate(dict.fromkeys(r["label"] for r in res["rows"]))}
-    seg = sorted([r for r in res["rows"] if r["N"] == sp["N"]], key=lambda r: (order[r["label"]], r["n"]))
+    seg = sorted([r for r in res["rows"] if r["N"] == sp["N"] and not r.get("baseline")],
+                 key=lambda r: (order[r["label"]], n_key(r["N"], r["n"])))
     L.append(f"**Segment length** (N = {sp['N']} steps):\n")
     L.append(HEADER)
     L += [row_md(res, r) for r in seg]
     scal = sorted([r for r in res["rows"] if r["label"] == r["backend"] and
                    (r["N"] != sp["N"] or r["n"] in (sp["scaling_segment"], sp["N"]))],
-                  key=lambda r: (order[r["label"]], r["n"] == r["N"], r["N"], r["n"]))
+                  key=lambda r: (order[r["label"]], r["n"] == r["N"], r["N"], n_key(r["N"], r["n"])))
     L.append(f"\n**Steps** (n = {sp['scaling_segment']} vs n = N, i.e. no recomputation):\n")
     L.append(HEADER)
     L += [row_md(res, r) for r in scal]
@@ -662,11 +676,12 @@ def tables(res) -> str:
             for k, v in kern.items():
                 L.append(f"| {k} | {v['fwd_ms']:.3f} | {v['adj_ms']:.3f} | {v['adj_ms'] / v['fwd_ms']:.1f}x |")
             L.append(f"| all | {tf_:.3f} | {ta_:.3f} | {ta_ / tf_:.1f}x |")
+    L += baseline_table(res)
     L.append("\n**Summary** (generated):\n")
     for lab in order:
         rows = [r for r in res["rows"] if r["label"] == lab]
         ratios = [r["ratio"] for r in rows]
-        at = sorted([r for r in rows if r["N"] == sp["N"]], key=lambda r: r["n"])
+        at = sorted([r for r in rows if r["N"] == sp["N"]], key=lambda r: n_key(r["N"], r["n"]))
         line = f"* {lab}: fwd+bwd / forward = {min(ratios):.1f}x - {max(ratios):.1f}x over {len(rows)} runs: " + \
                ("target <= 3x **met**" if max(ratios) <= 3 else "target <= 3x **not met**")
         if at:
@@ -679,6 +694,47 @@ def tables(res) -> str:
     if res.get("notes"):
         L.append("\n" + res["notes"])
     return "\n".join(L) + "\n"
+
+
+def baseline_table(res) -> list[str]:
+    """Before / after: the same workers on the baseline commit's mpmlab (a temporary worktree on
+    PYTHONPATH) in the same run, beside this checkout's rows at the same (N, n), and its ``auto`` row."""
+    base = [r for r in res["rows"] if r.get("baseline")]
+    if not base:
+        return []
+    ref = res.get("baseline", {})
+    L = [f"\n**Before / after** (the baseline `{ref.get('ref', '?')}` = {ref.get('commit', '?')} measured in the "
+         "same run, same workers, its mpmlab from a temporary `git worktree` on `PYTHONPATH`; *after* = this "
+         "checkout; n = auto: `segment='auto'`, every step state kept when it fits the memory budget):\n"]
+    L += H.md_table(["backend", "N", "n", "before: forward (s)", "before: fwd+bwd (s)", "before: ratio",
+                     "after: forward (s)", "after: fwd+bwd (s)", "after: ratio"])
+    now = {(r["label"], r["N"], str(r["n"])): r for r in res["rows"] if not r.get("baseline")}
+    for b in base:
+        a = now.get((b["backend"], b["N"], str(b["n"])))
+        cells = [b["backend"], b["N"], b["n"], f"{b['fwd_s']:.3f}", f"{b['grad_s']:.3f}", f"{b['ratio']:.1f}x"]
+        cells += ([f"{a['fwd_s']:.3f}", f"{a['grad_s']:.3f}", f"**{a['ratio']:.1f}x**"] if a else ["-"] * 3)
+        L.append(H.md_row(cells))
+        auto = now.get((b["backend"], b["N"], "auto"))
+        if auto and b["n"] == b["N"]:
+            L.append(H.md_row([b["backend"], b["N"], "auto", "-", "-", "-", f"{auto['fwd_s']:.3f}",
+                               f"{auto['grad_s']:.3f}", f"**{auto['ratio']:.1f}x**"]))
+    return L
+
+
+def worktree(ref: str):
+    """A temporary detached worktree of ``ref`` (removed by the returned context manager)."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def cm():
+        path = tempfile.mkdtemp(prefix="mpmlab-baseline-")
+        git = lambda *a: subprocess.run(["git", "-C", str(H.ROOT), *a], capture_output=True, text=True, check=True)
+        git("worktree", "add", "--detach", "--force", path, ref)
+        try:
+            yield path, git("rev-parse", "--short", ref).stdout.strip()
+        finally:
+            subprocess.run(["git", "-C", str(H.ROOT), "worktree", "remove", "--force", path], capture_output=True)
+    return cm()
 
 
 def git_commit() -> str:
@@ -758,7 +814,8 @@ def plot(res, path: Path):
     colors = {lab: palette[i % len(palette)] for i, lab in enumerate(labels)}
     a = ax[0]
     for b in labels:
-        rows = sorted([r for r in res["rows"] if r["label"] == b and r["N"] == sp["N"]], key=lambda r: r["n"])
+        rows = sorted([r for r in res["rows"] if r["label"] == b and r["N"] == sp["N"] and r["n"] != "auto"
+                       and not r.get("baseline")], key=lambda r: r["n"])
         if not rows:
             continue
         n = [r["n"] for r in rows]
@@ -768,7 +825,7 @@ def plot(res, path: Path):
             xt = [_xla_temp(res, r) for r in rows]
             if all(x is not None for x in xt):
                 a.plot(n, [x / MiB for x in xt], "^--", color="tab:purple", label="jax: XLA temp bytes")
-    nn = np.array(sorted({r["n"] for r in res["rows"] if r["N"] == sp["N"]}))
+    nn = np.array(sorted({r["n"] for r in res["rows"] if r["N"] == sp["N"] and r["n"] != "auto"}))
     if nn.size:
         a.plot(nn, model_mib(res, sp["N"], nn), "k-", lw=0.8, alpha=0.6, label="(N/n + n) x state size")
     a.set_xscale("log")
@@ -814,7 +871,11 @@ def main(argv=None):
     ap = H.parser(__doc__.split("\n")[0])
     H.add_backends(ap)
     ap.add_argument("--N", type=int, default=400, help="steps of the segment-length sweep")
-    ap.add_argument("--segments", default="1,10,20,50,100,400", help="segment lengths n at --N (n > N dropped)")
+    ap.add_argument("--segments", default="1,10,20,50,100,400,auto",
+                    help="segment lengths n at --N (n > N dropped; 'auto': keep every step state when it fits)")
+    ap.add_argument("--baseline", default="",
+                    help="git ref measured in the same run for the before/after table (e.g. the commit before a change)")
+    ap.add_argument("--baseline-segments", default="20,400", help="segment lengths (at --N) of the baseline rows")
     ap.add_argument("--scaling-N", default="100,200,400,800", help="steps of the N sweep")
     ap.add_argument("--scaling-segment", type=int, default=20, help="segment length of the N sweep (and n = N)")
     ap.add_argument("--reps", type=int, default=5, help="timed repeats (median)")
@@ -825,7 +886,7 @@ def main(argv=None):
     ap.add_argument("--jax-variant-flags", default="--xla_cpu_experimental_ynn_fusion_type=",
                     help="XLA_FLAGS of an extra JAX run of the segment sweep ('' to skip)")
     ap.add_argument("--jax-variant-label", default="jax, YNN off")
-    H.add_quick(ap, "N = 40, n in {5, 40}, N sweep {20, 40}, dx 0.025")
+    H.add_quick(ap, "N = 40, n in {5, 40, auto}, N sweep {20, 40}, dx 0.025")
     ap.add_argument("--merge", action="store_true",
                     help="keep the rows of variants not run now from the existing --out JSON (e.g. --backends warp)")
     ap.add_argument("--render", action="store_true", help="only rewrite the README section and plot from --out")
@@ -859,7 +920,8 @@ def main(argv=None):
         res = json.loads(out.read_text())
         return report(res, args)
     if args.quick:
-        args.N, args.segments, args.scaling_N, args.scaling_segment, args.dx = 40, "5,40", "20,40", 5, 0.025
+        args.N, args.segments, args.scaling_N, args.scaling_segment, args.dx = 40, "5,40,auto", "20,40", 5, 0.025
+        args.baseline_segments = "5,40"
     backends = args.backends.split(",")
     N = args.N
     # (label, backend, environment, configs): the JAX variant re-runs the segment sweep with XLA CPU's
@@ -867,7 +929,8 @@ def main(argv=None):
     variants = [(b, b, {}, "all") for b in backends]
     if "jax" in backends and args.jax_variant_flags:
         variants.append((args.jax_variant_label, "jax", {"XLA_FLAGS": args.jax_variant_flags}, "segments"))
-    segs = [n for n in (int(s) for s in args.segments.split(",")) if n <= N]
+    segs = [s if s == "auto" else int(s) for s in (t.strip() for t in args.segments.split(","))]
+    segs = [n for n in segs if n == "auto" or n <= N]
     configs = [(N, n) for n in segs]
     for M in (int(s) for s in args.scaling_N.split(",")):
         for n in (args.scaling_segment, M):
@@ -907,6 +970,26 @@ def main(argv=None):
                 bd.update(label=label, env=env)
                 res["breakdown"].append(bd)
                 log(f"{label} breakdown: {json.dumps({k: v for k, v in bd.items() if not k.endswith('xla')})}")
+        if args.baseline:
+            bsegs = [int(t) for t in args.baseline_segments.split(",") if int(t) <= N]
+            with worktree(args.baseline) as (path, commit):
+                res["baseline"] = {"ref": args.baseline, "commit": commit}
+                for k, b in enumerate(backends):
+                    label = f"{b} @ {commit}"
+                    env = {"PYTHONPATH": path}
+                    vbase = dict(base, env=env, cache=os.path.join(cache, f"baseline{k}"), label=label)
+                    cfgs = [(N, n) for n in bsegs]
+                    if b == "jax":
+                        log(f"{label}: compiling {len(cfgs)} gradient programs")
+                        res["compile"][label] = run_worker("compile", dict(vbase, configs=cfgs), log)
+                    else:
+                        run_worker("warm", dict(vbase, backend=b), log)
+                    for M, n in cfgs:
+                        r = run_worker("measure", dict(vbase, backend=b, N=M, n=n), log)
+                        r.update(label=label, env=env, baseline=True)
+                        res["rows"].append(r)
+                        log(f"{label} N={M} n={n}: fwd {r['fwd_s']:.3f} s, fwd+bwd {r['grad_s']:.3f} s, "
+                            f"ratio {r['ratio']:.1f}x; loss {r['loss']:.6g}, |dL/dv| {r['grad_v_norm']:.6g}")
     res["machine"]["parent_maxrss_mib_end"] = maxrss_mib()
     res["machine"]["load_after"] = H.load_average()
     res["total_s"] = time.perf_counter() - t_start
