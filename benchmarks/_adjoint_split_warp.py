@@ -13,6 +13,7 @@ before and after).
   rounds (the least-disturbed replay on a shared machine; medians in the JSON). A launch recorded
   with its hand-written adjoint (``Tape.record_func``: ``adjoints.RecordedP2G``) is timed with its
   ``forward()`` and its adjoint call. B/F = sum of adjoint times / sum of forward times.
+* **fwd+bwd / forward, in the path** (:func:`path_ratio`): the same without the torch bridge, CPU time.
 * **fwd+bwd / forward** (:func:`ratio`): ``loss = sum(observe(c, Lagrangian('x'), steps=[N],
   segment=n)**2)`` and ``loss.backward()`` w.r.t. the initial velocity and the law parameters (as
   ``gradients.py``'s ``warp_fns``), against the forward alone (the same observe, segment = N, under
@@ -234,6 +235,53 @@ def ratio(st, N: int, segments=(20, "auto"), kinds=KINDS, reps: int = 5) -> dict
     return res
 
 
+def path_ratio(st, N: int, segments=(20, "auto"), kinds=KINDS, reps: int = 7) -> dict:
+    """The same gradient as :func:`ratio` inside the gradient path alone (``GradPath.forward`` /
+    ``backward``, no torch bridge, seed = ones), CPU time (``process_time``), alternating repeats:
+    {"forward_cpu_s": [...], "<kind>/<segment>": {"cpu_s": [...], "ratio_min", "ratio_median"}}. The
+    least load-sensitive form of fwd+bwd / forward on a shared machine."""
+    import torch
+    from mpmlab.backends.warp import grad as wgrad
+    from mpmlab.observations import Lagrangian
+
+    path = wgrad.path_of(st)
+    names, flat = path.flatten(st.controls())
+    obs = Lagrangian(quantity="x")
+    steps = (N,)
+    seed = torch.ones((1, path.N, st.dim), dtype=torch.float64 if st.precision == "fp64" else torch.float32)
+
+    def fwd():
+        path.forward(names, flat, obs, steps, N, keep=False)
+
+    def grad(n):
+        keep = n == "auto"
+        seg = N if keep else int(n)
+        _, saved = path.forward(names, flat, obs, steps, seg, keep=keep)
+        path.backward(names, flat, obs, steps, seg, saved, seed)
+        if keep:
+            saved.record.busy = False
+
+    cfg = [(k, n) for k in kinds for n in segments]
+    for k, n in cfg:                                   # warm-up
+        path.adjoints = k
+        grad(n)
+    out = {"forward_cpu_s": []}
+    for _ in range(reps):
+        c0 = time.process_time()
+        fwd()
+        out["forward_cpu_s"].append(time.process_time() - c0)
+        for k, n in cfg:
+            path.adjoints = k
+            c0 = time.process_time()
+            grad(n)
+            out.setdefault(f"{k}/{n}", {"cpu_s": []})["cpu_s"].append(time.process_time() - c0)
+    f, fm = min(out["forward_cpu_s"]), float(np.median(out["forward_cpu_s"]))
+    for k, n in cfg:
+        r = out[f"{k}/{n}"]
+        r["ratio_min"], r["ratio_median"] = min(r["cpu_s"]) / f, float(np.median(r["cpu_s"])) / fm
+    return out
+
+
 def warp_split(dx: float = 0.0125, transfer: str = "apic", precision: str = "fp32", N: int = 400,
                split_steps: int = 20, segments=(20, "auto"), kinds=KINDS, reps: int = 5, scene: str = "ritter",
                ratio_too: bool = True) -> dict:
@@ -252,6 +300,7 @@ def warp_split(dx: float = 0.0125, transfer: str = "apic", precision: str = "fp3
     kernel_split(st, kinds, 2, 1)                         # compile both kinds first (not timed)
     out["kernels"] = kernel_split(st, kinds, split_steps, reps)
     out["ratio"] = ratio(st, N, segments, kinds, reps) if ratio_too else {}
+    out["path_ratio"] = path_ratio(st, N, segments, kinds, max(reps, 5)) if ratio_too else {}
     out["load_after"] = list(os.getloadavg())
     return out
 
@@ -280,6 +329,16 @@ def table(res) -> str:
         kind, n = key.split("/")
         L.append(f"| {kind} | {n} | {r['fwd_median_s']:.3f} | {r['grad_median_s']:.3f} | **{r['ratio']:.2f}x** | "
                  f"{r['ratio_min']:.2f}x | {r['ratio_cpu']:.2f}x | {r['steps_run']} | {r['grad_v_rel_diff_vs_first']:.1e} |")
+    pr = res.get("path_ratio") or {}
+    if pr:
+        L += ["", f"Inside the gradient path (GradPath.forward / backward, no torch bridge), CPU time, forward "
+                  f"{min(pr['forward_cpu_s']):.3f} s (minimum):", "",
+              "| adjoints | segment | fwd+bwd CPU (s, min) | ratio of minima | ratio of medians |", "|---|---|---|---|---|"]
+        for key, r in pr.items():
+            if key == "forward_cpu_s":
+                continue
+            kind, n = key.split("/")
+            L.append(f"| {kind} | {n} | {min(r['cpu_s']):.3f} | **{r['ratio_min']:.2f}x** | {r['ratio_median']:.2f}x |")
     return "\n".join(L)
 
 
