@@ -14,8 +14,12 @@ tr(tau) = (d lambda + 2 mu) tr(eps), so the returned stress lies on the cone
 
     f(tau) = |dev tau| + alpha tr(tau) = 0     (Frobenius norm; dev and tr over d dimensions),
 
-i.e. the cone constant in stress space is alpha itself, in 2D and in 3D.
-Von Mises (row 6c): the return keeps tr(eps), so det F, and lands on |dev tau| = tau_Y (Frobenius).
+i.e. the cone constant in stress space is alpha itself. 2D is plane strain (issue 18): the state carries the
+elastic out-of-plane strain eps_zz and the return acts on (eps_1, eps_2, eps_zz) with d = 3, so in 2D these
+checks run on the three principal strains and the 3x3 stress diag(tau_2D, tau_zz) (``tau3``; before issue
+18 they used d = 2, the old 2D continuum).
+Von Mises (row 6c): the return keeps tr(eps), so det F (2D: det F e^eps_zz), and lands on |dev tau| = tau_Y
+(Frobenius, over three components).
 """
 import numpy as np
 import pytest
@@ -44,15 +48,47 @@ def rotation(dim, rng):
     return np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
 
 
-def tau(law, backend, Fs, prm):
-    return np.asarray(EVAL[backend](law, len(Fs[0]), "kirchhoff", [{"F": F} for F in Fs], prm))
+def states(Fs, ezz=None):
+    """Law states of the F's (eps_zz: the elastic out-of-plane strain, 0 unless given; unused in 3D)."""
+    ezz = [0.0] * len(Fs) if ezz is None else ezz
+    return [{"F": F, "eps_zz": np.asarray(float(z))} for F, z in zip(Fs, ezz)]
 
 
-def project(law, backend, Fs, prm):
-    """The return map alone: update with grad_v = 0, so F_trial = F."""
+def tau(law, backend, Fs, prm, ezz=None):
+    return np.asarray(EVAL[backend](law, len(Fs[0]), "kirchhoff", states(Fs, ezz), prm))
+
+
+def project_full(law, backend, Fs, prm, ezz=None):
+    """The return map alone: update with grad_v = 0, so F_trial = F: (F's, eps_zz's)."""
     dim = len(Fs[0])
-    out = EVAL[backend](law, dim, "update", [{"F": F} for F in Fs], prm, np.zeros((len(Fs), dim, dim)), 1e-3)
-    return np.array([o["F"] for o in out])
+    out = EVAL[backend](law, dim, "update", states(Fs, ezz), prm, np.zeros((len(Fs), dim, dim)), 1e-3)
+    return np.array([o["F"] for o in out]), np.array([float(o["eps_zz"]) for o in out])
+
+
+def project(law, backend, Fs, prm, ezz=None):
+    return project_full(law, backend, Fs, prm, ezz)[0]
+
+
+def tau3(law, F, ezz, prm):
+    """The 3x3 Kirchhoff stress of a state: 2D plane strain: the 3D stress of diag(F, e^eps_zz)."""
+    if len(F) == 3:
+        return DP.reference.kirchhoff({"F": F}, prm)
+    F3 = np.eye(3)
+    F3[:2, :2] = F
+    F3[2, 2] = np.exp(ezz)
+    t = DP.reference.kirchhoff({"F": F3}, prm)
+    assert np.allclose(t[:2, :2], DP.reference.kirchhoff({"F": F, "eps_zz": ezz}, prm), rtol=0, atol=1e-9 * MU)
+    return t
+
+
+def vol(F, ezz):
+    """The elastic volume ratio det F (2D: det F e^eps_zz)."""
+    return np.linalg.det(F) * (np.exp(ezz) if len(F) == 2 else 1.0)
+
+
+def ezz_of(dim, rng, scale):
+    """Random elastic out-of-plane strains for 2D states (0 in 3D)."""
+    return scale * rng.standard_normal() if dim == 2 else 0.0
 
 
 def principal(eps, U, V):
@@ -157,30 +193,33 @@ def test_dp_alpha_value():
 
 
 def shear_case_gradients(dim, rng, n=6):
-    """F = U exp(eps) V^T with tr(eps) < 0 and delta_gamma > 0 (outside the cone, compressive)."""
-    Fs = []
+    """F = U exp(eps) V^T (2D: with eps_zz) with tr(eps) < 0 and delta_gamma > 0 (outside the cone,
+    compressive); the principal strains are three in 2D (plane strain) and 3D."""
+    Fs, zs = [], []
     while len(Fs) < n:
-        eps = rng.normal(0.0, 0.15, dim)
+        eps = rng.normal(0.0, 0.15, 3)
         eps -= eps.mean() + rng.uniform(0.005, 0.05)           # tr(eps) < 0
         hat = eps - eps.mean()
-        dg = np.linalg.norm(hat) + (dim * LAM + 2.0 * MU) / (2.0 * MU) * eps.sum() * ALPHA
+        dg = np.linalg.norm(hat) + (3 * LAM + 2.0 * MU) / (2.0 * MU) * eps.sum() * ALPHA
         if dg > 1e-3:
-            Fs.append(principal(eps, rotation(dim, rng), rotation(dim, rng)))
-    return Fs
+            Fs.append(principal(eps[:dim], rotation(dim, rng), rotation(dim, rng)))
+            zs.append(eps[2] if dim == 2 else 0.0)
+    return Fs, zs
 
 
 @pytest.mark.parametrize("dim", DIMS)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_dp_shear_return_lands_on_cone(backend, dim):
     rng = np.random.default_rng(3)
-    Fs = shear_case_gradients(dim, rng)
-    Fn = project(DP, backend, Fs, PRM_DP)
-    for F, G, t in zip(Fs, Fn, tau(DP, "reference", list(Fn), PRM_DP)):
+    Fs, zs = shear_case_gradients(dim, rng)
+    Fn, zn = project_full(DP, backend, Fs, PRM_DP, zs)
+    for F, z, G, w in zip(Fs, zs, Fn, zn):
+        t = tau3(DP, G, w, PRM_DP)
         tr = np.trace(t)
         assert tr < 0.0
         f = np.linalg.norm(dev(t)) + ALPHA * tr
         assert abs(f) <= 1e-9 * abs(tr)
-        assert abs(np.linalg.det(G) / np.linalg.det(F) - 1.0) <= 1e-12   # volume kept (tr eps unchanged)
+        assert abs(vol(G, w) / vol(F, z) - 1.0) <= 1e-12   # volume kept (tr eps unchanged)
         assert np.max(np.abs(polar_rotation(G) - polar_rotation(F))) <= 1e-10   # same rotation, same axes
 
 
@@ -188,12 +227,14 @@ def test_dp_shear_return_lands_on_cone(backend, dim):
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_dp_tension_returns_to_cone_tip(backend, dim):
     rng = np.random.default_rng(4)
-    Fs = []
+    Fs, zs = [], []
     for _ in range(5):
-        eps = rng.normal(0.0, 0.2, dim)
-        eps += 0.02 - eps.mean()                                  # tr(eps) > 0
-        Fs.append(principal(eps, rotation(dim, rng), rotation(dim, rng)))
-    Fn = project(DP, backend, Fs, PRM_DP)
+        eps = rng.normal(0.0, 0.2, 3)
+        eps += 0.02 - eps.mean()                                  # tr(eps) > 0 (over three in 2D)
+        Fs.append(principal(eps[:dim], rotation(dim, rng), rotation(dim, rng)))
+        zs.append(eps[2] if dim == 2 else 0.0)
+    Fn, zn = project_full(DP, backend, Fs, PRM_DP, zs)
+    assert np.all(zn == 0.0)                                      # the tip: eps_zz = 0 too
     for F, G in zip(Fs, Fn):
         assert np.max(np.abs(G - polar_rotation(F))) <= 1e-12             # F <- U V^T
         assert np.max(np.abs(G.T @ G - np.eye(dim))) <= 1e-13
@@ -205,11 +246,13 @@ def test_dp_tension_returns_to_cone_tip(backend, dim):
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_dp_inside_cone_is_elastic(backend, dim):
     rng = np.random.default_rng(5)
-    Fs = []
+    Fs, zs = [], []
     for _ in range(5):
-        eps = -rng.uniform(0.02, 0.2) * np.ones(dim) + rng.normal(0.0, 0.003, dim)   # compression, little shear
-        Fs.append(principal(eps, rotation(dim, rng), rotation(dim, rng)))
-    assert np.array_equal(project(DP, backend, Fs, PRM_DP), np.array(Fs))
+        eps = -rng.uniform(0.02, 0.2) * np.ones(3) + rng.normal(0.0, 0.003, 3)   # compression, little shear
+        Fs.append(principal(eps[:dim], rotation(dim, rng), rotation(dim, rng)))
+        zs.append(eps[2] if dim == 2 else 0.0)
+    Fn, zn = project_full(DP, backend, Fs, PRM_DP, zs)
+    assert np.array_equal(Fn, np.array(Fs)) and np.array_equal(zn, np.array(zs))
 
 
 # ---- von Mises return (Eqs. 18-19) -----------------------------------------------------------------------
@@ -217,14 +260,15 @@ def test_dp_inside_cone_is_elastic(backend, dim):
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_von_mises_return_is_isochoric_onto_yield_surface(backend, dim):
     rng = np.random.default_rng(6)
-    Fs = []
+    Fs, zs = [], []
     for _ in range(6):
-        eps = rng.normal(0.0, 0.2, dim)                          # |2 mu eps_hat| >> tau_Y = 300 Pa
-        Fs.append(principal(eps, rotation(dim, rng), rotation(dim, rng)))
-    Fn = project(VM, backend, Fs, PRM_VM)
-    t0 = tau(VM, "reference", Fs, PRM_VM)
-    for F, G, t, a in zip(Fs, Fn, tau(VM, "reference", list(Fn), PRM_VM), t0):
-        assert abs(np.linalg.det(G) / np.linalg.det(F) - 1.0) <= 1e-12
+        eps = rng.normal(0.0, 0.2, 3)                            # |2 mu eps_hat| >> tau_Y = 300 Pa
+        Fs.append(principal(eps[:dim], rotation(dim, rng), rotation(dim, rng)))
+        zs.append(eps[2] if dim == 2 else 0.0)
+    Fn, zn = project_full(VM, backend, Fs, PRM_VM, zs)
+    for F, z, G, w in zip(Fs, zs, Fn, zn):
+        t, a = tau3(VM, G, w, PRM_VM), tau3(VM, F, z, PRM_VM)
+        assert abs(vol(G, w) / vol(F, z) - 1.0) <= 1e-12
         assert abs(np.linalg.norm(dev(t)) - TAU_Y) <= 1e-10 * TAU_Y       # Frobenius |dev tau| = tau_Y
         assert abs(np.trace(t) - np.trace(a)) <= 1e-10 * np.max(np.abs(a))  # pressure untouched
     # below yield: unchanged
@@ -245,13 +289,14 @@ def test_jax_derivatives_at_rest(dim):
         L = jax_law(law, dim)
         P = jnp.asarray(prm)
         # d tau / d F at F = I is the small-strain elasticity tensor: d tau = 2 mu sym(dF) + lambda tr(dF) I
-        J = np.asarray(jax.jit(jax.jacrev(lambda F: L.kirchhoff({"F": F}, P)))(jnp.eye(dim)))
+        z0 = jnp.zeros(())
+        J = np.asarray(jax.jit(jax.jacrev(lambda F: L.kirchhoff({"F": F, "eps_zz": z0}, P)))(jnp.eye(dim)))
         eye = np.eye(dim)
         want = (MU * (np.einsum("ik,jl->ijkl", eye, eye) + np.einsum("il,jk->ijkl", eye, eye))
                 + LAM * np.einsum("ij,kl->ijkl", eye, eye))
         assert np.max(np.abs(J - want)) <= 1e-10 * MU
         # the return map at rest is the identity in F (elastic), and its parameter derivative is zero
-        upd = lambda F, p: L.update({"F": F}, jnp.zeros((dim, dim)), 1e-3, p)["F"]
+        upd = lambda F, p: L.update({"F": F, "eps_zz": z0}, jnp.zeros((dim, dim)), 1e-3, p)["F"]
         JF, Jp = jax.jit(jax.jacrev(upd, argnums=(0, 1)))(jnp.eye(dim), P)
         assert np.max(np.abs(np.asarray(JF) - np.einsum("ik,jl->ijkl", eye, eye))) <= 1e-12
         assert np.all(np.asarray(Jp) == 0.0)
@@ -273,7 +318,8 @@ def test_jax_plastic_derivatives_match_finite_differences(dim):
     for law, prm, S in cases:
         L = jax_law(law, dim)
         F0 = R @ S @ R.T
-        upd = jax.jit(lambda F: L.update({"F": F}, jnp.zeros((dim, dim)), 1e-3, jnp.asarray(prm))["F"])
+        upd = jax.jit(lambda F: L.update({"F": F, "eps_zz": jnp.zeros(())}, jnp.zeros((dim, dim)), 1e-3,
+                                         jnp.asarray(prm))["F"])
         JF = np.asarray(jax.jit(jax.jacrev(upd))(jnp.asarray(F0)))
         h = 1e-6
         fd = np.zeros_like(JF)
@@ -292,11 +338,12 @@ def test_warp_fp32_builds_and_agrees(dim):
     rng = np.random.default_rng(8)
     Fs = [principal(rng.normal(0.0, 0.2, dim), rotation(dim, rng), rotation(dim, rng)) for _ in range(8)]
     Ls = 0.5 * rng.standard_normal((len(Fs), dim, dim))
-    states = [{"F": F} for F in Fs]
+    sts = states(Fs, [ezz_of(dim, rng, 0.1) for _ in Fs])
     for law, prm in ((DP, PRM_DP), (VM, PRM_VM)):
-        t32 = EVAL["warp"](law, dim, "kirchhoff", states, prm, precision="fp32")
-        t64 = EVAL["reference"](law, dim, "kirchhoff", states, prm)
+        t32 = EVAL["warp"](law, dim, "kirchhoff", sts, prm, precision="fp32")
+        t64 = EVAL["reference"](law, dim, "kirchhoff", sts, prm)
         assert np.max(np.abs(t32 - t64)) <= 1e-4 * np.max(np.abs(t64))
-        u32 = EVAL["warp"](law, dim, "update", states, prm, Ls, 1e-2, precision="fp32")
-        u64 = EVAL["reference"](law, dim, "update", states, prm, Ls, 1e-2)
+        u32 = EVAL["warp"](law, dim, "update", sts, prm, Ls, 1e-2, precision="fp32")
+        u64 = EVAL["reference"](law, dim, "update", sts, prm, Ls, 1e-2)
         assert max(np.max(np.abs(a["F"] - b["F"])) for a, b in zip(u32, u64)) <= 1e-4
+        assert max(abs(float(a["eps_zz"]) - float(b["eps_zz"])) for a, b in zip(u32, u64)) <= 1e-4

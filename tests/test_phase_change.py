@@ -22,7 +22,7 @@ def test_pair_declares_both_laws_parameters_state_and_round_trips():
     a = law()
     assert type(a).__name__ == "Law_hencky_von_mises_to_fixed_corotated"
     assert a.param_names() == ("before_E", "before_nu", "before_yield_stress", "after_E", "after_nu", "switch_time")
-    assert a.state_fields == ("F", "clock")
+    assert a.state_fields == ("F", "eps_zz", "clock")   # hencky_von_mises carries eps_zz (2D plane strain)
     assert a.plastic and a.symmetric_stress
     b = pickle.loads(pickle.dumps(a))
     assert b == a and hash(b) == hash(a) and type(b) is type(a)

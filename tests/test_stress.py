@@ -15,7 +15,7 @@ from mpmlab.core import registry
 from mpmlab.core.errors import ConfigError, SimulationDiverged
 
 BACKENDS = ("jax", "warp")
-FIELDS = {"x", "v", "F", "J", "sigma", "eps_p", "C", "x (outside the domain)", "state"}
+FIELDS = {"x", "v", "F", "J", "sigma", "eps_p", "eps_zz", "sigma_zz", "C", "x (outside the domain)", "state"}
 
 
 def square(law="fixed_corotated", params=None, velocity=(0.0, 0.0), spin=0.0, walls="slip", dt="auto",

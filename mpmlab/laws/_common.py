@@ -16,6 +16,13 @@ DEFORMATION_GRADIENT = StateField("F", ("D", "D"), "identity", doc="deformation 
 VOLUME_RATIO = StateField("J", (), 1.0, doc="volume ratio J = det F", check="positive")
 CAUCHY_STRESS = StateField("sigma", ("D", "D"), 0.0, unit="Pa", doc="Cauchy stress (tension positive)")
 PLASTIC_STRAIN = StateField("eps_p", (), 0.0, doc="equivalent plastic strain")
+#: plane strain in 2D (issue 18): the elastic out-of-plane Hencky strain log(F^e_zz) of the multiplicative
+#: plasticity laws (the total F_zz is 1; plastic flow changes the elastic part). Unused in 3D (stays 0).
+OUT_OF_PLANE_STRAIN = StateField("eps_zz", (), 0.0, doc="elastic out-of-plane Hencky strain log(Fe_zz) "
+                                 "(2D plane strain; stays 0 in 3D)")
+#: plane strain in 2D: the out-of-plane Cauchy stress sigma_zz of the hypo-elastic laws. Unused in 3D (stays 0).
+OUT_OF_PLANE_STRESS = StateField("sigma_zz", (), 0.0, unit="Pa", doc="out-of-plane Cauchy stress sigma_zz "
+                                 "(2D plane strain; stays 0 in 3D)")
 
 
 def p_wave_speed(params, density: float) -> float:

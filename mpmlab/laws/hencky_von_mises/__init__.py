@@ -4,7 +4,8 @@ from __future__ import annotations
 from typing import ClassVar
 
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .._common import POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed, DEFORMATION_GRADIENT
+from .._common import (POISSON_RATIO, YOUNGS_MODULUS, builtin_implementations, p_wave_speed, DEFORMATION_GRADIENT,
+                      OUT_OF_PLANE_STRAIN)
 from . import reference as _reference
 
 
@@ -14,7 +15,13 @@ class Law(AbstractConstitutiveLaw):
 
     ``yield_stress`` is tau_Y of Eq. 18: the yield limit on the Frobenius norm of the deviatoric Kirchhoff
     stress, |dev tau| <= tau_Y. For a uniaxial yield stress sigma_y (von Mises sqrt(3/2)|dev tau| <= sigma_y),
-    tau_Y = sqrt(2/3) sigma_y. In 2D the deviator is taken over d = 2 dimensions.
+    tau_Y = sqrt(2/3) sigma_y.
+
+    2D is plane strain (issue 18), as in ``hencky_drucker_prager``: the state carries the elastic
+    out-of-plane Hencky strain ``eps_zz`` (total F_zz = 1), the stress is 2 mu eps_i + lambda
+    (eps_1 + eps_2 + eps_zz) in the plane, and the return of Eqs. 18-19 runs on (eps_1, eps_2, eps_zz) with
+    the 3D deviator (d = 3; the returned eps_zz is stored). Before issue 18 the deviator was taken over
+    d = 2 (a 2D continuum without sigma_zz). In 3D ``eps_zz`` is carried unchanged (0).
     """
 
     name: ClassVar[str] = "hencky_von_mises"
@@ -24,7 +31,7 @@ class Law(AbstractConstitutiveLaw):
         ParamSpec("yield_stress", "Pa", 3.0e3, low=0.0, low_open=True,
                   doc="yield stress tau_Y (Frobenius norm of the deviatoric Kirchhoff stress, = sqrt(2/3) sigma_y)"),
     )
-    state = (DEFORMATION_GRADIENT,)
+    state = (DEFORMATION_GRADIENT, OUT_OF_PLANE_STRAIN)
     #: deforms (and yields) within 50 steps of the mpmlab.testing scenes
     test_params = {"E": 2e4, "nu": 0.3, "yield_stress": 20.0}
     plastic = True
