@@ -1,5 +1,9 @@
 """Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A): return-map properties on the reference,
-JAX and Warp (fp64). With grad_v = 0 the trial stress is the given stress, so (sigma_m, tau) pick the zone."""
+JAX and Warp (fp64). With grad_v = 0 the trial stress is the given stress, so (sigma_m, tau) pick the zone.
+
+2D is plane strain (issue 18): a 2D state carries sigma_zz and the invariants are those of the 3x3 stress
+diag(sigma, sigma_zz) (A.3 over three components), so the checks build and read 3x3 stresses (``full``,
+``state_of``) in 2D and 3D alike, with grad_v embedded as diag(L, 0) (d_zz = 0, no spin about x or y)."""
 import math
 from functools import lru_cache
 
@@ -49,21 +53,50 @@ def rotation(dim, rng):
 
 
 def stress(dim, sm, tau, rng):
-    """A symmetric stress with mean stress sm and A.4 shear invariant tau, randomly oriented."""
-    s = np.zeros((dim, dim))
+    """A symmetric 3x3 stress with mean stress sm and A.4 shear invariant tau, randomly oriented (2D: in the
+    plane, block-diagonal diag(sigma, sigma_zz), the plane-strain stress)."""
+    s = np.zeros((3, 3))
     s[0, 0], s[1, 1] = 1.0, -0.3
-    s = rng.standard_normal() * s + rng.standard_normal((dim, dim))
+    s = rng.standard_normal() * s + rng.standard_normal((3, 3))
     s = 0.5 * (s + s.T)
-    s -= np.trace(s) / dim * np.eye(dim)
+    if dim == 2:
+        s[:2, 2] = s[2, :2] = 0.0
+    s -= np.trace(s) / 3 * np.eye(3)
     s *= tau / math.sqrt(0.5 * np.sum(s * s))
-    return s + sm * np.eye(dim)
+    return s + sm * np.eye(3)
+
+
+def state_of(S, dim, J=1.0, eps_p=0.0):
+    """The law state of a 3x3 stress S (2D: sigma = S[:2, :2], sigma_zz = S[2, 2])."""
+    if dim == 2:
+        return {"J": J, "sigma": S[:2, :2].copy(), "sigma_zz": np.asarray(S[2, 2]), "eps_p": eps_p}
+    return {"J": J, "sigma": S, "sigma_zz": np.asarray(0.0), "eps_p": eps_p}
+
+
+def full(st):
+    """The 3x3 stress of a law state (2D: diag(sigma, sigma_zz))."""
+    sig = np.asarray(st["sigma"])
+    return REF.embed(sig, float(st["sigma_zz"])) if len(sig) == 2 else sig
+
+
+def embed_L(L):
+    """grad_v as a 3x3 velocity gradient (2D: diag(L, 0))."""
+    out = np.zeros((3, 3))
+    d = len(L)
+    out[:d, :d] = L
+    return out
+
+
+def trial_full(st, L, dt):
+    """The 3x3 trial stress of A.1-A.2 (2D: with sigma_zz's trial)."""
+    return REF.jaumann_trial(full(st), embed_L(L), dt, PRM, st["J"])
 
 
 def random_states(dim, n, rng):
     states = []
     for _ in range(n):
-        sig = stress(dim, rng.uniform(-3, 1) * SCALE, rng.uniform(0, 1.5) * SCALE, rng)
-        states.append({"J": rng.uniform(0.9, 1.1), "sigma": sig, "eps_p": rng.uniform(0, 0.05)})
+        S = stress(dim, rng.uniform(-3, 1) * SCALE, rng.uniform(0, 1.5) * SCALE, rng)
+        states.append(state_of(S, dim, rng.uniform(0.9, 1.1), rng.uniform(0, 0.05)))
     return states
 
 
@@ -81,7 +114,7 @@ def test_rest_stays_stress_free(backend, dim):
     for _ in range(3):
         st = update(backend, dim, st, np.zeros((1, dim, dim)), 1e-3, prm)
     assert st[0]["J"] == 1.0 and st[0]["eps_p"] == 0.0
-    assert np.max(np.abs(st[0]["sigma"])) == 0.0
+    assert np.max(np.abs(st[0]["sigma"])) == 0.0 and float(st[0]["sigma_zz"]) == 0.0
 
 
 @pytest.mark.parametrize("dim", DIMS)
@@ -94,21 +127,22 @@ def test_elastic_increment_zone1(backend, dim):
     G, lam = REF.moduli(K, NU)
     sig = stress(dim, -2.0 * SCALE, 0.1 * SCALE, rng)
     L = 0.01 * rng.standard_normal((dim, dim))
+    L3 = embed_L(L)                                                  # 2D: d_zz = 0, no out-of-plane spin
     dt = 1e-3
-    dd, dw = 0.5 * (L + L.T) * dt, 0.5 * (L - L.T) * dt
-    I = np.eye(dim)
+    dd, dw = 0.5 * (L3 + L3.T) * dt, 0.5 * (L3 - L3.T) * dt
+    I = np.eye(3)
     R = np.linalg.solve(I - 0.5 * dw, I + 0.5 * dw)                 # Cayley, by a solve (the law: closed form)
     for J in (1.0, 0.93):
-        J_new = J * np.linalg.det(I + dt * L)
+        J_new = J * np.linalg.det(I + dt * L3)
         want = (R @ (J * sig) @ R.T + lam * np.trace(dd) * I + 2 * G * dd) / J_new
         assert zone_of(want) == 1
-        n = update(backend, dim, [{"J": J, "sigma": sig, "eps_p": 0.01}], [L], dt)[0]
-        assert np.max(np.abs(n["sigma"] - want)) <= 1e-12 * SCALE
+        n = update(backend, dim, [state_of(sig, dim, J, 0.01)], [L], dt)[0]
+        assert np.max(np.abs(full(n) - want)) <= 1e-12 * SCALE
         assert n["eps_p"] == 0.01
         assert abs(n["J"] - J_new) <= 1e-15
     literal = sig + sig @ dw.T + dw @ sig + lam * np.trace(dd) * I + 2 * G * dd    # A.1-A.2 as printed
-    n = update(backend, dim, [{"J": 1.0, "sigma": sig, "eps_p": 0.0}], [L], dt)[0]
-    assert np.max(np.abs(n["sigma"] - literal)) <= 2.0 * np.max(np.abs(sig)) * (np.max(np.abs(L)) * dt * dim)
+    n = update(backend, dim, [state_of(sig, dim)], [L], dt)[0]
+    assert np.max(np.abs(full(n) - literal)) <= 2.0 * np.max(np.abs(sig)) * (np.max(np.abs(L)) * dt * dim)
 
 
 @pytest.mark.parametrize("dim", DIMS)
@@ -124,10 +158,9 @@ def test_zone2_returns_onto_shear_surface(backend, dim):
         tau_p, alpha_p = KPHI - Q * ST, math.sqrt(1 + Q * Q) - Q
         trials.append(stress(dim, sm, tau_p + alpha_p * (sm - ST) + 0.2 * SCALE, rng))
     assert all(zone_of(t) == 2 for t in trials)
-    new = update(backend, dim, [{"J": 1.0, "sigma": t, "eps_p": 0.0} for t in trials],
-                 np.zeros((len(trials), dim, dim)), 1e-3)
+    new = update(backend, dim, [state_of(t, dim) for t in trials], np.zeros((len(trials), dim, dim)), 1e-3)
     for t, n in zip(trials, new):
-        sm, s, tau = REF.invariants(n["sigma"])
+        sm, s, tau = REF.invariants(full(n))
         assert sm <= KPHI / Q                                      # returned below the apex (tau >= 0)
         assert abs(tau - KPHI + Q * sm) <= 1e-9 * SCALE            # f_s = 0
         sm_t, s_t, tau_t = REF.invariants(t)
@@ -144,10 +177,9 @@ def test_zone3_caps_mean_stress_at_tensile_strength(backend, dim):
     trials = [stress(dim, sm, tau, rng) for sm, tau in
               ((1.1 * ST, 0.0), (1.5 * ST, 0.1 * (KPHI - Q * ST)), (5.0 * ST, 0.5 * (KPHI - Q * ST)))]
     assert all(zone_of(t) == 3 for t in trials)
-    new = update(backend, dim, [{"J": 1.0, "sigma": t, "eps_p": 0.0} for t in trials],
-                 np.zeros((len(trials), dim, dim)), 1e-3)
+    new = update(backend, dim, [state_of(t, dim) for t in trials], np.zeros((len(trials), dim, dim)), 1e-3)
     for t, n in zip(trials, new):
-        sm, s, _ = REF.invariants(n["sigma"])
+        sm, s, _ = REF.invariants(full(n))
         sm_t, s_t, _ = REF.invariants(t)
         assert abs(sm - ST) <= 1e-12 * SCALE                        # A.17: sigma_m = sigma_t
         assert np.max(np.abs(s - s_t)) <= 1e-12 * SCALE            # deviator untouched
@@ -168,8 +200,9 @@ def test_jaumann_objectivity(backend, dim):
     b = update(backend, dim, rs, [r @ l @ r.T for r, l in zip(R, L)], dt)
     zones = set()
     for s, l, r, x, y in zip(states, L, R, a, b):
-        zones.add(zone_of(REF.jaumann_trial(s["sigma"], l, dt, PRM)))
+        zones.add(zone_of(trial_full(s, l, dt)))
         assert np.max(np.abs(r @ x["sigma"] @ r.T - y["sigma"])) <= 1e-9 * SCALE
+        assert abs(float(x["sigma_zz"]) - float(y["sigma_zz"])) <= 1e-9 * SCALE
         assert abs(x["eps_p"] - y["eps_p"]) <= 1e-12
         assert abs(x["J"] - y["J"]) <= 1e-13
     assert zones == {1, 2, 3}
@@ -181,7 +214,7 @@ def test_backends_match_reference_and_eps_p_never_decreases(dim):
     states = random_states(dim, 64, rng)
     L = 20.0 * rng.standard_normal((len(states), dim, dim))
     ref = update("reference", dim, states, L, 1e-3)
-    assert {zone_of(REF.jaumann_trial(s["sigma"], l, 1e-3, PRM)) for s, l in zip(states, L)} == {1, 2, 3}
+    assert {zone_of(trial_full(s, l, 1e-3)) for s, l in zip(states, L)} == {1, 2, 3}
     for backend in ("reference", "jax", "warp"):
         got = update(backend, dim, states, L, 1e-3)
         assert all(g["eps_p"] >= s["eps_p"] for g, s in zip(got, states))
@@ -200,10 +233,10 @@ def test_jax_gradients_finite_at_rest(dim):
     impl = jax_law(LAW, dim)
 
     def loss(prm, L):
-        st = {"J": jnp.array(1.0), "sigma": jnp.zeros((dim, dim)), "eps_p": jnp.array(0.0)}
+        st = {"J": jnp.array(1.0), "sigma": jnp.zeros((dim, dim)), "sigma_zz": jnp.array(0.0), "eps_p": jnp.array(0.0)}
         for _ in range(2):
             st = impl.update(st, L, 1e-3, prm)
-        return jnp.sum(st["sigma"] ** 2) + st["eps_p"]
+        return jnp.sum(st["sigma"] ** 2) + st["sigma_zz"] ** 2 + st["eps_p"]
 
     grad = jax.jit(jax.grad(loss, argnums=(0, 1)))
     for L in (np.zeros((dim, dim)), 30.0 * np.eye(dim), 50.0 * np.ones((dim, dim))):
@@ -240,9 +273,10 @@ def test_zone2_return_beyond_apex_goes_to_the_corner(backend):
     prm = np.array([law.resolve_params({"friction_angle": 30.0, "dilation_angle": 0.0}, "t")[k]
                     for k in law.param_names()])
     sig = np.diag([3000.0, -1000.0])
-    state = [{"J": 1.0, "sigma": sig, "eps_p": 0.0}]
-    new = EVAL[backend](law, 2, "update", state, prm, np.zeros((1, 2, 2)), 1e-3)[0]["sigma"]
-    sm = np.trace(new) / 2
-    s = new - sm * np.eye(2)
+    state = [{"J": 1.0, "sigma": sig, "sigma_zz": np.asarray(0.0), "eps_p": 0.0}]   # plane strain: sigma_m = 667 Pa
+    out = EVAL[backend](law, 2, "update", state, prm, np.zeros((1, 2, 2)), 1e-3)[0]
+    new = full(out)
+    sm = np.trace(new) / 3
+    s = new - sm * np.eye(3)
     assert sm <= 1e-9                      # sigma_t = 0: no tension survives the return
     assert np.sqrt(0.5 * np.sum(s * s)) <= 1e-9 + 1e-9 * abs(sig).max()

@@ -42,6 +42,19 @@ def _update(backend, dim, states, L, dt, prm):
     return EVAL[backend](LAW, dim, "update", states, prm, np.asarray(L), dt)
 
 
+def _state(S, dim):
+    """The law state of a 3x3 stress (2D plane strain: sigma = S[:2, :2], sigma_zz = S[2, 2])."""
+    if dim == 2:
+        return {"J": 1.0, "sigma": S[:2, :2].copy(), "sigma_zz": S[2, 2], "eps_p": 0.0}
+    return {"J": 1.0, "sigma": S, "sigma_zz": 0.0, "eps_p": 0.0}
+
+
+def _full(st):
+    """The 3x3 stress of a law state (2D: diag(sigma, sigma_zz))."""
+    sig = np.asarray(st["sigma"])
+    return REF.embed(sig, float(st["sigma_zz"])) if len(sig) == 2 else sig
+
+
 def _thrown_square(dt):
     """benchmarks/stress.py's falling_cube scene for this law: a cohesionless 0.3 m square thrown at
     (1, -2) m/s with spin 2 rad/s onto slip walls, E 1e4, nu 0.3, phi 30 deg (c_p = 3.67 m/s)."""
@@ -84,9 +97,11 @@ def test_kirchhoff_stiffness_independent_of_J(backend, dim):
     want = lam * np.trace(dd) * np.eye(dim) + 2 * G * dd
     sig0 = -100.0 * np.eye(dim)
     for J in (1.0, 8.0, 50.0, 0.2):
-        n = _update(backend, dim, [{"J": J, "sigma": sig0, "eps_p": 0.0}], [L], dt, prm)[0]
+        n = _update(backend, dim, [{"J": J, "sigma": sig0, "sigma_zz": -100.0, "eps_p": 0.0}], [L], dt, prm)[0]
         dtau = n["J"] * n["sigma"] - J * sig0
         assert np.max(np.abs(dtau - want)) <= 1e-9 * np.max(np.abs(want)), J
+        if dim == 2:   # plane strain: d_zz = 0, so d tau_zz = lambda tr(dd)
+            assert abs(n["J"] * n["sigma_zz"] + J * 100.0 - lam * np.trace(dd)) <= 1e-9 * np.max(np.abs(want)), J
 
 
 @pytest.mark.parametrize("dim", (2, 3))
@@ -103,7 +118,7 @@ def test_rigid_rotation_rotates_the_stress_exactly(backend, dim):
     w = rng.standard_normal((dim, dim))
     W = 50.0 * 0.5 * (w - w.T) / np.linalg.norm(0.5 * (w - w.T)) * math.sqrt(2.0)   # |axial| = 50 rad/s
     dt = 1e-3
-    state = {"J": 1.0, "sigma": sig0, "eps_p": 0.0}
+    state = {"J": 1.0, "sigma": sig0, "sigma_zz": -3e4, "eps_p": 0.0}   # sigma_zz: 2D plane strain (3D: unused)
     steps = 400
     if backend == "jax":      # one vmapped call per step is slow to dispatch: jit the loop
         import jax
@@ -123,6 +138,8 @@ def test_rigid_rotation_rotates_the_stress_exactly(backend, dim):
     R = np.linalg.matrix_power(np.linalg.solve(I - 0.5 * W * dt, I + 0.5 * W * dt), steps)
     assert np.max(np.abs(tau - R @ sig0 @ R.T)) <= 1e-10 * np.max(np.abs(sig0))
     assert state["eps_p"] == 0.0
+    if dim == 2:   # an in-plane spin leaves tau_zz alone
+        assert abs(state["J"] * state["sigma_zz"] + 3e4) <= 1e-10 * 3e4
 
 
 @pytest.mark.parametrize("dim", (2, 3))
@@ -145,14 +162,17 @@ def test_returned_stress_is_admissible_in_every_zone(backend, dim):
         for f in (0.1, 0.5, 0.99):                                  # Zone III wedge: tau_P < tau <= h-line
             sm = st + rng.uniform(1e3, 1e4)
             wedge.append((sm, tau_p + f * alpha_p * (sm - st)))
-        sigs = []
+        sigs = []   # 3x3 stresses (2D: plane strain, diag(sigma, sigma_zz); the invariants are over three)
         for sm, tau in trials + wedge:
-            s = rng.standard_normal((dim, dim)); s = 0.5 * (s + s.T); s -= np.trace(s) / dim * np.eye(dim)
-            sigs.append(s * tau / math.sqrt(0.5 * np.sum(s * s)) + sm * np.eye(dim))
+            s = rng.standard_normal((3, 3)); s = 0.5 * (s + s.T)
+            if dim == 2:
+                s[:2, 2] = s[2, :2] = 0.0
+            s -= np.trace(s) / 3 * np.eye(3)
+            sigs.append(s * tau / math.sqrt(0.5 * np.sum(s * s)) + sm * np.eye(3))
         zones = [REF.zone(*REF.invariants(s)[::2], prm) for s in sigs]
         assert set(zones) == {1, 2, 3} and all(z == 3 for z in zones[-len(wedge):])
-        new = _update(backend, dim, [{"J": 1.0, "sigma": s, "eps_p": 0.0} for s in sigs],
-                      np.zeros((len(sigs), dim, dim)), 1e-3, prm)
+        new = _update(backend, dim, [_state(s, dim) for s in sigs], np.zeros((len(sigs), dim, dim)), 1e-3, prm)
+        new = [dict(n, sigma=_full(n)) for n in new]
         scale = 3e4
         for s, z, n in zip(sigs, zones, new):
             sm, _, tau = REF.invariants(n["sigma"])

@@ -7,7 +7,7 @@ from typing import ClassVar
 
 from ...core.errors import InvalidParameterError
 from ...core.interfaces import AbstractConstitutiveLaw, ParamSpec
-from .._common import builtin_implementations, VOLUME_RATIO, CAUCHY_STRESS, PLASTIC_STRAIN
+from .._common import builtin_implementations, VOLUME_RATIO, CAUCHY_STRESS, PLASTIC_STRAIN, OUT_OF_PLANE_STRESS
 from . import reference as _reference
 
 
@@ -15,8 +15,9 @@ class Law(AbstractConstitutiveLaw):
     """Hypo-elastic Drucker-Prager: Jaumann-rotated Kirchhoff stress + isotropic elastic increment, then the
     three-zone return map of JAX-MPM App. A (elastic / shear failure / tensile failure) on the Cauchy stress.
 
-    State: ``J`` (volume ratio), ``sigma`` (Cauchy stress, tension positive) and ``eps_p`` (equivalent
-    plastic strain, A.15 / A.18; never decreases). Kirchhoff stress tau = J sigma.
+    State: ``J`` (volume ratio), ``sigma`` (Cauchy stress, tension positive), ``sigma_zz`` (2D: the
+    out-of-plane Cauchy stress, see below) and ``eps_p`` (equivalent plastic strain, A.15 / A.18; never
+    decreases). Kirchhoff stress tau = J sigma.
 
     Parameters: bulk modulus K and Poisson ratio nu (G = 3K(1-2nu)/(2(1+nu)), lambda = K - 2G/3),
     friction angle phi and dilation angle psi <= phi [deg], cohesion c and tension cutoff sigma_t, which
@@ -24,10 +25,15 @@ class Law(AbstractConstitutiveLaw):
 
     Limitations:
 
-    * 2D is a 2D continuum, not plane strain: sigma_m = tr(sigma)/2 and the deviator is taken w.r.t. the
-      2x2 identity (the paper's A.3 divides by 3); the out-of-plane stress sigma_zz is not tracked. The
-      cone constants q_phi, k_phi are still the 3D (compression-cone) fits of App. A, so 2D strengths are
-      an approximation of the 3D material. The elastic increment uses the 3D lambda = K - 2G/3.
+    * 2D is plane strain (issue 18): the state carries the out-of-plane Cauchy stress ``sigma_zz``
+      (unit Pa; carried unchanged, 0, in 3D). Its trial is A.1-A.2 in e_z with d_zz = 0 and no spin
+      coupling (the 2D spin has no z components): tau_zz_trial = J sigma_zz + lambda tr(dd),
+      sigma_zz_trial = tau_zz_trial / J_new; the return map (A.3-A.19) runs on the 3x3 stress
+      diag(sigma_trial, sigma_zz_trial): sigma_m = tr/3 over three components (A.3), the deviator and
+      tau = sqrt(s:s/2) (A.4) include s_zz, and the returned stress gives the new sigma_zz. The grid force
+      uses the in-plane tau = J sigma. This is the 3D law on a body with d_zz = 0 exactly, so a 2D run
+      agrees with a thin 3D slab with slip side walls (tests/test_plane_strain.py). Before issue 18, 2D was
+      a 2D continuum (sigma_m = tr/2, deviator w.r.t. the 2x2 identity, no sigma_zz).
     * The return map follows App. A except at one corner: in Zone II with f_t >= 0 and a trial mean
       stress beyond the apex, A.12-A.13 literally return to sigma_m > sigma_t with tau < 0 (the deviator
       flips sign and one step of spurious tension follows). mpmlab caps the returned sigma_m at sigma_t,
@@ -59,7 +65,7 @@ class Law(AbstractConstitutiveLaw):
         ParamSpec("cohesion", "Pa", 0.0, low=0.0, doc="cohesion c"),
         ParamSpec("tensile_strength", "Pa", 0.0, low=0.0, doc="tension cutoff sigma_t"),
     )
-    state = (VOLUME_RATIO, CAUCHY_STRESS, PLASTIC_STRAIN,)
+    state = (VOLUME_RATIO, CAUCHY_STRESS, OUT_OF_PLANE_STRESS, PLASTIC_STRAIN)
     #: deforms (and yields) within 50 steps of the mpmlab.testing scenes
     test_params = {"bulk_modulus": 2e4, "nu": 0.3, "friction_angle": 30.0}
     plastic = True

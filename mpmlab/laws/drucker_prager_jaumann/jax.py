@@ -1,7 +1,8 @@
 """JAX Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A); per particle, vmapped by the stepper.
 
 Branch-free: every zone is computed and picked with ``jnp.where``; tau = sqrt(s:s/2) and the Zone II ratio
-use safe arguments so that gradients stay finite at zero deviator (the rest state)."""
+use safe arguments so that gradients stay finite at zero deviator (the rest state). 2D is plane strain:
+sigma_zz is state and enters A.3-A.4 (see the Law)."""
 from __future__ import annotations
 
 import math
@@ -15,6 +16,7 @@ R3 = math.sqrt(3.0)
 
 def make(law, dim: int) -> SimpleNamespace:
     eye = jnp.eye(dim)
+    ps = dim == 2      # plane strain
 
     def kirchhoff(state, prm, w):
         return state["J"] * state["sigma"]
@@ -37,11 +39,14 @@ def make(law, dim: int) -> SimpleNamespace:
         dw = 0.5 * (grad_v - grad_v.T) * dt
         R = eye + (dw + 0.5 * dw @ dw) / (1.0 + 0.125 * jnp.sum(dw * dw))
         trial = (R @ (J * state["sigma"]) @ R.T + lam * jnp.trace(dd) * eye + 2.0 * G * dd) / J_new
+        # 2D plane strain (see Law): sigma_zz's trial with d_zz = 0 and R_zz = 1
+        tzz = (J * state["sigma_zz"] + lam * jnp.trace(dd)) / J_new if ps else 0.0
 
-        # A.3-A.4 (2D: tr/2, see Law)
-        sm = jnp.trace(trial) / dim
+        # A.3-A.4 over three components (2D: diag(trial, tzz))
+        sm = (jnp.trace(trial) + tzz) / 3.0
         s = trial - sm * eye
-        ss2 = 0.5 * jnp.sum(s * s)
+        szz = tzz - sm if ps else 0.0
+        ss2 = 0.5 * (jnp.sum(s * s) + szz * szz)
         pos = ss2 > 0.0
         tau = jnp.where(pos, jnp.sqrt(jnp.where(pos, ss2, 1.0)), 0.0)
 
@@ -70,6 +75,8 @@ def make(law, dim: int) -> SimpleNamespace:
 
         new_sigma = jnp.where(zone2, sig2, jnp.where(zone3, sig3, trial))
         deps = jnp.where(zone2, de2, jnp.where(zone3, de3, 0.0))
-        return {"J": J_new, "sigma": new_sigma, "eps_p": state["eps_p"] + deps}
+        new_zz = (jnp.where(zone2, ratio * szz + sm2, jnp.where(zone3, ratio3 * szz + st, tzz)) if ps
+                  else state["sigma_zz"])
+        return {"J": J_new, "sigma": new_sigma, "sigma_zz": new_zz, "eps_p": state["eps_p"] + deps}
 
     return SimpleNamespace(kirchhoff=kirchhoff, update=update)

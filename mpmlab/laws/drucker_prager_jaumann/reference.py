@@ -1,4 +1,5 @@
-"""NumPy float64 reference of the Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A)."""
+"""NumPy float64 reference of the Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A); 2D is plane
+strain (the out-of-plane stress sigma_zz is state; the return map runs on diag(sigma, sigma_zz))."""
 from __future__ import annotations
 
 import math
@@ -31,7 +32,7 @@ def cone_constants(phi_deg, psi_deg, c):
 
 
 def invariants(sig):
-    """(sigma_m, s, tau): mean stress (tr/D: tr/3 in 3D, tr/2 for the 2D continuum), deviator, A.4 tau."""
+    """(sigma_m, s, tau): mean stress tr/D (A.3), deviator, A.4 tau (2D runs it on the 3x3 plane-strain stress)."""
     d = len(sig)
     sm = np.trace(sig) / d
     s = sig - sm * np.eye(d)
@@ -119,9 +120,34 @@ def kirchhoff(state, prm, w=None):
     return state["J"] * state["sigma"]
 
 
-def update(state, grad_v, dt, prm, w=None):
-    """Eq. 21 / App. A: Jaumann trial stress (on tau = J sigma), three-zone return map, J <- J det(I + dt grad_v)."""
+def plane_strain_trial(sigma_zz, grad_v, dt, prm, J=1.0):
+    """The out-of-plane trial Cauchy stress of a plane-strain state (2D): A.1-A.2 on tau_zz = J sigma_zz with
+    d_zz = 0 and no spin coupling (the 2D spin has no z components, R_zz = 1):
+    tau_zz_trial = J sigma_zz + lambda tr(dd), sigma_zz_trial = tau_zz_trial / J_new."""
     prm = _named(prm)
-    sigma, deps = return_map(jaumann_trial(state["sigma"], grad_v, dt, prm, state["J"]), prm)
+    _, lam = moduli(prm["bulk_modulus"], prm["nu"])
+    dd = 0.5 * (grad_v + grad_v.T) * dt
+    J_new = J * np.linalg.det(np.eye(len(grad_v)) + dt * grad_v)
+    return (J * sigma_zz + lam * np.trace(dd)) / J_new
+
+
+def embed(sigma, sigma_zz):
+    """The 3x3 stress diag(sigma, sigma_zz) of a plane-strain state."""
+    out = np.zeros((3, 3))
+    out[:2, :2] = sigma
+    out[2, 2] = sigma_zz
+    return out
+
+
+def update(state, grad_v, dt, prm, w=None):
+    """Eq. 21 / App. A: Jaumann trial stress (on tau = J sigma), three-zone return map, J <- J det(I + dt grad_v).
+    2D is plane strain: the return map runs on the 3x3 trial diag(sigma_trial, sigma_zz_trial) (A.3's tr/3)."""
+    prm = _named(prm)
+    trial = jaumann_trial(state["sigma"], grad_v, dt, prm, state["J"])
     J = state["J"] * np.linalg.det(np.eye(len(grad_v)) + dt * grad_v)
-    return {"J": J, "sigma": sigma, "eps_p": state["eps_p"] + deps}
+    szz = np.asarray(state.get("sigma_zz", 0.0), dtype=float)
+    if len(grad_v) == 2:
+        s3, deps = return_map(embed(trial, plane_strain_trial(float(szz), grad_v, dt, prm, state["J"])), prm)
+        return {"J": J, "sigma": s3[:2, :2], "sigma_zz": np.asarray(s3[2, 2]), "eps_p": state["eps_p"] + deps}
+    sigma, deps = return_map(trial, prm)
+    return {"J": J, "sigma": sigma, "sigma_zz": szz, "eps_p": state["eps_p"] + deps}

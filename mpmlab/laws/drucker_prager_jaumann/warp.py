@@ -1,4 +1,5 @@
-"""Warp Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A), built per (dim, precision)."""
+"""Warp Jaumann-rate Drucker-Prager law (JAX-MPM Eq. 21, App. A), built per (dim, precision); 2D is plane
+strain (sigma_zz is state, see the Law)."""
 
 import math
 from functools import lru_cache
@@ -18,7 +19,7 @@ SQRT1_3 = math.sqrt(1.0 / 3.0)
 def make(law, dim: int, precision: str) -> SimpleNamespace:
     T = law_types(law, dim, precision)
     scalar, mat, LawState, Params, Weights = T.scalar, T.mat, T.LawState, T.Params, T.Weights
-    DIMF = float(dim)   # sigma_m = tr / D (2D continuum in 2D, see Law)
+    PS = dim == 2       # plane strain in 2D (see Law): sigma_zz is state and enters A.3-A.4
 
     @wp.func
     def kirchhoff(s: LawState, prm: Params, w: Weights):
@@ -48,11 +49,17 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
         dw = scalar(0.5) * dt * (grad_v - wp.transpose(grad_v))
         R = eye + (dw + scalar(0.5) * (dw @ dw)) / (scalar(1.0) + scalar(0.125) * wp.ddot(dw, dw))
         trial = (R @ (s.J * s.sigma) @ wp.transpose(R) + lam * wp.trace(dd) * eye + scalar(2.0) * G * dd) / J_new
+        tzz = scalar(0.0)
+        if wp.static(PS):        # sigma_zz's trial: d_zz = 0, R_zz = 1
+            tzz = (s.J * s.sigma_zz + lam * wp.trace(dd)) / J_new
 
-        # A.3-A.4 (2D: tr/2, see Law)
-        sm = wp.trace(trial) / scalar(DIMF)
+        # A.3-A.4 over three components (2D: diag(trial, tzz))
+        sm = (wp.trace(trial) + tzz) / scalar(3.0)
         dev = trial - sm * eye
-        ss2 = scalar(0.5) * wp.ddot(dev, dev)
+        dzz = scalar(0.0)
+        if wp.static(PS):
+            dzz = tzz - sm
+        ss2 = scalar(0.5) * (wp.ddot(dev, dev) + dzz * dzz)
         tau = scalar(0.0)
         if ss2 > scalar(0.0):
             tau = wp.sqrt(ss2)
@@ -66,6 +73,7 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
 
         out = s
         new_sig = trial
+        new_zz = tzz
         deps = scalar(0.0)
         zone2 = False
         if ft < scalar(0.0):
@@ -80,6 +88,7 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
             if tau > scalar(0.0):
                 ratio = tau2 / tau
             new_sig = ratio * dev + sm2 * eye                     # A.14
+            new_zz = ratio * dzz + sm2
             deps = dl * wp.sqrt(scalar(1.0) / scalar(3.0) + scalar(2.0) / scalar(9.0) * q_psi * q_psi)  # A.15
         elif ft >= scalar(0.0):
             # A.17-A.19, the wedge tau > tau_P returned to the corner (sigma_t, tau_P) (see reference)
@@ -88,8 +97,11 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
             if tau > scalar(0.0):
                 ratio3 = tau3 / tau
             new_sig = ratio3 * dev + st * eye                     # A.17 (+ corner)
+            new_zz = ratio3 * dzz + st
             deps = scalar(SQRT2_3) * (sm - st) / K + (tau - tau3) / G * scalar(SQRT1_3)   # A.18-A.19 (+ A.15)
         out.sigma = new_sig
+        if wp.static(PS):
+            out.sigma_zz = new_zz
         out.eps_p = s.eps_p + deps
         out.J = J_new
         return out
