@@ -9,7 +9,13 @@ from . import reference as _reference
 
 
 class Law(AbstractConstitutiveLaw):
-    """P = 2 mu (F - R) + lambda J (J - 1) F^-T; no plasticity (Eq. 13: the return map is identity)."""
+    """P = 2 mu (F - R) + lambda J (J - 1) F^-T; no plasticity (Eq. 13: the return map is identity).
+
+    2D is plane strain without extra state (issue 18): the 3D energy psi = mu sum_i (s_i - 1)^2 +
+    lambda/2 (J - 1)^2 restricted to F = diag(F_2D, 1) (s_3 = 1, J_3D = J_2D) is the 2D energy, so the
+    in-plane P and tau are the 3D ones; the out-of-plane stress, tau_zz = lambda J (J - 1) (P_zz with
+    F_zz = R_zz = 1), feeds nothing back (no yield surface) and is not stored.
+    """
 
     name: ClassVar[str] = "fixed_corotated"
     params = (

@@ -18,8 +18,10 @@ class Law(AbstractConstitutiveLaw):
 
     * Eq. 19 writes the viscous term with the strain *increment* Delta d = D dt, which is not a stress
       (Pa s times a dimensionless number); we use the strain *rate* D = sym(grad_v), the Newtonian law.
-    * The deviator uses tr(D)/3 in 2D as well (plane-strain / 3D deviator, as in Eq. 19), so a 2D
-      isotropic expansion carries a small viscous stress; this is the paper's convention.
+    * 2D is plane strain (issue 18; also the paper's convention): D_zz = 0 and the deviator uses tr(D)/3 in
+      2D as well (the 3D deviator, as in Eq. 19), so a 2D isotropic expansion carries a small viscous
+      stress; the pressure from J is the 3D one (J_3D = J_2D with F_zz = 1). The out-of-plane stress,
+      sigma_zz = -p - 2 mu tr(D)/3, feeds nothing back (no yield surface) and is not stored.
     * Eq. 20's density update rho^{n+1} = rho^n / (1 + det(Delta d)) is read as the exact volume update
       rho = rho0 / J with J <- J det(I + dt grad_v).
     * **Tension cut-off** ``min_pressure`` (not in the paper): p <- max(p, min_pressure). Eq. 20 alone

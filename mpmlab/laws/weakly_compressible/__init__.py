@@ -17,6 +17,10 @@ class Law(AbstractConstitutiveLaw):
     (DESIGN "J instead of F"): J <- J det(I + dt grad_v) is exactly F-tracking followed by Eq. 21.
     ``bulk_modulus`` is the lambda of Eq. 20 (the bulk modulus at J = 1: d(-p)/dJ = lambda); the sound
     speed is sqrt(lambda / rho). Weak compressibility needs c >= 10 |v|_max (density error ~ 1 %).
+
+    2D is plane strain without extra state (issue 18): with F_zz = 1, J_3D = J_2D, and the stress is the
+    isotropic tau = lambda J (J - 1) I in 3D too (tau_zz is the same pressure), so the 2D law is the 3D law
+    on a slice; Eq. 21's F <- J^(1/d) I acts on nothing but J here.
     """
 
     name: ClassVar[str] = "weakly_compressible"
