@@ -145,10 +145,13 @@ def test_stress_adjoint_at_repeated_singular_values(law, dim):
     def tau(F, grad=False):
         Fa = wp.array(F, dtype=T.mat, requires_grad=grad)
         out = wp.zeros(len(F), dtype=T.mat, requires_grad=grad)
+        # the law's other declared state fields (e.g. the plane-strain out-of-plane strain) at their start values
+        rest = {f.name: wp.array(f.initial(len(F), dim), dtype=d) for f, (_, d, _) in zip(cls.state, L.fields)
+                if f.name != "F"}
         tape = wp.Tape()
         with tape:
-            wp.launch(k, dim=len(F), inputs=[L.state_arrays({"F": Fa}), wp.array(prm, dtype=T.scalar), L.weights({}),
-                                             0, out])
+            wp.launch(k, dim=len(F), inputs=[L.state_arrays({"F": Fa, **rest}), wp.array(prm, dtype=T.scalar),
+                                             L.weights({}), 0, out])
         if not grad:
             return out.numpy()
         out.grad = wp.array(w, dtype=T.mat)
