@@ -256,6 +256,27 @@ def _g2p_transpose(res, specs, cts):
     return ct_grid, ct_w1, ct_dw1
 
 
+def _varying(x):
+    mat = getattr(jax.typeof(x), "mat", None)
+    return frozenset(getattr(mat, "varying", ()) or ())
+
+
+def _vary_like(tree, ref):
+    """Inside ``shard_map`` (backends/jax/sharding.py): the leaves of ``tree`` made device-varying over
+    the manual axes ``ref`` varies over. JAX does this implicitly when a replicated operand meets a
+    per-device one (the transpose of that cast is the ``psum`` of the cotangents); a hand-written
+    transpose must see operands of the type its cotangents have, so the cast is made explicit here.
+    Outside shard_map nothing varies and this is the identity."""
+    want = _varying(ref)
+    if not want:
+        return tree
+
+    def cast(a):
+        missing = tuple(sorted(want - _varying(a)))
+        return jax.lax.pcast(a, missing, to="varying") if missing else a
+    return jax.tree.map(cast, tree)
+
+
 def p2g(base, w1, dw1, lin, acol, gcol, pred, gshape, adjoints="custom"):
     """The P2G scatter (:func:`p2g_plain`), its reverse-mode adjoint hand-written (``"custom"``) or
     derived by JAX (``"derived"``). Forward values are the same either way."""
@@ -277,6 +298,7 @@ def p2g(base, w1, dw1, lin, acol, gcol, pred, gshape, adjoints="custom"):
             return jax.jvp(f, tuple(res[1:6]), tuple(t))[1]
         return out, linear_call(tangent, _p2g_transpose, primals, tuple(tangents[1:6]))
 
+    w1, dw1, lin, acol, gcol = _vary_like((w1, dw1, lin, acol, gcol), base)
     return op(base, w1, dw1, lin, acol, gcol, pred)
 
 
@@ -300,6 +322,7 @@ def g2p(grid, base, w1, dw1, pred, specs, adjoints="custom"):
         t = (tangents[0], tangents[2], tangents[3])
         return out, linear_call(tangent, lambda res, ct: _g2p_transpose(res, specs, ct), primals, t)
 
+    grid, w1, dw1 = _vary_like((grid, w1, dw1), base)
     return op(grid, base, w1, dw1, pred)
 
 
