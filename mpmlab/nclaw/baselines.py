@@ -52,8 +52,10 @@ def labeled_pairs(dataset, stride: int = 1) -> dict[str, np.ndarray]:
     Ff = F.reshape(-1, D, D)
     R = np.tile(rows, (T, 1))
     fields = law.state_fields
-    if set(fields) == {"F"}:
-        state = {"F": jnp.asarray(Ff)}
+    # the plane-strain out-of-plane strain of the Hencky laws is 0 in 3D (issue 18): F alone is their state there
+    zero = {"eps_zz"} if D == 3 else set()
+    if set(fields) - zero == {"F"}:
+        state = {"F": jnp.asarray(Ff), **{k: jnp.zeros(len(Ff)) for k in set(fields) & zero}}
     elif set(fields) == {"J"}:
         state = {"J": jnp.asarray(np.linalg.det(Ff))}
     else:
