@@ -204,20 +204,30 @@ def worker(spec):
         for k, v in {**_stage_programs(st, spec["stage_steps"]), **_ratio_programs(st, spec["N"], spec["segment"])}.items():
             progs[(mode, k)] = v
     times = {k: [] for k in progs}
+    cpu = {k: [] for k in progs}
     for k, (f, args, _) in progs.items():
         jax.block_until_ready(f(*args))
     for _ in range(spec["reps"]):
         for k, (f, args, _) in progs.items():
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             jax.block_until_ready(f(*args))
             times[k].append(time.perf_counter() - t0)
+            cpu[k].append(time.process_time() - c0)
+    # the forward programs of the two implementations are the same program (bit-identical steps): the
+    # ratios use the best forward of either, so that a disturbed forward does not skew one row
+    Fbest = min(min(times[(m, "forward")]) for m in steppers)
+    Fcpu = min(min(cpu[(m, "forward")]) for m in steppers)
     steps = spec["stage_steps"]
     for mode, st in steppers.items():
         row = {"adjoints": mode, "particles": int(st.particles.count), "grid": list(st.grid_shape)}
-        F, B = min(times[(mode, "stage fwd")]), min(times[(mode, "stage bwd")])
+        F = min(min(times[(m, "stage fwd")]) for m in steppers)          # the same program for both
+        B = min(times[(mode, "stage bwd")])
         fs = _shares(*progs[(mode, "stage fwd")])
         bs = _shares(*progs[(mode, "stage bwd")])
+        Fc = min(min(cpu[(m, "stage fwd")]) for m in steppers)
         sg = {"steps": steps, "fwd_ms_per_step": 1e3 * F / steps, "bwd_ms_per_step": 1e3 * B / steps,
+              "fwd_cpu_ms_per_step": 1e3 * Fc / steps, "bwd_cpu_ms_per_step": 1e3 * min(cpu[(mode, "stage bwd")]) / steps,
+              "B_over_F_cpu": min(cpu[(mode, "stage bwd")]) / Fc,
               "fwd_median_ms_per_step": 1e3 * float(np.median(times[(mode, "stage fwd")])) / steps,
               "bwd_median_ms_per_step": 1e3 * float(np.median(times[(mode, "stage bwd")])) / steps,
               "B_over_F": B / F, "per_stage": {}}
@@ -225,8 +235,8 @@ def worker(spec):
             f, b = fs.get(k, 0.0) * F / steps, bs.get(k, 0.0) * B / steps
             sg["per_stage"][k] = {"fwd_ms": 1e3 * f, "bwd_ms": 1e3 * b, "B_over_F": (b / f) if f > 0 else None}
         row["stages"] = sg
-        Ff = min(times[(mode, "forward")])
-        Fm = float(np.median(times[(mode, "forward")]))
+        Ff = Fbest
+        Fm = float(np.median([t for m in steppers for t in times[(m, "forward")]]))
         seg_auto, keep = JD.resolve(st, "auto", spec["N"])
         rat = {"N": spec["N"], "auto_keeps": bool(keep), "step_bytes": JD.step_bytes(st), "variants": {}}
         for (m, k), ts in times.items():
@@ -234,6 +244,7 @@ def worker(spec):
                 continue
             rat["variants"][k] = {"min_s": min(ts), "median_s": float(np.median(ts)), "ratio": min(ts) / Ff,
                                   "ratio_median": float(np.median(ts)) / Fm,
+                                  "cpu_s": min(cpu[(m, k)]), "ratio_cpu": min(cpu[(m, k)]) / Fcpu,
                                   "temp_mib": progs[(m, k)][0].memory_analysis().temp_size_in_bytes / 2**20}
         row["ratios"] = rat
         res["rows"].append(row)
@@ -291,23 +302,24 @@ def table(res: dict) -> str:
          f"{res['date']}, {res['machine']['cpu']} ({res['machine']['cores']} cores), commit {res.get('git', '?')}"]
     L.append(f"\nPer stage, ms per step (scan of {sp['stage_steps']} steps; fwd = forward alone, bwd = pullback with "
              "every residual kept; best of the repeats):\n")
-    L.append(f"| YNN | adjoints | {' | '.join(f'{s} fwd / bwd' for s in STAGES)} | step fwd / bwd | B/F |")
-    L.append("|---|---|" + "---|" * (len(STAGES) + 2))
+    L.append(f"| YNN | adjoints | {' | '.join(f'{s} fwd / bwd' for s in STAGES)} | step fwd / bwd | B/F | B/F (CPU time) |")
+    L.append("|---|---|" + "---|" * (len(STAGES) + 3))
     for run in res["runs"]:
         for row in run["rows"]:
             s = row["stages"]
             cells = [f"{s['per_stage'][k]['fwd_ms']:.3f} / {s['per_stage'][k]['bwd_ms']:.3f}" for k in STAGES]
             L.append(f"| {run['ynn']} | {row['adjoints']} | {' | '.join(cells)} | {s['fwd_ms_per_step']:.3f} / "
-                     f"{s['bwd_ms_per_step']:.3f} | {s['B_over_F']:.2f} |")
-    L.append(f"\nWhole gradient, N = {sp['N']} steps: fwd+bwd / forward (min over repeats; median ratio in brackets), "
-             "XLA temp MiB:\n")
+                     f"{s['bwd_ms_per_step']:.3f} | {s['B_over_F']:.2f} | {s.get('B_over_F_cpu', float('nan')):.2f} |")
+    L.append(f"\nWhole gradient, N = {sp['N']} steps: fwd+bwd / forward, wall (min over repeats; median in brackets) and "
+             "CPU time (process, min), XLA temp MiB; forward = the best of both implementations' (same program):\n")
     names = [k for k in res["runs"][0]["rows"][0]["ratios"]["variants"] if k != "forward"]
     L.append(f"| YNN | adjoints | forward s | {' | '.join(names)} | load (before / after) |")
     L.append("|---|---|---|" + "---|" * len(names) + "---|")
     for run in res["runs"]:
         for row in run["rows"]:
             v = row["ratios"]["variants"]
-            cells = [f"{v[k]['ratio']:.2f} ({v[k]['ratio_median']:.2f}), {v[k]['temp_mib']:.0f} MiB" for k in names]
+            cells = [f"{v[k]['ratio']:.2f} ({v[k]['ratio_median']:.2f}), cpu {v[k].get('ratio_cpu', float('nan')):.2f}, "
+                     f"{v[k]['temp_mib']:.0f} MiB" for k in names]
             L.append(f"| {run['ynn']} | {row['adjoints']} | {v['forward']['min_s']:.3f} | {' | '.join(cells)} | "
                      f"{run['load_before']} / {run['load_after']} |")
     return "\n".join(L)
