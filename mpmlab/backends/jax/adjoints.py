@@ -104,14 +104,15 @@ def contract(block, w1, dw1, specs, pred, D):
     return {name: cur[sp] for name, sp in specs.items()}
 
 
-def contract_transpose(block, w1, dw1, specs, cts, pred, D, need_block=True):
+def contract_transpose(block, w1, dw1, specs, cts, pred, D, need_block=True, levels=None):
     """The adjoint of :func:`contract`: ``(ct_block or None, ct_w1, ct_dw1)`` for output cotangents
     ``cts`` {name: [N, K]}. Level by level in the reverse order of :func:`contract`: a level's output
     cotangent spreads over its source's 3 nodes times the weights (the transpose of the 3-term sum),
-    and the weights' cotangents are the level's output cotangent dotted with the source slices."""
+    and the weights' cotangents are the level's output cotangent dotted with the source slices.
+    ``levels``: :func:`_run_levels` of the same block when the caller has it (not recomputed)."""
     kinds = kind_weights(w1, dw1, D)
     N = block.shape[0]
-    srcs, _ = _run_levels(block, kinds, specs, pred, D)      # the sources (recomputed: cheap levels)
+    srcs, _ = levels if levels is not None else _run_levels(block, kinds, specs, pred, D)   # the sources
     gw = [[None] * 3 for _ in range(D)]                      # cotangents of w1[:, k, d]
     gd = [[None] * 3 for _ in range(D)]                      # ... of dw1[:, k, d]
 
@@ -230,13 +231,14 @@ def _p2g_transpose(res, ct_grid):
     D = ct_grid.ndim - 1
     ctb = gather_block(ct_grid, base, D, jax.lax.GatherScatterMode.FILL_OR_DROP)    # [N, 3^D, K]
     specs = _p2g_specs(D, acol is not None, gcol is not None)
-    c = contract(ctb, w1, dw1, specs, pred, D)
+    levels = _run_levels(ctb, kind_weights(w1, dw1, D), specs, pred, D)      # once, for both uses below
+    c = {name: levels[1][sp] for name, sp in specs.items()}
     coefs = {"lin": lin}
     if acol is not None:
         coefs.update({f"a{d}": acol[d] for d in range(D)})
     if gcol is not None:
         coefs.update({f"g{d}": gcol[d] for d in range(D)})
-    _, ct_w1, ct_dw1 = contract_transpose(ctb, w1, dw1, specs, coefs, pred, D, need_block=False)
+    _, ct_w1, ct_dw1 = contract_transpose(ctb, w1, dw1, specs, coefs, pred, D, need_block=False, levels=levels)
     ct_acol = [c[f"a{d}"] for d in range(D)] if acol is not None else None
     ct_gcol = [c[f"g{d}"] for d in range(D)] if gcol is not None else None
     return ct_w1, ct_dw1, c["lin"], ct_acol, ct_gcol
