@@ -16,7 +16,8 @@ the ones JAX derives (``JaxStepper(..., adjoints="derived")``), fp64, and ``segm
 Default run: every transfer in 2D and APIC / MLS in 3D with two laws (fixed_corotated, weakly_compressible),
 every law on APIC 2D, three boundary kinds, forward mode on MLS, the segment checks; ``-m slow`` adds the
 full law x transfer x dim matrix, every boundary kind (2D, and three in 3D) and forward mode on APIC /
-FLIP. (Default run: 17 tests, 773 s on the 2 shared cores at load 9-12; most of it XLA compilation.)
+FLIP. (Default run: 17 tests, 340 s on the 2 shared cores at load 2-4, 773 s at load 9-12; most of it is
+XLA compilation.)
 
 Checked that these tests can fail (mutations of a copy of adjoints.py, 2026-12-06): with the
 first-moment ("o") weights' cotangent dropped in ``contract_transpose`` the APIC 2D case fails at 1.8e1
