@@ -13,10 +13,10 @@ the ones JAX derives (``JaxStepper(..., adjoints="derived")``), fp64, and ``segm
 * ``segment="auto"`` (every step kept: no ``jax.checkpoint``) gives the same gradient as ``segment=k``
   through ``observe`` and ``tracking_value_and_grad``; ``locate_nan_gradient`` takes it.
 
-Default run: every transfer in 2D and APIC / MLS in 3D with two laws (fixed_corotated, weakly_compressible),
-every law on APIC 2D, three boundary kinds, forward mode on MLS, the segment checks; ``-m slow`` adds the
-full law x transfer x dim matrix, every boundary kind (2D, and three in 3D) and forward mode on APIC /
-FLIP. (Default run: 17 tests, 340 s on the 2 shared cores at load 2-4, 773 s at load 9-12; most of it is
+Default run: every transfer in 2D and APIC in 3D with two laws (fixed_corotated, weakly_compressible),
+every law on APIC 2D, three boundary kinds, forward mode on MLS, the segment checks;
+``MPMLAB_FULL_ADJOINT_TESTS=1`` adds the full law x transfer x dim matrix, every boundary kind (2D, and
+three in 3D) and forward mode on APIC / FLIP (26 tests, all passing on 2026-12-06). (Default run: 17 tests, 340 s on the 2 shared cores at load 2-4, 773 s at load 9-12; most of it is
 XLA compilation.)
 
 Checked that these tests can fail (mutations of a copy of adjoints.py, 2026-12-06): with the
@@ -25,6 +25,7 @@ relative on x; with the P2G force term's weight-gradient cotangent (``ct_dw1`` o
 zeroed the PIC 2D case fails at 2.4e-2 relative on x.
 """
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -39,6 +40,11 @@ from mpmlab.simulator import build_stepper
 TRANSFERS = registry.transfers.names()
 LAWS = registry.laws.names()
 TOL = 1e-12
+#: the full law x transfer x dim matrix, every boundary kind and more forward-mode cases compile ~40 more
+#: XLA programs (20-40 min on 2 cores): too long for CI, run on demand with MPMLAB_FULL_ADJOINT_TESTS=1
+#: (as tests/test_warp_adjoints.py's full 3D set); skipped with that reason otherwise
+FULL_MATRIX = pytest.mark.skipif(os.environ.get("MPMLAB_FULL_ADJOINT_TESTS", "") in ("", "0"),
+                                 reason="full adjoint matrix: set MPMLAB_FULL_ADJOINT_TESTS=1 to run it")
 WARM = 6          # forward steps before the checked step
 
 
@@ -113,7 +119,7 @@ def check_law_case(transfer, dim, laws):
 
 
 #: the default run's (transfer, dim) cases; the others are slow (3D compiles take 30-80 s on 2 busy cores)
-FAST_TRANSFERS = [(t, 2) for t in TRANSFERS] + [("apic", 3), ("mls", 3)]
+FAST_TRANSFERS = [(t, 2) for t in TRANSFERS] + [("apic", 3)]
 
 
 @pytest.mark.parametrize("transfer,dim", FAST_TRANSFERS)
@@ -121,7 +127,7 @@ def test_adjoints_agree_every_transfer(transfer, dim):
     check_law_case(transfer, dim, [n for n in PAIR if n in laws_for(transfer)])
 
 
-@pytest.mark.slow
+@FULL_MATRIX
 @pytest.mark.parametrize("transfer,dim", [(t, 3) for t in TRANSFERS if (t, 3) not in FAST_TRANSFERS])
 def test_adjoints_agree_every_transfer_3d(transfer, dim):
     check_law_case(transfer, dim, [n for n in PAIR if n in laws_for(transfer)])
@@ -131,7 +137,7 @@ def test_adjoints_agree_every_law_apic_2d():
     check_law_case("apic", 2, laws_for("apic"))
 
 
-@pytest.mark.slow
+@FULL_MATRIX
 @pytest.mark.parametrize("dim", (2, 3))
 @pytest.mark.parametrize("transfer", TRANSFERS)
 def test_adjoints_agree_every_law_transfer_dim(transfer, dim):
@@ -180,7 +186,7 @@ def test_adjoints_agree_boundaries(kind, dim):
     check_boundary(kind, dim)
 
 
-@pytest.mark.slow
+@FULL_MATRIX
 @pytest.mark.parametrize("kind,dim", [c for c in BOUNDARY_CASES if c not in FAST_BOUNDARIES])
 def test_adjoints_agree_every_boundary(kind, dim):
     check_boundary(kind, dim)
@@ -215,7 +221,7 @@ def test_forward_mode_matches_derived():
     check_forward_mode("mls")
 
 
-@pytest.mark.slow
+@FULL_MATRIX
 @pytest.mark.parametrize("transfer", ("apic", "flip"))
 def test_forward_mode_matches_derived_more(transfer):
     check_forward_mode(transfer)
