@@ -187,7 +187,7 @@ def test_phase_change_body_is_counted_with_its_law_instance_before_sampling():
     assert type(law).__name__ == "Law_hencky_von_mises_to_hencky_drucker_prager"
     assert budget._params_per_particle(scene) == len(law.param_names()) == 7
     assert budget._laws(scene) == [(law, budget.estimate_particles(scene))]
-    assert budget.carried_fields(scene, "mls") == {"C", "F", "clock"}
+    assert budget.carried_fields(scene, "mls") == {"C", "F", "clock", "eps_zz"}   # eps_zz: plane strain (declared, 0 in 3D)
     before = budget.estimate_memory(scene, "jax", "fp64", "mls")
     per_particle = budget._scene_particle_bytes(scene, 1)
     assert "_particles" not in vars(scene)

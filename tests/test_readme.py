@@ -50,4 +50,6 @@ def test_quoted_output_line_has_the_cli_format():
            r"\(compile \d+\.\d\d s\), [\d.e+]+ particle-steps/s -> outputs/<date>/<time>")
     assert re.fullmatch(fmt, line), line
     src = (ROOT / "mpmlab" / "tasks" / "simulate.py").read_text()
-    assert 'particles x {steps} steps in "' in src and "particle-steps/s -> {out}" in src
+    # the steps run (a run stopped when its deposit settled runs fewer than planned: task.runout)
+    assert "particles x {summary['steps_done']} " in src and 'f"steps in "' in src
+    assert "particle-steps/s -> {out}" in src
