@@ -170,35 +170,14 @@ def kernel_split(st, kinds=KINDS, steps: int = 20, reps: int = 5) -> dict:
     return out
 
 
-def _fns(st, N, segment):
-    import torch
-    from mpmlab.observations import Lagrangian
-
-    obs = Lagrangian(quantity="x")
-    c = st.controls()
-
-    def fwd():
-        with torch.no_grad():
-            y = st.observe(c, obs, steps=[N], segment=N)
-            return float((y * y).sum())
-
-    def grad():
-        v = c["v"].detach().clone().requires_grad_(True)
-        law = tuple(a.detach().clone().requires_grad_(True) for a in c["law"])
-        y = st.observe({**c, "v": v, "law": law}, obs, steps=[N], segment=segment)
-        loss = (y * y).sum()
-        loss.backward()
-        return float(loss), v.grad.numpy().copy(), [a.grad.numpy().copy() for a in law]
-
-    return fwd, grad
-
-
 def ratio(st, N: int, segments=(20, "auto"), kinds=KINDS, reps: int = 5) -> dict:
     """fwd+bwd / forward per (adjoint kind, segment), alternating repeats in one process."""
     from mpmlab.backends.warp import grad as wgrad
 
     path = wgrad.path_of(st)
-    runs = {(kind, n): _fns(st, N, n) for kind in kinds for n in segments}
+    from gradients import warp_fns      # the loss and gradient benchmarks/gradients.py times
+
+    runs = {(kind, n): warp_fns(st, N, n) for kind in kinds for n in segments}
     fwd = next(iter(runs.values()))[0]
     res = {f"{kind}/{n}": {"fwd_s": [], "grad_s": []} for kind, n in runs}
     ref = None
@@ -211,7 +190,8 @@ def ratio(st, N: int, segments=(20, "auto"), kinds=KINDS, reps: int = 5) -> dict
         r["steps_run"] = path.steps_run - before
         if ref is None:
             ref = out
-        r["grad_v_rel_diff_vs_first"] = float(np.abs(out[1] - ref[1]).max() / max(np.abs(ref[1]).max(), 1e-30))
+        gv, gv0 = out[1].numpy(), ref[1].numpy()
+        r["grad_v_rel_diff_vs_first"] = float(np.abs(gv - gv0).max() / max(np.abs(gv0).max(), 1e-30))
         r["loss"] = out[0]
     for _ in range(reps):
         for (kind, n), (_, g) in runs.items():
