@@ -47,19 +47,14 @@ from collections import defaultdict
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import _harness as H  # noqa: E402  (light: no JAX/Warp at import)
 RESULT = HERE / "results" / "adjoint_split_jax.json"
 YNN_OFF = "--xla_cpu_experimental_ynn_fusion_type="
 STAGES = ("P2G", "law (stress)", "grid update", "G2P", "law (update)", "other")
 #: adjoints.py functions -> stage (the innermost match along an op's stack wins)
 _ADJ_STAGE = {"p2g": "P2G", "p2g_plain": "P2G", "_p2g_transpose": "P2G", "g2p": "G2P", "g2p_plain": "G2P",
               "_g2p_transpose": "G2P"}
-
-
-def _load() -> str:
-    try:
-        return " ".join(open("/proc/loadavg").read().split()[:3])
-    except OSError:
-        return "?"
 
 
 # ---- worker (one XLA setting per process) ---------------------------------------------------------------
@@ -196,7 +191,7 @@ def worker(spec):
     from mpmlab.scenes.validation import ritter_dam_break
     from mpmlab.simulator import build_stepper
 
-    res = {"ynn": spec["ynn"], "xla_flags": os.environ.get("XLA_FLAGS", ""), "load_before": _load(), "rows": []}
+    res = {"ynn": spec["ynn"], "xla_flags": os.environ.get("XLA_FLAGS", ""), "load_before": H.load_average(), "rows": []}
     progs, steppers = {}, {}
     for mode in spec["adjoints"]:
         st = build_stepper(ritter_dam_break(dx=spec["dx"]), "jax", spec["transfer"], spec["precision"], adjoints=mode)
@@ -251,7 +246,7 @@ def worker(spec):
         print(f"[adjoint split] ynn {spec['ynn']} {mode}: B/F {sg['B_over_F']:.2f}, ratios "
               + ", ".join(f"{k} {v['ratio']:.2f}" for k, v in rat["variants"].items() if k != "forward"),
               file=sys.stderr, flush=True)
-    res["load_after"] = _load()
+    res["load_after"] = H.load_average()
     res["jax"] = jax.__version__
     return res
 
