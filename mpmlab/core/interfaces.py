@@ -477,6 +477,53 @@ class AbstractTransfer(_Pluggable, ABC):
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)} if dataclasses.is_dataclass(self) else {}
 
 
+class AbstractShape(_Pluggable, ABC):
+    """A grid shape function, the second choice of a transfer (``transfer: {name: apic, shape: cubic}``):
+    the weights w_ip a particle gives its nodes and their gradients (issue 19; Steffen et al. 2008 for
+    B-splines, Bardenhagen & Kober 2004 for GIMP, Sadeghirad et al. 2011 for CPDI).
+
+    ``kind = "separable"``: w_ip = prod_d N(x_p,d - x_i,d), so a particle reaches one window of
+    ``width``^D nodes whose lowest node is ``floor(x/dx - offset)``; the kernels keep their windowed
+    P2G / G2P and only the 1-D weights change. The backend functions (``implementations[backend]``,
+    a factory ``make(shape, dim)`` on JAX, ``make(shape, dim, precision)`` on Warp, cached):
+
+    * JAX: ``weights(fx, lp) -> (w, dw)``, ``fx = x/dx - base`` [N, D], ``lp`` [N] the particle's half
+      width in cells; ``w``, ``dw`` are [N, width, D], ``dw = dN/dx_p`` in cell units.
+    * Warp: ``@wp.func weights(fx: vec, lp: scalar) -> (W, DW)``, two ``width x D`` matrices.
+    * The NumPy ``reference.weights_1d(fx, lp)`` (fp64, [N] -> [N, width] twice) is what the tests
+      check partition of unity and linear completeness on.
+
+    ``inv_D_cells``: D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T (Jiang et al. 2015, APIC's inertia) is
+    dx^2 / inv_D_cells I for B-splines (4 quadratic, 3 cubic); None means it varies per particle and
+    the backends compute it from the particle's own weights (GIMP). Schemes read D^-1 as ``Dinv``.
+    ``uses_particle_size``: the weights depend on ``lp`` (half the particle's initial width, from its
+    initial volume: lp = V0^(1/D) / (2 dx)); ``max_particle_size``: the largest lp in cells the window
+    holds (a larger particle is refused when the stepper is built).
+    """
+
+    kind: ClassVar[str] = "separable"
+    width: ClassVar[int] = 3
+    offset: ClassVar[float] = 0.5
+    inv_D_cells: ClassVar[float | None] = None
+    uses_particle_size: ClassVar[bool] = False
+    max_particle_size: ClassVar[float] = math.inf
+
+    def describe(self) -> str:
+        return f"shape function '{getattr(self, 'name', type(self).__name__)}' ({type(self).__module__})"
+
+    def check(self) -> None:
+        """Refuse declarations the kernels cannot carry out, in one line naming the shape function."""
+        where = self.describe()
+        if self.kind != "separable":
+            raise ConfigError(f"{where}: kind '{self.kind}' is declared but mpmlab's kernels carry only "
+                              f"separable windows so far; choose shape quadratic, cubic or ugimp.")
+        if not (isinstance(self.width, int) and 2 <= self.width <= 4):
+            raise ConfigError(f"{where}: width = {self.width!r} must be 2, 3 or 4 nodes per axis.")
+
+    def options(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)} if dataclasses.is_dataclass(self) else {}
+
+
 class AbstractBoundary(_Pluggable, ABC):
     """A grid post-process step (walls, friction, planes, obstacles) or a particle-set constraint/load.
 

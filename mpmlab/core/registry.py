@@ -3,7 +3,7 @@
 Every plugin kind has one registry keyed by a stable snake_case name (the name also goes into
 HDF5 and rerun metadata). Built-ins are registered as ``"module:attr"`` strings and imported only
 when asked for, so importing mpmlab never imports JAX or Warp. Third-party packages add plugins
-through the entry-point groups ``mpmlab.laws``, ``mpmlab.transfers``, ``mpmlab.boundaries``,
+through the entry-point groups ``mpmlab.laws``, ``mpmlab.transfers``, ``mpmlab.shapes``, ``mpmlab.boundaries``,
 ``mpmlab.body_forces`` (fields of the ``body_force`` boundary), ``mpmlab.observations``,
 ``mpmlab.backends`` and ``mpmlab.scenes``.
 """
@@ -18,6 +18,7 @@ from .errors import ConfigError, UnknownPluginError
 KINDS = {
     "law": "mpmlab.laws",
     "transfer": "mpmlab.transfers",
+    "shape": "mpmlab.shapes",
     "boundary": "mpmlab.boundaries",
     "body_force_field": "mpmlab.body_forces",
     "observation": "mpmlab.observations",
@@ -106,6 +107,7 @@ class Registry:
 REGISTRIES = {kind: Registry(kind) for kind in KINDS}
 laws = REGISTRIES["law"]
 transfers = REGISTRIES["transfer"]
+shapes = REGISTRIES["shape"]
 boundaries = REGISTRIES["boundary"]
 body_forces = REGISTRIES["body_force_field"]
 observations = REGISTRIES["observation"]
@@ -123,6 +125,8 @@ def _register_builtins() -> None:
         laws.register(name, f"mpmlab.laws.{name}:Law")
     for name in ("pic", "flip", "apic", "mls", "tpic"):
         transfers.register(name, f"mpmlab.transfers.{name}:Transfer")
+    for name in ("quadratic", "cubic", "ugimp", "cpdi"):
+        shapes.register(name, f"mpmlab.shapes.{name}:Shape")
     backends.register("jax", "mpmlab.backends.jax:JaxBackend")
     backends.register("warp", "mpmlab.backends.warp:WarpBackend")
     for name, cls in (("walls", "Walls"), ("friction_walls", "FrictionWalls"), ("plane", "Plane"),
