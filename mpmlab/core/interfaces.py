@@ -438,6 +438,10 @@ class AbstractTransfer(_Pluggable, ABC):
     force_terms: ClassVar[frozenset] = frozenset()
     moments: ClassVar[frozenset] = frozenset()
     conserves: ClassVar[frozenset] = frozenset({"linear_momentum"})
+    #: the shape functions (``mpmlab.shapes``) this scheme's math is valid for; None = every one (the
+    #: scheme reads D^-1 as ``Dinv`` or does not use D). A scheme written before shape functions were a
+    #: choice (D = dx^2/4 hard-coded, as in Jiang et al. 2015) keeps the default: quadratic only.
+    shapes: ClassVar[frozenset | None] = frozenset({"quadratic"})
 
     TERMS: ClassVar[frozenset] = frozenset({"affine", "gradient"})
     MOMENTS: ClassVar[frozenset] = frozenset({"first", "gradient"})

@@ -51,3 +51,34 @@ def make_shape(shape="quadratic", **options) -> AbstractShape:
             f"shape function '{shape}' does not take options {sorted(options)}; "
             f"it takes {sorted(getattr(cls, '__dataclass_fields__', {}))}."
         ) from None
+
+
+def resolve(shape, transfer, dim: int, dx: float, volume) -> tuple[AbstractShape, "np.ndarray | None"]:
+    """The shape function a stepper builds with, checked against its transfer and its particles.
+
+    Returns the shape instance and, for shapes that use the particle size, ``lp`` [N] (half each
+    particle's initial width in cells, lp = V0^(1/D) / (2 dx); None otherwise). Refuses, in one line,
+    a transfer that does not declare the shape, a shape the kernels cannot carry and a particle larger
+    than the shape's window holds."""
+    import numpy as np
+
+    from ..core.errors import ConfigError
+
+    s = make_shape(shape)
+    s.check()
+    allowed = getattr(transfer, "shapes", frozenset({"quadratic"}))
+    if allowed is not None and s.name not in allowed:
+        raise ConfigError(
+            f"{transfer.describe()} declares shapes = {sorted(allowed)}: its math assumes those shape functions' "
+            f"D_p, so it cannot run with shape '{s.name}'; choose one of them, or declare shapes = None in the "
+            f"scheme and read D^-1 from Dinv.")
+    if not s.uses_particle_size:
+        return s, None
+    lp = 0.5 * np.asarray(volume, np.float64) ** (1.0 / dim) / float(dx)
+    if lp.size and float(lp.max()) > s.max_particle_size * (1.0 + 1e-9):
+        k = int(np.argmax(lp))
+        raise ConfigError(
+            f"{s.describe()}: particle {k} has half width {lp[k]:.3g} cells (from its volume), more than the "
+            f"{s.max_particle_size} cells its window holds; sample at least 1 particle per cell per axis "
+            f"(particles_per_cell >= 1) or choose shape quadratic or cubic.")
+    return s, np.minimum(lp, s.max_particle_size)

@@ -15,6 +15,7 @@ class Transfer(AbstractTransfer):
 
     name: ClassVar[str] = "flip"
     implementations: ClassVar[dict] = builtin_implementations("flip")
+    shapes: ClassVar[frozenset | None] = None            # reads D^-1 as Dinv where it needs D
     split_force: ClassVar[bool] = True
     force_terms: ClassVar[frozenset] = frozenset({"gradient"})
     moments: ClassVar[frozenset] = frozenset({"gradient"})

@@ -14,6 +14,7 @@ class Transfer(AbstractTransfer):
 
     name: ClassVar[str] = "mls"
     implementations: ClassVar[dict] = builtin_implementations("mls")
+    shapes: ClassVar[frozenset | None] = None            # reads D^-1 as Dinv where it needs D
     carries_C: ClassVar[bool] = True
     momentum_terms: ClassVar[frozenset] = frozenset({"affine"})
     moments: ClassVar[frozenset] = frozenset({"first"})

@@ -14,5 +14,6 @@ class Transfer(AbstractTransfer):
 
     name: ClassVar[str] = "pic"
     implementations: ClassVar[dict] = builtin_implementations("pic")
+    shapes: ClassVar[frozenset | None] = None            # reads D^-1 as Dinv where it needs D
     momentum_terms: ClassVar[frozenset] = frozenset({"gradient"})
     moments: ClassVar[frozenset] = frozenset({"gradient"})
