@@ -197,8 +197,31 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
     pairs = _pairs(R, T, int(opt.frame_stride))
     loss = make_loss(norm, float(opt.lambda_F), float(opt.lambda_v))
     tx = optax.inject_hyperparams(optax.adam)(learning_rate=opt.lr_at(0))
-    grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
-    update = jax.jit(lambda g, s, p: tx.update(g, s, p))
+    value_and_grad = jax.value_and_grad(loss, has_aux=True)
+
+    @jax.jit
+    def train_step(params, state, lr, X, xs, Fs, vs, r, f, f1, has_next, pts, dt):
+        """One batch: gather its snapshots, Eq. 24's value and gradient, Adam's update, in one program
+        (one dispatch per batch: the eager gathers and updates cost more than the networks on small sets)."""
+        x_n, x_next = xs[r, f], xs[r, f1]
+        x_pts = x_n[:, pts]
+        F_pts = Fs[r, f][:, pts] if Fs is not None else jnp.zeros(x_pts.shape + (d,), dtype)
+        v_pts = vs[r, f1][:, pts] if vs is not None else jnp.zeros_like(x_pts)
+        X_pts = jnp.broadcast_to(X[pts], x_pts.shape)
+        (val, parts), g = value_and_grad(params, X_pts, x_n, x_next, x_pts, F_pts, v_pts, has_next.astype(dtype), dt)
+        state.hyperparams["learning_rate"] = lr
+        upd, state = tx.update(g, state, params)
+        return optax.apply_updates(params, upd), state, jnp.stack([val, parts["u"], parts["F"], parts["v"]])
+
+    @jax.jit
+    def train_epoch(params, state, lr, X, xs, Fs, vs, batches, dt):
+        """The epoch's full batches in order, as one scanned program (one dispatch per epoch)."""
+        def body(carry, b):
+            p, st = carry
+            p, st, m = train_step(p, st, lr, X, xs, Fs, vs, *b, dt)
+            return (p, st), m
+        (params, state), m = jax.lax.scan(body, (params, state), batches)
+        return params, state, m
 
     ckpt = Path(checkpoint) if checkpoint else None
     # what shapes the training curve: a resume must not change it silently (an older checkpoint records none)
@@ -242,30 +265,34 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
         order = rng.permutation(len(pairs))
         lr = opt.lr_at(epoch)
         state.hyperparams["learning_rate"] = jnp.asarray(lr, dtype)
-        sums, count, t_ep = {"loss": 0.0, "u": 0.0, "F": 0.0, "v": 0.0}, 0, time.perf_counter()
+        t_ep = time.perf_counter()
+        lr_dev, dt_dev = jnp.asarray(lr, dtype), jnp.asarray(dt, dtype)
+        batches = []
         for b0 in range(0, len(order), int(opt.batch)):
             rows = pairs[order[b0:b0 + int(opt.batch)]]
             r, f, f1 = rows[:, 0], rows[:, 1], rows[:, 2]
             has_next = f1 >= 0
             f1 = np.where(has_next, f1, f)
             pts = (rng.choice(n, size=int(opt.points), replace=False) if opt.points is not None else np.arange(n))
-            x_n, x_next = xs[r, f], xs[r, f1]
-            x_pts = x_n[:, pts]
-            F_pts = Fs[r, f][:, pts] if Fs is not None else jnp.zeros(x_pts.shape + (d,), dtype)
-            v_pts = vs[r, f1][:, pts] if vs is not None else jnp.zeros_like(x_pts)
-            X_pts = jnp.broadcast_to(X[pts], x_pts.shape)
-            (val, parts), g = grad(params, X_pts, x_n, x_next, x_pts, F_pts, v_pts, jnp.asarray(has_next, dtype),
-                                   jnp.asarray(dt, dtype))
-            if not np.isfinite(float(val)):
-                raise ConfigError(f"rom_train: the loss became {float(val)} at epoch {epoch} (lr {lr:g}); lower the "
-                                  f"learning rate or check the snapshots for non-finite values.")
-            upd, state = update(g, state, params)
-            params = optax.apply_updates(params, upd)
-            k = len(rows)
-            sums["loss"] += float(val) * k
-            for key in ("u", "F", "v"):
-                sums[key] += float(parts[key]) * k
-            count += k
+            batches.append((r, f, f1, has_next, pts))
+        full = [b for b in batches if len(b[0]) == int(opt.batch)]       # same draws as batch by batch
+        rows_of, measured = [], []
+        if full:
+            stacked = tuple(np.stack(col) for col in zip(*full))
+            params, state, m = train_epoch(params, state, lr_dev, X, xs, Fs, vs, stacked, dt_dev)
+            rows_of += [int(opt.batch)] * len(full)
+            measured.append(m)
+        for b in batches[len(full):]:                                    # the last, shorter batch
+            params, state, m = train_step(params, state, lr_dev, X, xs, Fs, vs, *b, dt_dev)
+            rows_of.append(len(b[0]))
+            measured.append(m[None])
+        m = np.asarray(jnp.concatenate(measured), np.float64)            # [batches, 4]: one sync per epoch
+        if not np.all(np.isfinite(m[:, 0])):
+            raise ConfigError(f"rom_train: the loss became {m[~np.isfinite(m[:, 0]), 0][0]} at epoch {epoch} (lr {lr:g}); "
+                              f"lower the learning rate or check the snapshots for non-finite values.")
+        k = np.asarray(rows_of, np.float64)
+        count = float(k.sum())
+        sums = {key: float(np.sum(m[:, j] * k)) for j, key in enumerate(("loss", "u", "F", "v"))}
         rec = {"epoch": epoch + 1, "lr": lr, **{k: v / count for k, v in sums.items()},
                "seconds": time.perf_counter() - t_ep}
         history.append(rec)
