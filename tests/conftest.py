@@ -4,6 +4,17 @@ import sys
 
 os.environ.setdefault("WARP_QUIET", "1")
 
+# One persistent JAX compilation cache for the whole run, shared by the xdist workers and the CLI
+# subprocesses (they inherit the environment): many tests build the same small scene in separate
+# steppers or processes, and each would otherwise compile the same program again (keyed by the HLO,
+# the compile options and jaxlib's version, so a hit is the same executable). About a third of the
+# suite's time is XLA compiling; a test that needs a cold compile sets its own directory.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = os.path.join(tempfile.gettempdir(), f"mpmlab-tests-jax-cache-{os.getuid()}")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+
 # absl (imported by JAX/optax) binds its log handler to the sys.stderr of the moment it is first
 # imported: inside a test, that is pytest's capture stream. A later in-process `mpmlab` run has Hydra
 # reconfigure logging, which closes every handler, and absl's close() closes any stream that is not
