@@ -12,8 +12,7 @@ from . import reference
 def weights(fx, lp):
     """(w, dw) [N, 3, D] for fx = x/dx - base [N, D] and the particles' half widths lp [N] in cells
     (dw = dS/dx_p in cell units)."""
-    w, dw = reference.weights_1d(fx, jnp.asarray(lp, fx.dtype)[:, None], xp=jnp)    # [N, D, 3]
-    return jnp.swapaxes(w, 1, 2), jnp.swapaxes(dw, 1, 2)
+    return reference.weights_1d(fx, jnp.asarray(lp, fx.dtype)[:, None], xp=jnp, axis=1)    # [N, 3, D]
 
 
 @lru_cache(maxsize=None)
