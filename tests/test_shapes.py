@@ -7,6 +7,7 @@ widths lp in (0, 1/2]:
 * APIC's D_p: sum w (k - fx)^2 = 1/inv_D_cells for the B-splines (1/4 quadratic, 1/3 cubic);
 * uGIMP in closed form: at lp = 1/2 it is the quadratic B-spline (hat * box of width 1 = the quadratic
   B-spline), as lp -> 0 the linear hat, and at any lp the hat averaged over the particle's box (quadrature);
+* the config's ``transfer.shape`` reaches the stepper (not the transfer) and the trajectory records it;
 * ``resolve`` / ``inner_bounds`` / the registry refuse, in one line: a shape the transfer does not
   declare, a particle too large for uGIMP's window, CPDI, an unknown name, a particle outside a cubic
   window's region.
@@ -156,3 +157,25 @@ def test_cubic_window_region_and_stepper_refusals():
     with pytest.raises(ConfigError, match=r"half width 1 cells"):
         mpmlab.build_stepper(_scene(ppc=1, dx=0.025, **{"particle_volume": 0.05 ** 2}), "jax", "apic", "fp64",
                              shape="ugimp")
+
+
+def test_config_shape_goes_to_the_stepper_not_the_transfer():
+    from mpmlab.config import compose, make_transfer_from_config, shape_options_from_config
+
+    cfg = compose(["transfer=apic", "transfer.shape=cubic"])
+    assert cfg.transfer.shape == "cubic" and make_transfer_from_config(cfg).name == "apic"
+    assert shape_options_from_config(cfg) == {"shape": "cubic"}
+    assert shape_options_from_config(compose(["transfer=pic"])) == {}          # quadratic: the default
+    with pytest.raises(UnknownPluginError, match=r"unknown shape 'cubik'"):
+        shape_options_from_config(compose(["transfer.shape=cubik"]))
+
+
+def test_trajectory_records_the_shape(tmp_path):
+    from mpmlab.io.h5 import read_attrs, read_trajectory, write_trajectory
+
+    st = mpmlab.build_stepper(_scene(), "jax", "pic", "fp32", shape="cubic")
+    traj = st.rollout(steps=2, every=1)
+    assert traj.meta["shape"] == "cubic"
+    write_trajectory(tmp_path / "t.h5", traj)
+    assert read_attrs(tmp_path / "t.h5")["shape_function"] == "cubic"
+    assert read_trajectory(tmp_path / "t.h5").meta["shape"] == "cubic"
