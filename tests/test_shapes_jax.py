@@ -6,8 +6,8 @@
   affine spin m eps : (C D_p)^T with the shape's own D_p) to 1e-11 with cubic B-splines. With uGIMP,
   D_p varies with the particle's position in its cell, and the step keeps C = B D_p^-1 of the G2P
   position, which the next P2G applies with D_p of the new position: angular momentum then drifts by
-  ~1e-5 relative over 30 steps (measured 2026-12-06: APIC 8.5e-6, MLS 9.9e-6 in 2D over 40 steps;
-  PIC, which keeps no C, loses 8.6e-2), asserted <= 1e-4 here. Exact conservation with uGIMP needs B
+  ~1e-5 relative (measured 2026-12-06, 2D 30 steps: APIC 7.9e-6, MLS 9.2e-6, RPIC 1.1e-5; 3D 15 steps:
+  4.2e-7, 6.9e-7, 1.6e-6; PIC, which keeps no C, loses 8.5e-2 / 3.9e-2), asserted <= 1e-4 here. Exact conservation with uGIMP needs B
   stored instead of C (Jiang et al. 2015), a change of the scheme's state: not done.
 * The uGIMP D_p^-1 the stepper gives the schemes is the inverse of ``testing.inertia`` (NumPy).
 * ``adjoints="custom"`` (hand-written transposes, width 4 for cubic) and ``"derived"``: one step's VJP
