@@ -16,6 +16,8 @@
   agree with central differences (``mpmlab.testing.check_gradients``, 1e-6).
 * Quadratic stays the default: a stepper built without ``shape`` and one with ``shape="quadratic"``
   step bit-identically; the run metadata records the shape.
+* The stability guard of a cubic stepper stops a particle leaving the region its 4-node window keeps on
+  the grid (one cell from the edge), before a JAX gather would clip the window.
 """
 from __future__ import annotations
 
@@ -124,3 +126,18 @@ def test_quadratic_is_the_default_and_unchanged():
     sa, sb = a._advance(a.init(), 5), b._advance(b.init(), 5)
     for k in ("x", "v", "C"):
         assert np.array_equal(np.asarray(sa[k]), np.asarray(sb[k]))
+
+
+def test_cubic_guard_stops_a_particle_leaving_its_window_region():
+    """The stability guard uses the cubic window's region (a cell from the edge), not the scene's half cell:
+    a block thrown at the lower x edge (no walls) is stopped when its first particle passes x = dx."""
+    from mpmlab.core.errors import SimulationDiverged
+
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.4], "hi": [0.2, 0.5]}, material="fixed_corotated",
+                       params={"E": 1e4, "nu": 0.3}, density=1000.0, velocity=[-5.0, 0.0], particles_per_cell=4)
+    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], dt=1e-3)
+    st = mpmlab.build_stepper(scene, "jax", "apic", "fp64", shape="cubic", check_every=1)
+    with pytest.raises(SimulationDiverged) as info:
+        st.rollout(steps=40, every=10)
+    e = info.value
+    assert e.field == "x (outside the domain)" and 0.025 < e.value[0] < 0.05, (e.field, e.value)
