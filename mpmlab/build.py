@@ -2,7 +2,8 @@
 
 :func:`build_scene` turns ``cfg.scene`` + ``cfg.material`` into a :class:`mpmlab.Scene` (bodies,
 boundaries, domain, time step), :func:`make_transfer_from_config` turns ``cfg.transfer`` into a transfer
-scheme and :func:`make_boundary_from_config` one ``scene.boundaries`` entry into a boundary. Physics is
+scheme (:func:`shape_options_from_config` its shape function, a stepper option) and
+:func:`make_boundary_from_config` one ``scene.boundaries`` entry into a boundary. Physics is
 chosen by registered name (``material.law``, ``transfer.name``, ``scene.boundaries.<b>.kind``);
 parameters are checked by the classes that own them (a law's ``ParamSpec`` ranges, a boundary's
 ``validate``, the scene's CFL bound) while the objects are built, so an error names the config key.
@@ -184,10 +185,36 @@ def build_scene(cfg: DictConfig, validate: bool = True):
 
 
 def make_transfer_from_config(cfg: DictConfig):
+    """The transfer scheme of ``cfg.transfer`` (its options; ``transfer.shape`` goes to the stepper:
+    :func:`shape_options_from_config`)."""
     from .transfers import make_transfer
 
-    opts = {k: v for k, v in _plain(cfg.transfer).items() if k != "name" and v is not None}
+    opts = {k: v for k, v in _plain(cfg.transfer).items() if k not in ("name", "shape") and v is not None}
     return make_transfer(cfg.transfer.name, **opts)
+
+
+def shape_options_from_config(cfg: DictConfig, scene=None, transfer=None) -> dict:
+    """The stepper option for ``transfer.shape`` (``transfer: {name: apic, shape: cubic}``; issue 19):
+    ``{"shape": name}``, or ``{}`` for the default quadratic B-spline (every backend's default).
+
+    Checked here, before anything is written: an unknown name (the registry lists the registered
+    ones), a shape the kernels cannot carry (cpdi), one the transfer does not declare and, with the
+    ``scene``, a particle too large for the shape's window or outside the region its window keeps on
+    the grid (``mpmlab.shapes.resolve`` / ``inner_bounds``; ``ConfigError``, one line each)."""
+    from .shapes import inner_bounds, make_shape, resolve
+
+    name = cfg.transfer.get("shape", None) or "quadratic"
+    shape = make_shape(name)
+    shape.check()
+    if transfer is None:
+        transfer = make_transfer_from_config(cfg)
+    if scene is None:
+        resolve(shape, transfer, 2, 1.0, ())
+    else:
+        P = scene.particles()
+        resolve(shape, transfer, scene.dim, scene.dx, P.volume)
+        inner_bounds(shape, scene, P.x)
+    return {} if shape.name == "quadratic" else {"shape": shape.name}
 
 
 def describe_scene(scene) -> dict:

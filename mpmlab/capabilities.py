@@ -1,4 +1,4 @@
-"""The capability matrix: which law runs with which transfer on which backend, read from the registries
+"""The capability matrix: which law runs with which transfer (and shape function) on which backend, read from the registries
 (built-ins and installed plugins), never written by hand.
 
     python -m mpmlab.capabilities                      # print the Markdown tables
@@ -50,6 +50,58 @@ def capabilities() -> list[dict]:
     return rows
 
 
+_SHAPE_ORDER = ["quadratic", "cubic", "ugimp", "cpdi"]
+
+
+def _shapes(builtin_only: bool = False) -> list[str]:
+    names = [n for n in registry.shapes.names()
+             if not builtin_only or registry.shapes.provenance(n) == "mpmlab"]
+    return [s for s in _SHAPE_ORDER if s in names] + [s for s in names if s not in _SHAPE_ORDER]
+
+
+def _shape_implemented(shape, backend: str) -> bool:
+    """The shape function declares ``backend`` and its module is there (found, not imported), and the
+    kernels carry its kind (``AbstractShape.check``: CPDI is declared, not carried)."""
+    import importlib.util
+
+    from .core.errors import ConfigError
+
+    try:
+        shape().check()
+    except (ConfigError, TypeError):
+        return False
+    path = getattr(shape, "implementations", {}).get(backend)
+    if not path:
+        return False
+    try:
+        return importlib.util.find_spec(path.split(":", 1)[0]) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def shape_capabilities(builtin_only: bool = False) -> list[dict]:
+    """One row per (transfer, shape function, backend): ``{"transfer", "shape", "backend", "supported",
+    "reason"}``. A pair runs on a backend when the transfer is implemented there and declares the shape
+    (``AbstractTransfer.shapes``; None = every one) and the shape function is implemented there."""
+    rows = []
+    for tr_name in _transfers(builtin_only):
+        tr = registry.transfers.get(tr_name)
+        allowed = getattr(tr, "shapes", frozenset({"quadratic"}))
+        for sh_name in _shapes(builtin_only):
+            sh = registry.shapes.get(sh_name)
+            for be in registry.backends.names():
+                if be not in getattr(tr, "implementations", {}):
+                    ok, why = False, f"transfer has no {be} implementation"
+                elif allowed is not None and sh_name not in allowed:
+                    ok, why = False, f"transfer declares shapes {sorted(allowed)}"
+                elif not _shape_implemented(sh, be):
+                    ok, why = False, f"shape function has no {be} implementation"
+                else:
+                    ok, why = True, ""
+                rows.append({"transfer": tr_name, "shape": sh_name, "backend": be, "supported": ok, "reason": why})
+    return rows
+
+
 def markdown(builtin_only: bool = False) -> str:
     """The law x transfer x backend matrix and the boundary, body-force field and observation tables, as Markdown
     (``builtin_only``: leave out plugins installed in this environment, as the README does)."""
@@ -80,6 +132,14 @@ def markdown(builtin_only: bool = False) -> str:
         lines.append("| " + " | ".join([f"`{name}`", "yes" if getattr(tr, "carries_C", False) else "no", *sets,
                                         cons + " momentum" if cons != "–" else cons, *cells,
                                         registry.transfers.provenance(name)]) + " |")
+    # transfer x shape function (mpmlab.shapes; issue 19): which pairs run on which backend
+    shapes = _shapes(builtin_only)
+    ok_shape = {(r["transfer"], r["shape"], r["backend"]): r["supported"] for r in shape_capabilities(builtin_only)}
+    lines += ["", "| transfer × shape function | " + " | ".join(f"{b}: {s}" for b in backends for s in shapes) + " |",
+              "|---|" + "---|" * (len(backends) * len(shapes))]
+    for name in transfers:
+        cells = ["✓" if ok_shape[(name, s, b)] else "–" for b in backends for s in shapes]
+        lines.append("| " + " | ".join([f"`{name}`", *cells]) + " |")
     grad_head = " | ".join(f"{b} gradient" for b in backends)
 
     def plugin_table(reg, title: str, extra_heads: tuple, row) -> None:

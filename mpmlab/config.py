@@ -17,7 +17,8 @@ generic objects (optimisers, networks) that later tasks instantiate.
 Layout of the composed config::
 
     backend:   {name, check_every, device, devices}   # config group backend/ (jax, warp)
-    transfer:  {name, flip_ratio}                      # transfer/ (pic, flip, apic, mls, tpic)
+    transfer:  {name, flip_ratio, shape}               # transfer/ (pic, flip, apic, mls, tpic); shape:
+                                                       # quadratic (default), cubic, ugimp
     precision: {name}                                  # precision/ (fp32, fp64)
     material:  {law, params, density, label}           # material/: the default material of the scene
     scene:     {name, dim, dx, domain, gravity, dt, bodies{...}, boundaries{...}, resolution, ...}
@@ -71,11 +72,15 @@ class BackendConfig:
 
 @dataclass
 class TransferConfig:
-    """A registered transfer scheme (``pic``, ``flip``, ``apic``, ``mls``, ``tpic``) and its options."""
+    """A registered transfer scheme (``pic``, ``flip``, ``apic``, ``mls``, ``tpic``), its options and its
+    shape function (``transfer: {name: apic, shape: cubic}``)."""
 
     name: str = "mls"
     #: FLIP/PIC blend of ``flip`` (1 = pure FLIP); None = the scheme's default
     flip_ratio: Optional[float] = None
+    #: the grid shape function (``mpmlab.shapes``: ``quadratic`` B-spline, ``cubic`` B-spline, ``ugimp``);
+    #: a stepper option, not one of the scheme's (``mpmlab.build.shape_options_from_config``)
+    shape: str = "quadratic"
 
 
 @dataclass
@@ -604,6 +609,9 @@ def check_run_options(cfg: DictConfig) -> None:
         raise ConfigError(f"output.record_every = {cfg.output.record_every} must be >= 1.")
     if cfg.precision.name not in ("fp32", "fp64"):
         raise ConfigError(f"precision '{cfg.precision.name}' unknown; use precision=fp32 or precision=fp64.")
+    from .build import shape_options_from_config
+
+    shape_options_from_config(cfg)    # transfer.shape: a registered shape the kernels carry, declared by the transfer
     if cfg.seed < 0:  # numpy's generators (particle sampling, observation noise) take seeds >= 0
         raise ConfigError(f"seed = {cfg.seed} must be >= 0; use seed=0 or another non-negative integer.")
     if cfg.backend.name == "warp" and cfg.backend.device is not None:
@@ -624,7 +632,7 @@ def check_run_options(cfg: DictConfig) -> None:
 # config -> objects lives in mpmlab.build; the built-in task schemas in their task modules
 # ---------------------------------------------------------------------------------------------
 from .build import (build_scene, check_resolution, describe_scene, make_boundary_from_config,  # noqa: E402,F401
-                    make_transfer_from_config, material_of)
+                    make_transfer_from_config, material_of, shape_options_from_config)
 
 #: names that moved out of this module: ``mpmlab.config.<name>`` still finds them
 _MOVED = {"SimulateTaskConfig": "tasks.simulate", "ReplayTaskConfig": "tasks.replay", "BenchTaskConfig": "tasks.bench",

@@ -60,6 +60,18 @@ def trajectories(runs) -> dict:
     return out
 
 
+def shapes(devices: int) -> dict:
+    """APIC with the cubic B-spline and uGIMP (whose per-particle lp is laid out with the particles, the
+    clones keeping their twins'): max |sharded - single| of x, v and relative of C over the kept frames."""
+    scene = law_scene(list(LAWS), 2)
+    out = {}
+    for shape in ("cubic", "ugimp"):
+        a, b = (build_stepper(scene, "jax", "apic", "fp64", devices=n, shape=shape).rollout(
+            steps=STEPS, every=EVERY, fields=("C",), progress=False) for n in (None, devices))
+        out[shape] = {"x": max_abs(a.x, b.x), "v": max_abs(a.v, b.v), "C_rel": max_rel(a.fields["C"], b.fields["C"])}
+    return out
+
+
 def gradients(devices: int, transfer: str) -> dict:
     """jax.grad of a loss of observed velocities w.r.t. the controls (initial x, v, C and law state, law
     parameters, mass, volume, gravity): max |sharded - single| / max |single| per control, on an elastic
@@ -104,5 +116,5 @@ if __name__ == "__main__":
     # n = 3: the groups of 16 particles do not split evenly, so padding clones are in those runs
     runs = {tr: (n, 2) if tr == "mls" and n > 2 else (n,) for tr in TRANSFERS}
     report = {"devices": n, "trajectories": trajectories(runs), "gradients": {"apic": gradients(n, "apic")},
-              "cli": cli(out, n)}
+              "cli": cli(out, n), "shapes": shapes(n)}
     print(json.dumps(report))

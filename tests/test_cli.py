@@ -180,6 +180,8 @@ BAD = [
     (["scene.bodies.cube.shape.hi=[1.2,0.75,0.75]"], EXIT_CONFIG, "outside the domain"),
     (["scene.dt=0.01"], EXIT_CONFIG, "CFL number"),
     (["transfer=flip", "transfer.flip_ratio=2"], EXIT_CONFIG, "flip_ratio"),
+    (["transfer.shape=quintic"], EXIT_CONFIG, "unknown shape 'quintic'; known shapes: cpdi, cubic, quadratic, ugimp"),
+    (["transfer.shape=cpdi"], EXIT_CONFIG, "carry only separable windows"),
     (["output.color_by=eps_p"], EXIT_CONFIG, "color_by='eps_p' is not possible"),
     (["task=replay"], EXIT_CONFIG, "add input=PATH"),
     (["task=replay", "input={tmp}/missing.h5"], EXIT_CONFIG, "does not exist"),

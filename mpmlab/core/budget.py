@@ -418,7 +418,8 @@ def _warp_threads(N: int, device: str | None, threads: int | None) -> int:
 
 
 def estimate_memory(scene, backend: str = "jax", precision: str = "fp32", transfer=None, *, frames: int = 0,
-                    fields: Sequence[str] = (), device: str | None = None, threads: int | None = None) -> dict[str, int]:
+                    fields: Sequence[str] = (), device: str | None = None, threads: int | None = None,
+                    shape: str = "quadratic") -> dict[str, int]:
     """Bytes of host memory a run of ``scene`` needs, by part (see the module docstring for the model).
 
     Args:
@@ -430,6 +431,8 @@ def estimate_memory(scene, backend: str = "jax", precision: str = "fp32", transf
         fields: per-particle fields kept per frame besides x, v (only those the scene carries count).
         device: Warp device; off the CPU the backend's arrays live on the device and are left out.
         threads: Warp CPU threads (None: as the stepper chooses them).
+        shape: the transfer's shape function (``mpmlab.shapes``): its window of ``width``^D nodes sizes
+            the JAX stencil blocks (the fitted constants are those of the 3-node quadratic B-spline).
 
     Returns:
         ``{"sampling", "particles", "grid", "scratch", "frames", "runtime", "total"}`` in bytes.
@@ -462,7 +465,9 @@ def estimate_memory(scene, backend: str = "jax", precision: str = "fp32", transf
         backend_particles = s * (3 * state + 2 * N + law_params)
         K = D + 1 + (D if split else 0)                                            # P2G lanes
         Kg = 2 * D if split else D                                                 # G2P lanes
-        S = 3**D
+        from ..shapes import make_shape
+
+        S = int(make_shape(shape).width) ** D                                      # window nodes per particle
         # node coordinates (kept) + their construction (int64 meshgrid and stack, float64 products)
         grid = s * G * D + 32 * G * D
         # per step: accumulator (in, out), v_old, v_new, the gathered field, masks and XLA's copies
@@ -553,12 +558,12 @@ def _fitting_frame_every_memory(est: Mapping[str, int], frames: int, steps: int,
 def check_memory(scene, backend: str = "jax", precision: str = "fp32", transfer=None, available: int | None = None,
                  *, frames: int = 0, fields: Sequence[str] = (), steps: int | None = None,
                  frame_every: int | None = None, device: str | None = None, threads: int | None = None,
-                 warn_fraction: float = MEMORY_WARN_FRACTION) -> dict[str, int]:
+                 warn_fraction: float = MEMORY_WARN_FRACTION, shape: str = "quadratic") -> dict[str, int]:
     """Refuse a run whose memory estimate exceeds the available memory; warn above ``warn_fraction``.
 
     Args:
         available: bytes available (default :func:`available_memory`); injectable for tests.
-        frames, fields, device, threads: as for :func:`estimate_memory`.
+        frames, fields, device, threads, shape: as for :func:`estimate_memory`.
         steps, frame_every: the run's, to suggest a ``frame_every`` when the kept frames dominate.
 
     Returns:
@@ -574,7 +579,7 @@ def check_memory(scene, backend: str = "jax", precision: str = "fp32", transfer=
         but 21.3 GiB are available; raise frame_every (>= 17 fits) or reduce steps.``
     """
     est = estimate_memory(scene, backend, precision, transfer, frames=frames, fields=fields, device=device,
-                          threads=threads)
+                          threads=threads, shape=shape)
     avail = available_memory() if available is None else int(available)
     need = est["total"]
     N = estimate_particles(scene)
@@ -594,7 +599,7 @@ def check_memory(scene, backend: str = "jax", precision: str = "fp32", transfer=
                                   f"(>= {fe} fits) or reduce steps.")
         budget = avail * warn_fraction
         dx_fit = fitting_dx(scene, need, budget,
-                            lambda sc: estimate_memory(sc, backend, precision, transfer, frames=frames,
+                            lambda sc: estimate_memory(sc, backend, precision, transfer, frames=frames, shape=shape,
                                                        fields=fields, device=device, threads=threads))
         raise ConfigError(
             f"{what} but {human_bytes(avail)} are available; set scene.dx >= {_fmt_value(dx_fit)} "
@@ -782,7 +787,8 @@ def memory_preflight(cfg, scene, *, frames: int = 0, fields: Sequence[str] = (),
     transfer = make_transfer_from_config(cfg) if cfg.get("transfer", None) is not None else None
     return check_memory(scene, str(backend.get("name", "jax")), str(precision.get("name", "fp32")), transfer,
                         available, frames=frames, fields=fields, steps=steps, frame_every=frame_every,
-                        device=backend.get("device", None))
+                        device=backend.get("device", None),
+                        shape=str((cfg.get("transfer", None) or {}).get("shape", None) or "quadratic"))
 
 
 def output_preflight(cfg, scene, output_dir: str | os.PathLike, *, steps: int | None = None,

@@ -423,8 +423,15 @@ class AbstractTransfer(_Pluggable, ABC):
     by it):
 
     * JAX: ``p2g(p) -> P2GTerms`` and ``g2p(g) -> G2PResult`` on particle-batched arrays; ``p`` has
-      ``m, V, v, C, tau, dt, inv_dx, dx``; ``g`` has ``v, v_pic, v_old, first, grad, fx, inv_dx``
-      (``None`` for what is not declared). ``grad`` and ``G`` are in physical units (1/length).
+      ``m, V, v, C, tau, dt, inv_dx, dx, Dinv``; ``g`` has ``v, v_pic, v_old, first, grad, fx, inv_dx,
+      dx, Dinv`` (``None`` for what is not declared). ``grad`` and ``G`` are in physical units (1/length).
+      ``first`` sums over the shape function's window with o = 0 .. width-1 and ``fx`` is the particle's
+      position in cells from the window's lowest node, so B = sum w v_i (x_i - x_p)^T = dx (first - v_pic
+      fx^T) for every shape function. ``Dinv`` is D_p^-1 (APIC's inverse inertia, MLS's M^-1; 1/length^2;
+      D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T, Jiang et al. 2015): a Python float c meaning c I for
+      every particle when the shape function's D_p is a constant (B-splines: 4/dx^2 quadratic, 3/dx^2
+      cubic), an [N, D, D] array when it varies per particle (uGIMP: diagonal);
+      ``mpmlab.transfers._common.jax.times_Dinv(M, Dinv)`` gives M D^-1 for either form.
     * Warp (``@wp.func``s the kernel factories close over): ``p2g_momentum(m, V, v, C, tau, dt,
       inv_dx, tp) -> (q, A, G)``, ``p2g_force(same) -> (F, H)`` (``split_force`` only) and
       ``g2p(v, vp, vo, B, Gv, fx, inv_dx, tp) -> (v, C, grad_v)``; ``tp`` is the array of

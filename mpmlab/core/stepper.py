@@ -107,6 +107,7 @@ class BaseStepper(AbstractStepper):
         return {
             "dim": s.dim, "dt": getattr(self, "_dt0", self.dt), "dx": s.dx, "grid_origin": s.origin.tolist(), "grid_shape": list(s.grid_shape),
             "gravity": s.gravity.tolist(), "backend": self.backend_name, "transfer": self.transfer.name,
+            "shape": getattr(getattr(self, "shape", None), "name", "quadratic"),        # mpmlab.shapes
             "transfer_options": self.transfer.options(), "precision": self.precision, "scene": s.name,
             "laws": [g.law.name for g in self.groups],
             **({"dt_auto_every": int(s.dt_every), "cfl": float(s.cfl)} if s.adaptive_dt else {}),
@@ -114,7 +115,8 @@ class BaseStepper(AbstractStepper):
 
     def locate_failure(self, npstate: dict[str, np.ndarray]) -> tuple[int, str, Any] | None:
         """(particle, field, value) of the first bad value in a NumPy state, or None if all is well."""
-        lo, hi = self.scene.inner_bounds
+        # a stepper whose shape function has a wider window (cubic B-splines) keeps a narrower region
+        lo, hi = getattr(self, "inner_bounds", self.scene.inner_bounds)
         for name in ("x", "v"):
             a = npstate[name]
             bad = ~np.all(np.isfinite(a), axis=1)

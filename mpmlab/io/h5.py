@@ -3,7 +3,9 @@
 Layout (every array keeps the dtype of the ``Trajectory`` it came from, so a round trip is exact)::
 
     /                 attrs: schema="mpmlab.trajectory", schema_version=1, dim, dt, substeps_per_frame,
-                             backend, transfer, precision, mpmlab_version, created_by, config_yaml,
+                             backend, transfer, shape_function (the transfer's, mpmlab.shapes; absent
+                             in files written before it was a choice: quadratic), precision,
+                             mpmlab_version, created_by, config_yaml,
                              metadata_json (Trajectory.meta as JSON), frame_count, complete
                              (+ diverged, diverged_step, ..., error for a stream ended by an exception;
                              + the caller's extra_attrs)
@@ -43,7 +45,8 @@ SCHEMA = "mpmlab.trajectory"
 SCHEMA_VERSION = 1
 _FRAME_CORE = ("x", "v", "time", "step")
 _RESERVED_ATTRS = {"schema", "schema_version", "dim", "dt", "substeps_per_frame", "backend", "transfer",
-                   "precision", "mpmlab_version", "created_by", "config_yaml", "metadata_json", "frame_count",
+                   "shape_function", "precision", "mpmlab_version", "created_by", "config_yaml", "metadata_json",
+                   "frame_count",
                    "complete", "diverged", "diverged_step", "diverged_particle", "diverged_field",
                    "diverged_message", "error"}
 
@@ -134,6 +137,8 @@ def _write_static(f, traj: Trajectory, config_yaml: str, extra_attrs: dict | Non
     a["substeps_per_frame"] = _frame_spacing(traj.step)
     for key in ("backend", "transfer", "precision"):
         a[key] = str(meta.get(key, ""))
+    if "transfer" in meta:                       # the shape function the transfer ran with (mpmlab.shapes)
+        a["shape_function"] = str(meta.get("shape", "quadratic"))
     a["mpmlab_version"] = __version__
     a["created_by"] = f"mpmlab {__version__}"
     a["config_yaml"] = config_yaml or ""

@@ -29,7 +29,11 @@ from .ugimp import Shape as ShapeUGIMP
 
 BUILTIN = {"quadratic": ShapeQuadratic, "cubic": ShapeCubic, "ugimp": ShapeUGIMP, "cpdi": ShapeCPDI}
 
-__all__ = ["AbstractShape", "BUILTIN", "make_shape"]
+__all__ = ["AbstractShape", "BUILTIN", "inner_bounds", "make_shape", "resolve"]
+
+#: the half width (cells) given to a particle of zero volume (a tracer) by a shape that uses the particle
+#: size: uGIMP's weights divide by lp, and as lp -> 0 they tend to the linear hat, which this is close to
+LP_MIN = 1e-3
 
 
 def builtin_implementations(name: str) -> dict:
@@ -81,4 +85,33 @@ def resolve(shape, transfer, dim: int, dx: float, volume) -> tuple[AbstractShape
             f"{s.describe()}: particle {k} has half width {lp[k]:.3g} cells (from its volume), more than the "
             f"{s.max_particle_size} cells its window holds; sample at least 1 particle per cell per axis "
             f"(particles_per_cell >= 1) or choose shape quadratic or cubic.")
-    return s, np.minimum(lp, s.max_particle_size)
+    return s, np.clip(lp, LP_MIN, s.max_particle_size)
+
+
+def inner_bounds(shape, scene, x=None):
+    """(lo, hi): the region a particle may occupy with ``shape``: its window of ``width`` nodes per axis,
+    lowest node floor(x/dx - offset), must stay on the grid: offset <= x/dx < cells - (width - 2 - offset)
+    (in cells from the origin). For the 3-node shapes (quadratic, uGIMP) this is ``scene.inner_bounds``
+    itself; cubic B-splines lose one cell on each side. With particle positions ``x`` [N, D], refuses
+    (one line) a particle outside it."""
+    import numpy as np
+
+    from ..core.errors import ConfigError
+
+    s = make_shape(shape)
+    if float(s.offset) == 0.5 and int(s.width) == 3:
+        lo, hi = scene.inner_bounds
+    else:
+        lo = scene.origin + float(s.offset) * scene.dx
+        hi = scene.origin + (np.asarray(scene.cells) - (int(s.width) - 2 - float(s.offset))) * scene.dx
+    if x is not None:
+        x = np.asarray(x)
+        out = np.nonzero(np.any((x < lo) | (x >= hi), axis=1))[0]
+        if len(out):
+            k = int(out[0])
+            raise ConfigError(
+                f"scene '{scene.name}': particle {k} at {np.round(x[k], 6).tolist()} lies outside the region "
+                f"[{np.round(lo, 6).tolist()}, {np.round(hi, 6).tolist()}) where the {s.width}-node window of "
+                f"{s.describe()} stays on the grid; enlarge the domain by a cell on each side or choose shape "
+                f"quadratic.")
+    return lo, hi

@@ -25,7 +25,7 @@ import numpy as np
 from omegaconf import MISSING
 
 from ..config import TaskConfig, register_task_schema
-from ..config import build_scene, check_run_options, make_transfer_from_config
+from ..config import build_scene, check_run_options, make_transfer_from_config, shape_options_from_config
 from ..core.errors import ConfigError
 from .common import RECORDING, SUMMARY, save_figure, write_config, write_json
 
@@ -180,6 +180,7 @@ def run(cfg, ctx) -> dict:
     tc = cfg.task
     scene = build_scene(cfg)
     transfer = make_transfer_from_config(cfg)
+    shape_opts = shape_options_from_config(cfg, scene, transfer)
     backend, precision = cfg.backend.name, cfg.precision.name
     ad = adapter_for_backend(backend, precision)
     ad.before_build(tc)                     # JAX: XLA options that must precede the first computation
@@ -207,7 +208,7 @@ def run(cfg, ctx) -> dict:
         raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
     write_config(out, cfg, True)
 
-    stepper = build_stepper(scene, backend, transfer, precision)
+    stepper = build_stepper(scene, backend, transfer, precision, **shape_opts)
     for p in params:
         p.bind(scene, stepper, list(scene_boundary_names(cfg)))
     fit = Fit(stepper, scene, params, observation, schedule, segment=int(tc.segment))

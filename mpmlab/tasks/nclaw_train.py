@@ -28,7 +28,7 @@ from typing import Any, Dict
 import numpy as np
 
 from ..config import TaskConfig, register_task_schema
-from ..config import build_scene, check_run_options, make_transfer_from_config
+from ..config import build_scene, check_run_options, make_transfer_from_config, shape_options_from_config
 from ..core.errors import ConfigError
 from .common import RECORDING, SUMMARY, save_figure, write_config, write_json
 
@@ -146,6 +146,7 @@ def run(cfg, ctx) -> dict:
                           "mpmlab -m experiment=nclaw_datasets).")
     scene = build_scene(cfg)
     transfer = make_transfer_from_config(cfg)
+    shape_opts = shape_options_from_config(cfg, scene, transfer)
     backend, precision = cfg.backend.name, cfg.precision.name
     ad = adapter_for_backend(backend, precision)
     ad.before_build(tc)
@@ -164,7 +165,7 @@ def run(cfg, ctx) -> dict:
     if (out / SUMMARY).exists() and not ctx.overwrite and not (tc.resume and ckpt.exists()):
         raise ConfigError(f"{out / SUMMARY} exists; choose another hydra.run.dir or set output.overwrite=true.")
 
-    stepper = build_stepper(scene, backend, transfer, precision)
+    stepper = build_stepper(scene, backend, transfer, precision, **shape_opts)
     method = str(tc.method)
     if method not in ("teacher", "labeled", "sysid"):
         raise ConfigError(f"task.method = '{method}': use teacher (NCLaw's training), labeled or sysid (its baselines).")

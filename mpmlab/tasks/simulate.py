@@ -28,7 +28,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from ..build import build_scene, make_transfer_from_config
+from ..build import build_scene, make_transfer_from_config, shape_options_from_config
 from ..config import TaskConfig, check_run_options, register_task_schema
 from ..core.errors import ConfigError, SimulationDiverged
 from ..core.signals import stop_reason
@@ -135,6 +135,7 @@ def run(cfg, ctx) -> dict:
     check_run_options(cfg)
     scene = build_scene(cfg)
     transfer = make_transfer_from_config(cfg)
+    shape_opts = shape_options_from_config(cfg, scene, transfer)    # transfer.shape: checked before anything is written
     backend, precision = cfg.backend.name, cfg.precision.name
     every, steps = int(cfg.frame_every), int(cfg.steps)
     fields = stored_fields(list(cfg.output.fields), scene, transfer)
@@ -161,7 +162,7 @@ def run(cfg, ctx) -> dict:
     check_output_sizes(cfg, scene, out, steps, every, written)
     plan = runout_plan(cfg, scene)      # the run-out analysis (task.runout), its options checked here
 
-    options = {}
+    options = dict(shape_opts)
     if cfg.backend.check_every is not None:
         options["check_every"] = int(cfg.backend.check_every)
     if cfg.backend.device is not None or cfg.debug:
@@ -330,6 +331,7 @@ def run(cfg, ctx) -> dict:
         **({"devices": options["devices"]} if "devices" in options else {}),   # one run sharded over N devices
         "transfer": transfer.name,
         "transfer_options": transfer.options(),
+        "shape": shape_opts.get("shape", "quadratic"),
         "precision": precision,
         "laws": [g.law.name for g in P.groups],
         "dim": scene.dim,

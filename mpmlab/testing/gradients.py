@@ -23,12 +23,13 @@ KEYS = ("x", "v", "law", "law_weights")
 _SCALE = {"x": 0.01}
 
 
-def _stepper(law, backend, transfer, dim):
+def _stepper(law, backend, transfer, dim, shape="quadratic"):
     import mpmlab
 
     from .scenes import gradient_scene
 
-    return mpmlab.build_stepper(gradient_scene(law, dim), backend, transfer, "fp64")
+    return mpmlab.build_stepper(gradient_scene(law, dim), backend, transfer, "fp64",
+                                **({} if shape == "quadratic" else {"shape": shape}))
 
 
 def leaf(c, key):
@@ -79,20 +80,20 @@ def _direction(key, base, rng, to, scale=None):
 
 
 def check_gradients(law, backend: str, transfer: str = "apic", dim: int = 2, *, keys=KEYS, steps=STEPS,
-                    tol: float = 1e-6, seed: int = 0, min_derivative: float = 1e-9) -> dict:
+                    tol: float = 1e-6, seed: int = 0, min_derivative: float = 1e-9, shape: str = "quadratic") -> dict:
     """Central differences vs reverse-mode AD (``jax.grad`` / torch autograd through Warp) of the kit's
     observation loss, w.r.t. each of ``keys``: ``x``, ``v`` (initial positions, velocities), ``law``
     (the per-particle parameters; skipped for laws without), ``law_weights`` (shared weights; skipped for
-    laws without). fp64;
+    laws without). fp64; ``shape``: the shape function (``mpmlab.shapes``) the stepper runs with;
     the relative error at the best step must be <= ``tol`` and |<grad, d>| > ``min_derivative``.
 
     Returns ``{key: {"error": e, "derivative": <grad, d>}}``."""
     name = law_name(law)
-    st = _stepper(law, backend, transfer, dim)
+    st = _stepper(law, backend, transfer, dim, shape)
     c = st.controls()
     keys = [k for k in keys if not (k == "law_weights" and not c["law_weights"][0])
             and not (k == "law" and not st.groups[0].law.param_names())]   # a law without parameters
-    where = f"law '{name}' {dim}D {backend} {transfer}"
+    where = f"law '{name}' {dim}D {backend} {transfer}" + ("" if shape == "quadratic" else f" shape {shape}")
     if backend == "jax":
         res = _jax(st, c, keys, steps, seed)
     elif backend == "warp":

@@ -41,41 +41,63 @@ def conservation_scene(dim: int, *, law: str = LAW):
                         gravity=[0.0] * dim, dt=1e-3, name=f"conservation_{dim}d")
 
 
-def momenta(x, v, C, mass: np.ndarray, dx: float, dim: int):
+def inertia(shape, x, origin, dx: float, lp=None) -> np.ndarray:
+    """D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T [N, D, D] of particles at ``x`` for a separable shape
+    function (``mpmlab.shapes``; NumPy reference weights, fp64): diagonal, dx^2 sum_k w_ka (k - fx_a)^2."""
+    import importlib
+
+    from ..shapes import make_shape
+
+    s = make_shape(shape)
+    ref = importlib.import_module(f"{type(s).__module__}.reference")
+    X = (np.asarray(x, float) - np.asarray(origin, float)) / dx
+    fx = X - np.floor(X - s.offset)
+    N, D = fx.shape
+    lp_ = None if lp is None else np.broadcast_to(np.asarray(lp, float)[:, None], (N, D))
+    w, _ = ref.weights_1d(fx, lp_)                                      # [N, D, W]
+    k = np.arange(w.shape[-1], dtype=float)
+    Dc = (w * (k[None, None, :] - fx[..., None]) ** 2).sum(-1)        # [N, D]
+    return dx * dx * np.eye(D)[None] * Dc[:, None, :]
+
+
+def momenta(x, v, C, mass: np.ndarray, dx: float, dim: int, D=None):
     """Total linear momentum sum m v and angular momentum about the origin sum m (x x v) plus each
-    particle's affine spin m (dx^2/4) eps : C^T (the angular momentum its C puts on the grid for
-    quadratic B-splines, D = dx^2/4 I; Jiang et al. 2015 Sec. 5.3)."""
+    particle's affine spin m eps : (C D_p)^T (the angular momentum its C puts on the grid; Jiang et al.
+    2015 Sec. 5.3). ``D``: D_p [N, D, D] (:func:`inertia`), None for quadratic B-splines' dx^2/4 I."""
     x, v = np.asarray(x, float), np.asarray(v, float)
     m = np.asarray(mass, float)
     P = (m[:, None] * v).sum(0)
     C = np.zeros((len(m), dim, dim)) if C is None else np.asarray(C, float)
-    s = dx * dx / 4.0
+    B = (dx * dx / 4.0) * C if D is None else np.einsum("nij,njk->nik", C, D)
     if dim == 2:
-        L = np.array([(m * (x[:, 0] * v[:, 1] - x[:, 1] * v[:, 0] + s * (C[:, 1, 0] - C[:, 0, 1]))).sum()])
+        L = np.array([(m * (x[:, 0] * v[:, 1] - x[:, 1] * v[:, 0] + (B[:, 1, 0] - B[:, 0, 1]))).sum()])
     else:
-        spin = np.stack([C[:, 2, 1] - C[:, 1, 2], C[:, 0, 2] - C[:, 2, 0], C[:, 1, 0] - C[:, 0, 1]], -1)
-        L = (m[:, None] * (np.cross(x, v) + s * spin)).sum(0)
+        spin = np.stack([B[:, 2, 1] - B[:, 1, 2], B[:, 0, 2] - B[:, 2, 0], B[:, 1, 0] - B[:, 0, 1]], -1)
+        L = (m[:, None] * (np.cross(x, v) + spin)).sum(0)
     return P, L
 
 
 def check_conservation(transfer, dim: int, backend: str, *, steps: int = 40, tol: float = 1e-11,
-                       quantities=None) -> dict:
+                       quantities=None, shape: str = "quadratic") -> dict:
     """Over ``steps`` fp64 steps of ``conservation_scene``, each quantity the scheme declares in
     ``conserves`` (or ``quantities``) stays within ``tol`` of its initial value, relative to its
     magnitude (angular momentum about the block's centroid scale). Returns the drift by quantity and,
-    for information, the drift of the quantities it does not declare."""
+    for information, the drift of the quantities it does not declare. ``shape``: the shape function
+    (``mpmlab.shapes``) the stepper runs with; the affine spin counts its D_p (:func:`inertia`)."""
     import mpmlab
 
     inst, name = _transfer(transfer)
     declared = set(inst.conserves if quantities is None else quantities)
     scene = conservation_scene(dim)
-    st = mpmlab.build_stepper(scene, backend, name, "fp64")
+    st = mpmlab.build_stepper(scene, backend, name, "fp64", **({} if shape == "quadratic" else {"shape": shape}))
+    lp = getattr(st, "_lp", None)
+    Dp = (lambda x: None) if shape == "quadratic" else (lambda x: inertia(shape, x, scene.origin, scene.dx, lp))
     fields = ("C",) if inst.needs_affine else ()
     traj = st.rollout(steps=steps, every=1, fields=fields)
     mass = traj.mass
     C = traj.fields.get("C")
     frame = lambda k: (traj.x[k], traj.v[k], None if C is None else C[k])      # noqa: E731
-    P0, L0 = momenta(*frame(0), mass, scene.dx, dim)
+    P0, L0 = momenta(*frame(0), mass, scene.dx, dim, Dp(traj.x[0]))
     # scales: total mass x the block's speeds (drift and spin) so a conserved zero component is tested too
     M = float(np.sum(mass))
     r = 0.1 * np.sqrt(dim)
@@ -83,10 +105,10 @@ def check_conservation(transfer, dim: int, backend: str, *, steps: int = 40, tol
     l_scale = float(M * r * r * 4.0 + np.linalg.norm(L0))
     drift = {"linear_momentum": 0.0, "angular_momentum": 0.0}
     for k in range(1, traj.frame_count):
-        P, L = momenta(*frame(k), mass, scene.dx, dim)
+        P, L = momenta(*frame(k), mass, scene.dx, dim, Dp(traj.x[k]))
         drift["linear_momentum"] = max(drift["linear_momentum"], float(np.abs(P - P0).max()) / p_scale)
         drift["angular_momentum"] = max(drift["angular_momentum"], float(np.abs(L - L0).max()) / l_scale)
-    where = f"transfer '{name}' {dim}D {backend} fp64, {steps} steps"
+    where = f"transfer '{name}' {dim}D {backend} fp64, {steps} steps" + ("" if shape == "quadratic" else f", shape {shape}")
     for q in sorted(declared):
         if q not in drift:
             fail(f"{where}: conserves '{q}' is not a quantity the kit measures ({sorted(drift)})")

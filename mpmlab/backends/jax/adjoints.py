@@ -1,8 +1,10 @@
 """Hand-written adjoints of the JAX step's two transfers (issue 17): P2G and G2P as ``jax.custom_vjp``.
 
 The step (``stepper.py``) moves particle data to the grid with one windowed ``scatter_add`` of a
-``[N, 3, .., 3, K]`` block (P2G, JAX-MPM Eqs. 10-12) and back with one windowed ``gather`` followed by
-separable contractions with the B-spline weights (G2P, Eqs. 15-18). Reverse mode (JAX-MPM Eqs. 24-26:
+``[N, W, .., W, K]`` block (P2G, JAX-MPM Eqs. 10-12) and back with one windowed ``gather`` followed by
+separable contractions with the shape function's weights (G2P, Eqs. 15-18). W is the shape function's
+window (``mpmlab.shapes``: 3 for quadratic B-splines and uGIMP, 4 for cubic B-splines), read from the
+weights' shape ``[N, W, D]``; everything below holds for any W. Reverse mode (JAX-MPM Eqs. 24-26:
 the adjoint of the one-step map Phi, applied step by step backwards) needs the transpose of both.
 
 What XLA derives for them is correct but slow on the CPU: the block is built by broadcasting
@@ -15,7 +17,7 @@ layout the forward uses, no ``reduce`` op anywhere:
 * **P2G adjoint = a G2P.** The cotangent of the block is a windowed ``gather`` of the grid cotangent
   at the particle's base node (the transpose of the scatter), and the cotangents of the per-particle
   columns ``lin``, ``acol_d``, ``gcol_e`` are its contractions with the stencil weights -- the same
-  separable 3-term sums G2P computes (:func:`contract`, kinds ``w``, ``o``, ``d``).
+  separable W-term sums G2P computes (:func:`contract`, kinds ``w``, ``o``, ``d``).
 * **G2P adjoint = a P2G.** The cotangent of the gathered block is the outer-product expansion of the
   contractions' cotangents (the transpose of :func:`contract`, level by level), scattered to the grid
   with the same windowed ``scatter_add`` the forward P2G uses (the transpose of the gather).
@@ -51,13 +53,15 @@ def materialize(tree, pred):
 
 
 # ---- the stencil's weight kinds ---------------------------------------------------------------------------
-# Per axis d and stencil node k in {0, 1, 2}: "w" = w[k, d] (weights), "o" = k w[k, d] (first moment: the
+# Per axis d and stencil node k in {0, .., W-1} (W = the shape function's window, ``w1.shape[1]``: 3 for
+# quadratic B-splines and uGIMP, 4 for cubic): "w" = w[k, d] (weights), "o" = k w[k, d] (first moment: the
 # node offset o_d times the weight; APIC / the affine P2G terms), "d" = dw[k, d] (d w / d x_d: velocity
 # gradient / force). None marks a zero factor (k = 0 of "o").
 def kind_weights(w1, dw1, D):
-    return {"w": [[w1[:, k, d] for k in range(3)] for d in range(D)],
-            "o": [[None, w1[:, 1, d], 2.0 * w1[:, 2, d]] for d in range(D)],
-            "d": [[dw1[:, k, d] for k in range(3)] for d in range(D)]}
+    W = w1.shape[1]
+    return {"w": [[w1[:, k, d] for k in range(W)] for d in range(D)],
+            "o": [[None, w1[:, 1, d]] + [float(k) * w1[:, k, d] for k in range(2, W)] for d in range(D)],
+            "d": [[dw1[:, k, d] for k in range(W)] for d in range(D)]}
 
 
 def _sum_to_particles(x):
@@ -84,7 +88,7 @@ def _run_levels(block, kinds, specs, pred, D):
         for key in keys:
             src, wk = cur[key[1:]], kinds[key[0]][d]
             terms = [src[(slice(None),) * (d + 1) + (k,)] * wk[k][(slice(None),) + (None,) * (d + 1)]
-                     for k in range(3) if wk[k] is not None]
+                     for k in range(len(wk)) if wk[k] is not None]
             acc = terms[0]
             for t in terms[1:]:
                 acc = acc + t
@@ -96,8 +100,8 @@ def _run_levels(block, kinds, specs, pred, D):
 def contract(block, w1, dw1, specs, pred, D):
     """``{name: sum_o prod_d kind_d[o_d] block[o]}`` ([N, K] each) for ``specs`` {name: kinds per axis}.
 
-    Separable contractions of the ``[N, 3, .., 3, K]`` block, one stencil axis at a time (the last
-    first): each level is one stacked elementwise pass of explicit 3-term slice sums, materialised
+    Separable contractions of the ``[N, W, .., W, K]`` block, one stencil axis at a time (the last
+    first): each level is one stacked elementwise pass of explicit W-term slice sums, materialised
     before the next (XLA CPU would otherwise fuse the levels into every consumer and redo the 3^D sums
     per output; ``jnp.sum`` over small middle axes is also slow there)."""
     _, cur = _run_levels(block, kind_weights(w1, dw1, D), specs, pred, D)
@@ -107,14 +111,14 @@ def contract(block, w1, dw1, specs, pred, D):
 def contract_transpose(block, w1, dw1, specs, cts, pred, D, need_block=True, levels=None):
     """The adjoint of :func:`contract`: ``(ct_block or None, ct_w1, ct_dw1)`` for output cotangents
     ``cts`` {name: [N, K]}. Level by level in the reverse order of :func:`contract`: a level's output
-    cotangent spreads over its source's 3 nodes times the weights (the transpose of the 3-term sum),
+    cotangent spreads over its source's W nodes times the weights (the transpose of the W-term sum),
     and the weights' cotangents are the level's output cotangent dotted with the source slices.
     ``levels``: :func:`_run_levels` of the same block when the caller has it (not recomputed)."""
     kinds = kind_weights(w1, dw1, D)
-    N = block.shape[0]
+    N, W = block.shape[0], w1.shape[1]
     srcs, _ = levels if levels is not None else _run_levels(block, kinds, specs, pred, D)   # the sources
-    gw = [[None] * 3 for _ in range(D)]                      # cotangents of w1[:, k, d]
-    gd = [[None] * 3 for _ in range(D)]                      # ... of dw1[:, k, d]
+    gw = [[None] * W for _ in range(D)]                      # cotangents of w1[:, k, d]
+    gd = [[None] * W for _ in range(D)]                      # ... of dw1[:, k, d]
 
     def add(store, d, k, val):
         store[d][k] = val if store[d][k] is None else store[d][k] + val
@@ -132,7 +136,7 @@ def contract_transpose(block, w1, dw1, specs, cts, pred, D, need_block=True, lev
                 continue
             src, kind = src_level[key[1:]], key[0]
             wk = kinds[kind][d]
-            for k in range(3):
+            for k in range(W):
                 if wk[k] is None:
                     continue
                 dot = _sum_to_particles(g * src[(slice(None),) * (d + 1) + (k,)])     # [N]
@@ -146,22 +150,22 @@ def contract_transpose(block, w1, dw1, specs, cts, pred, D, need_block=True, lev
                 continue
             zero = jnp.zeros_like(g)
             spread = jnp.stack([g * wk[k][(slice(None),) + (None,) * (d + 1)] if wk[k] is not None else zero
-                                for k in range(3)], axis=d + 1)
+                                for k in range(W)], axis=d + 1)
             nxt[key[1:]] = spread if key[1:] not in nxt else nxt[key[1:]] + spread
         ct = materialize(nxt, pred) if (d < D - 1 and nxt) else nxt
     zero = jnp.zeros((N,), w1.dtype)
-    col = lambda store, d: jnp.stack([a if a is not None else zero for a in store[d]], axis=1)   # [N, 3]
-    ct_w1 = jnp.stack([col(gw, d) for d in range(D)], axis=-1)                                  # [N, 3, D]
+    col = lambda store, d: jnp.stack([a if a is not None else zero for a in store[d]], axis=1)   # [N, W]
+    ct_w1 = jnp.stack([col(gw, d) for d in range(D)], axis=-1)                                  # [N, W, D]
     ct_dw1 = jnp.stack([col(gd, d) for d in range(D)], axis=-1)
     return (ct.get(()) if need_block else None), ct_w1, ct_dw1
 
 
 # ---- the two transfers -------------------------------------------------------------------------------------
 def outer(factors, N, D):
-    """Per-axis [N, 3] factors -> their outer product [N, 3, .., 3]."""
+    """Per-axis [N, W] factors -> their outer product [N, W, .., W]."""
     out = None
     for d, f in enumerate(factors):
-        f = f.reshape((N,) + tuple(3 if e == d else 1 for e in range(D)))
+        f = f.reshape((N,) + tuple(f.shape[-1] if e == d else 1 for e in range(D)))
         out = f if out is None else out * f
     return out
 
@@ -177,14 +181,14 @@ def _gather_dn(D):
 
 
 def p2g_plain(base, w1, dw1, lin, acol, gcol, pred, gshape):
-    """The P2G scatter: grid [*gshape, K] of the ``[N, 3^D, K]`` block, node o of a particle getting
+    """The P2G scatter: grid [*gshape, K] of the ``[N, W^D, K]`` block, node o of a particle getting
     ``w_o (lin + sum_d o_d acol_d) + sum_e (grad w_o)_e gcol_e`` (JAX-MPM Eqs. 10-12; ``acol`` /
     ``gcol``: lists of D [N, K] columns or None). One windowed ``scatter_add`` at the base node."""
     del pred
     N, D, K = lin.shape[0], len(gshape), lin.shape[-1]
     dtype = lin.dtype
-    O = [jnp.asarray(o, dtype) for o in np.indices((3,) * D)]    # node offset along each axis, [3]*D
-    W = outer([w1[:, :, d] for d in range(D)], N, D)                      # [N, 3^D]
+    O = [jnp.asarray(o, dtype) for o in np.indices((w1.shape[1],) * D)]   # node offset along each axis, [W]*D
+    W = outer([w1[:, :, d] for d in range(D)], N, D)                      # [N, W^D]
     lanes = (slice(None),) + (None,) * D + (slice(None),)                  # [N, K] -> [N, 1.., K]
     field = lin[lanes]
     if acol is not None:
@@ -198,10 +202,10 @@ def p2g_plain(base, w1, dw1, lin, acol, gcol, pred, gshape):
     return jax.lax.scatter_add(jnp.zeros(tuple(gshape) + (K,), dtype), base, vals, _scatter_dn(D))
 
 
-def gather_block(grid, base, D, mode):
-    """The windowed gather of each particle's 3^D stencil: grid [*gshape, K] -> [N, 3, .., 3, K]."""
+def gather_block(grid, base, D, mode, width=3):
+    """The windowed gather of each particle's width^D stencil: grid [*gshape, K] -> [N, W, .., W, K]."""
     K = grid.shape[-1]
-    return jax.lax.gather(grid, base, _gather_dn(D), slice_sizes=(3,) * D + (K,), mode=mode, fill_value=0
+    return jax.lax.gather(grid, base, _gather_dn(D), slice_sizes=(int(width),) * D + (K,), mode=mode, fill_value=0
                           if mode == jax.lax.GatherScatterMode.FILL_OR_DROP else None)
 
 
@@ -209,7 +213,7 @@ def g2p_plain(grid, base, w1, dw1, pred, specs):
     """The G2P gather: ``{name: [N, Kg]}``, the separable contractions ``specs`` of each particle's
     gathered stencil block (JAX-MPM Eqs. 15-18). ``grid``: [*gshape, Kg]."""
     D = grid.ndim - 1
-    block = gather_block(grid, base, D, jax.lax.GatherScatterMode.CLIP)
+    block = gather_block(grid, base, D, jax.lax.GatherScatterMode.CLIP, w1.shape[1])
     return contract(block, w1, dw1, specs, pred, D)
 
 
@@ -229,7 +233,7 @@ def _p2g_transpose(res, ct_grid):
     scatter), then contract it like a G2P (columns) and dot it with the columns (weights)."""
     base, w1, dw1, lin, acol, gcol, pred = res
     D = ct_grid.ndim - 1
-    ctb = gather_block(ct_grid, base, D, jax.lax.GatherScatterMode.FILL_OR_DROP)    # [N, 3^D, K]
+    ctb = gather_block(ct_grid, base, D, jax.lax.GatherScatterMode.FILL_OR_DROP, w1.shape[1])    # [N, W^D, K]
     specs = _p2g_specs(D, acol is not None, gcol is not None)
     levels = _run_levels(ctb, kind_weights(w1, dw1, D), specs, pred, D)      # once, for both uses below
     c = {name: levels[1][sp] for name, sp in specs.items()}
@@ -249,7 +253,7 @@ def _g2p_transpose(res, specs, cts):
     block) scattered to the grid (the transpose of the gather), and the weights' cotangents."""
     grid, base, w1, dw1, pred = res
     D = grid.ndim - 1
-    block = gather_block(grid, base, D, jax.lax.GatherScatterMode.CLIP)
+    block = gather_block(grid, base, D, jax.lax.GatherScatterMode.CLIP, w1.shape[1])
     ct_block, ct_w1, ct_dw1 = contract_transpose(block, w1, dw1, specs, cts, pred, D)
     if ct_block is None:
         ct_block = jnp.zeros_like(block)

@@ -71,7 +71,8 @@ def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
         raise ConfigError(f"controls have {len(c['boundary'])} boundary entries; the scene has {len(stepper._bc_order)}.")
     weights = tuple(c["law_weights"]) if "law_weights" in c else stepper.default_params()["law_weights"]
     params = {"law": tuple(c["law"]), "law_weights": weights, "mass": c["mass"], "volume": c["volume"],
-              "gravity": c["gravity"], "boundary": tuple(c["boundary"][i] for i in stepper._bc_order)}   # scene -> stepper order
+              "gravity": c["gravity"], "boundary": tuple(c["boundary"][i] for i in stepper._bc_order),   # scene -> stepper order
+              **stepper._shape_params()}      # uGIMP's lp: a constant of the run, not a control
     return stepper.to_layout(state, params)
 
 
@@ -117,7 +118,7 @@ def step_bytes(stepper) -> int:
         except Exception:  # noqa: BLE001 -- a JAX without it: the per-particle scratch of a step, from shapes
             N, D = stepper.particles.count, stepper.dim
             K = D + 1 + (D if stepper.transfer.split_force else 0)
-            total += N * (3**D) * K * np.dtype(stepper.dtype).itemsize * 4
+            total += N * (int(stepper.shape.width) ** D) * K * np.dtype(stepper.dtype).itemsize * 4
         cache["b"] = int(total)
     return cache["b"]
 
@@ -146,7 +147,7 @@ def schedule(steps) -> tuple[int, int, int, np.ndarray]:
 def _invalid(stepper, state):
     """True where the state has a non-finite x/v or a particle outside the domain interior (the Warp
     path raises there; a JAX gather would silently clip)."""
-    lo, hi = stepper.scene.inner_bounds
+    lo, hi = stepper.inner_bounds          # the scene's, narrower for a wider shape window (cubic)
     x, v = state["x"], state["v"]
     return (~jnp.all(jnp.isfinite(x)) | ~jnp.all(jnp.isfinite(v)) | jnp.any((x < jnp.asarray(lo, x.dtype))
             | (x >= jnp.asarray(hi, x.dtype))))

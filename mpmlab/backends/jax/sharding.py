@@ -100,14 +100,14 @@ def check_devices(devices, group_sizes=()) -> int:
 class ShardedJaxStepper(JaxStepper):
     """``JaxStepper`` whose particles are split over ``devices`` devices (the module docstring)."""
 
-    def __init__(self, scene, transfer, precision="fp32", check_every=None, devices=2):
+    def __init__(self, scene, transfer, precision="fp32", check_every=None, devices=2, shape="quadratic"):
         n = check_devices(devices, [g.count for g in scene.particles().groups])
         by_index = [b.name for b in scene.boundaries if b.stage != "grid"]
         if by_index:
             raise ConfigError(f"backend.devices = {n}: boundary '{by_index[0]}' acts on particles by index, "
                               f"which the sharded stepper does not support yet; run this scene with "
                               f"backend.devices=1.")
-        super().__init__(scene, transfer, precision, check_every)
+        super().__init__(scene, transfer, precision, check_every, shape=shape)
         self.devices = n
         self.mesh = Mesh(np.array(jax.devices()[:n]), (AXIS,))
         self._rows = NamedSharding(self.mesh, P(AXIS))
@@ -150,6 +150,8 @@ class ShardedJaxStepper(JaxStepper):
             params["law"] = group_rows(params["law"])
             for k in ("mass", "volume"):            # the clones are massless: their P2G terms are exact zeros
                 params[k] = self._put(jnp.where(self._real, params[k][self._src], 0.0), self._rows)
+            if "lp" in params:                      # uGIMP's particle half widths: a clone keeps its twin's
+                params["lp"] = rows(params["lp"])
         return state, params
 
     def to_scene_order(self, state):
@@ -173,7 +175,7 @@ class ShardedJaxStepper(JaxStepper):
     @cached_property
     def unsharded(self) -> JaxStepper:
         """The single-device stepper of the same scene (NaN-gradient replays run on it)."""
-        return JaxStepper(self.scene, self.transfer, self.precision, self.check_every)
+        return JaxStepper(self.scene, self.transfer, self.precision, self.check_every, shape=self.shape)
 
     # ---- the step ----------------------------------------------------------------------------------
     def _sum_grid(self, grid):
@@ -183,7 +185,7 @@ class ShardedJaxStepper(JaxStepper):
         """``JaxStepper.step_fn`` on each device's block (shard_map), the P2G sums all-reduced."""
         rows, same = P(AXIS), P()
         st_spec = {k: (same if k == "t" else rows) for k in state}
-        pr_spec = {k: (rows if k in ("law", "mass", "volume") else same) for k in params}
+        pr_spec = {k: (rows if k in ("law", "mass", "volume", "lp") else same) for k in params}
         local = lambda s, p, dt_: JaxStepper.step_fn(self, s, p, dt_)
         if dt is None:                               # the build-time dt stays a constant of the program
             return jax.shard_map(lambda s, p: local(s, p, None), mesh=self.mesh, in_specs=(st_spec, pr_spec),

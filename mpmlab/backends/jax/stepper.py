@@ -47,20 +47,13 @@ def _per_mass_jvp(primals, tangents):
     return v, (dq - v * dm) / m
 
 
-def bspline_weights(fx):
-    """Quadratic B-spline weights and derivatives (in cell units) for fx = x/dx - base in [0.5, 1.5)."""
-    w = jnp.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2], axis=1)  # [N, 3, D]
-    dw = jnp.stack([fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5], axis=1)
-    return w, dw
-
-
 _materialize = adjoints.materialize      # (kept under its old name)
 
 
 class JaxStepper(BaseStepper):
     backend_name = "jax"
 
-    def __init__(self, scene, transfer, precision="fp32", check_every=None, adjoints="custom"):
+    def __init__(self, scene, transfer, precision="fp32", check_every=None, adjoints="custom", shape="quadratic"):
         super().__init__(scene, transfer, precision, check_every)
         if adjoints not in ADJOINTS:
             raise ConfigError(f"adjoints = {adjoints!r}: 'custom' (hand-written P2G/G2P adjoints, "
@@ -75,8 +68,22 @@ class JaxStepper(BaseStepper):
         self.node_count = int(np.prod(self.grid_shape))
         strides = np.cumprod((1,) + self.grid_shape[::-1][:-1])[::-1]
         self._strides = jnp.asarray(strides.copy(), dtype=jnp.int32)
-        self._offsets = np.array(list(itertools.product(range(3), repeat=D)), dtype=np.int32)  # [S, D]
-        self._tf = transfer_functions(transfer, D, dtype)   # the scheme's p2g / g2p (mpmlab/transfers/<name>/jax.py)
+        # the shape function (mpmlab.shapes; issue 19): its window, its weights and, for a shape that uses the
+        # particle size (uGIMP), each particle's half width lp in cells (fixed at its initial value: a
+        # constant of the run, params["lp"], never a control)
+        from ...shapes import inner_bounds, resolve
+
+        self.shape, lp = resolve(shape, transfer, D, scene.dx, self.particles.volume)
+        self._shape_fns = self.shape.implementation("jax", "shape")(self.shape, D)
+        self._lp = None if lp is None else np.asarray(lp, np.float64)
+        #: the region a particle may occupy: its width^D window must stay on the grid (the scene's own
+        #: ``inner_bounds`` for the 3-node shapes; one cell less on each side for cubic B-splines)
+        self.inner_bounds = inner_bounds(self.shape, scene)
+        inner_bounds(self.shape, scene, self.particles.x)          # refuses particles outside it, one line
+        W = int(self.shape.width)
+        self._offsets = np.array(list(itertools.product(range(W), repeat=D)), dtype=np.int32)  # [S, D]
+        # the scheme's p2g / g2p (mpmlab/transfers/<name>/jax.py), checked with the Dinv it will see
+        self._tf = transfer_functions(transfer, D, dtype, per_particle_Dinv=self.shape.inv_D_cells is None)
         self._laws = []
         for g in self.groups:
             self._laws.append(law_functions(g.law, D, dtype))
@@ -121,7 +128,14 @@ class JaxStepper(BaseStepper):
             "volume": jnp.asarray(P.volume, self.dtype),
             "gravity": jnp.asarray(self.scene.gravity, self.dtype),
             "boundary": tuple(b.params for b in self._grid_bcs + self._particle_bcs + self._force_bcs),
+            **self._shape_params(),
         }
+
+    def _shape_params(self) -> dict:
+        """``{"lp": [N]}`` for a shape function that uses the particle size (uGIMP), else ``{}``: a constant
+        of the run kept with the per-particle parameters so that a sharded stepper lays it out with them
+        (``step_fn`` stops its gradient; it is not a control)."""
+        return {} if self._lp is None else {"lp": jnp.asarray(self._lp, self.dtype)}
 
     # ---- the state's layout (identity here; a sharded stepper reorders and pads particles) ---------
     def to_layout(self, state=None, params=None):
@@ -159,15 +173,17 @@ class JaxStepper(BaseStepper):
     def step_fn(self, state, params, dt=None, *, particle_bcs: bool = True, update_law: bool = True):
         """One explicit MPM step (JAX-MPM Sec. 2.2; NCLaw Alg. 3) with the scheme's transfer math, pure.
 
-        Layout for speed on CPU (the math is the textbook one): each particle's 3^D stencil is one
-        *window* of the grid, so P2G is a single windowed ``lax.scatter_add`` of a ``[N, 3, .., 3, K]``
+        Layout for speed on CPU (the math is the textbook one): each particle's W^D stencil is one
+        *window* of the grid, so P2G is a single windowed ``lax.scatter_add`` of a ``[N, W, .., W, K]``
         block (K = mass, momentum [, force]) at the particle's base node and G2P a single windowed
-        ``lax.gather`` -- one index per particle instead of 3^D, and no [N*3^D] index arrays. Weights
+        ``lax.gather`` -- one index per particle instead of W^D, and no [N*W^D] index arrays. Weights
         are separable products; the affine terms are folded into one per-particle matrix
-        (``A = m C - 4 dt V / dx^2 tau`` for MLS). Both live in ``adjoints.py``; with ``self.adjoints ==
+        (``A = m C - dt V tau D^-1`` for MLS). Both live in ``adjoints.py``; with ``self.adjoints ==
         "custom"`` (the default) reverse mode uses their hand-written transposes (P2G's adjoint is a
         gather + G2P-like contractions, G2P's a P2G-like expansion + scatter, no XLA ``reduce``), with
-        ``"derived"`` the ones XLA derives; the forward values are identical. The transfer scheme supplies
+        ``"derived"`` the ones XLA derives; the forward values are identical. The window is the shape
+        function's (``self.shape``: W = 3 nodes per axis for quadratic B-splines and uGIMP, 4 for cubic
+        B-splines, lowest node ``floor(x/dx - offset)``); the transfer scheme supplies
         the per-particle terms (``p2g``) and what becomes of the gathered sums (``g2p``); this function
         contracts only the terms it declares (``AbstractTransfer``), it never branches on a scheme.
 
@@ -193,11 +209,14 @@ class JaxStepper(BaseStepper):
         split = bool(T.split_force)
         gshape = tuple(self.grid_shape)
 
-        # stencil -------------------------------------------------------------------------------------
+        # stencil: the shape function's window and weights ------------------------------------------------
+        shape = self.shape
         Xp = (x - self._node_x[0]) * inv_dx
-        base = jnp.floor(Xp - 0.5).astype(jnp.int32)
+        base = jnp.floor(Xp - shape.offset).astype(jnp.int32)
         fx = Xp - base
-        w1, dw1 = bspline_weights(fx)                                         # [N, 3, D]
+        lp = jax.lax.stop_gradient(params["lp"]) if "lp" in params else None
+        w1, dw1 = self._shape_fns.weights(fx, lp)                            # [N, W, D]
+        Dinv = self._Dinv(w1, fx, inv_dx)                                    # APIC's D_p^-1 (Jiang et al. 2015)
         dw1 = dw1 * inv_dx                                                  # d w / d x (not cell units)
 
         # stress (Kirchhoff) from each law present ----------------------------------------------------
@@ -210,10 +229,11 @@ class JaxStepper(BaseStepper):
         #   w_o (lin + sum_d o_d Acol_d) + sum_e (grad w_o)_e Gcol_e
         # with per-particle columns from the scheme's terms (P2GTerms: w (q + A (x_i - x_p)) + G grad w):
         # lin = q - A fx dx, Acol_d = A[:, d] dx, Gcol_e = G[:, e]; mass lin = m. They are computed once
-        # per particle and materialised so the [N, 3^D, K] block is a cheap elementwise expression of them.
+        # per particle and materialised so the [N, W^D, K] block is a cheap elementwise expression of them.
         zero = jnp.zeros((N, D), dtype)
         mv = lambda M, c: jnp.stack([sum(M[:, a, j] * c[:, j] for j in range(D)) for a in range(D)], -1)  # M c
-        pt = tf.p2g(SimpleNamespace(m=mass, V=vol, v=v, C=state.get("C"), tau=tau, dt=dt, inv_dx=inv_dx, dx=dx))
+        pt = tf.p2g(SimpleNamespace(m=mass, V=vol, v=v, C=state.get("C"), tau=tau, dt=dt, inv_dx=inv_dx, dx=dx,
+                                    Dinv=Dinv))
         q, A, G, Fm, Fg = pt.q, pt.A, pt.G, pt.force_A, pt.force_G
         ext = None
         for bc, bp in zip(self._force_bcs, bc_params[nb + len(self._particle_bcs):]):
@@ -271,7 +291,7 @@ class JaxStepper(BaseStepper):
         first = jnp.stack([out[f"o{d}"][:, :D] for d in range(D)], axis=-1) if "first" in T.moments else None
         grad = jnp.stack([out[f"d{e}"][:, :D] for e in range(D)], axis=-1) if "gradient" in T.moments else None  # Eq. 18
         res = tf.g2p(SimpleNamespace(v=v, v_pic=v_pic, v_old=out["v"][:, D:] if split else None, first=first,
-                                     grad=grad, fx=fx, inv_dx=inv_dx))
+                                     grad=grad, fx=fx, inv_dx=inv_dx, dx=dx, Dinv=Dinv))
         v_p, grad_v = res.v, res.grad_v
         if T.carries_C:
             new["C"] = res.C
@@ -293,6 +313,24 @@ class JaxStepper(BaseStepper):
             laws.append({k: a.astype(dtype) for k, a in upd.items()})
         new["law"] = tuple(laws)
         return new
+
+    def _Dinv(self, w1, fx, inv_dx):
+        """D_p^-1 in 1/length^2, as the schemes read it (``p.Dinv``, ``g.Dinv``; AbstractTransfer):
+
+        * a Python float c, D^-1 = c I for every particle, when the shape function's D_p is a constant
+          (B-splines: c = inv_D_cells / dx^2, 4/dx^2 quadratic, 3/dx^2 cubic): nothing per particle is
+          computed, and the schemes multiply by one number as before shape functions were a choice;
+        * an [N, D, D] array otherwise (uGIMP): diagonal, D_p[a, a] = dx^2 sum_k w_ka (k - fx_a)^2 from
+          the particle's own weights (separable and linearly complete, so the off-diagonal sums vanish).
+
+        ``mpmlab.transfers._common.jax.times_Dinv(M, Dinv)`` = M D^-1 takes either form."""
+        c = self.shape.inv_D_cells
+        if c is not None:
+            return float(c) * inv_dx * inv_dx
+        W, D = w1.shape[1], w1.shape[2]
+        r = jnp.arange(W, dtype=fx.dtype)[None, :, None] - fx[:, None, :]       # node offsets in cells [N, W, D]
+        Dc = jnp.sum(w1 * r * r, axis=1)                                          # [N, D]
+        return jnp.eye(D, dtype=fx.dtype) * ((inv_dx * inv_dx) / Dc)[:, None, :]
 
     def _advance_impl(self, state, params, steps, dt=None):
         def body(s, _):
@@ -322,7 +360,7 @@ class JaxStepper(BaseStepper):
 
     # ---- guards --------------------------------------------------------------------------------
     def _bad_impl(self, state):
-        lo, hi = self.scene.inner_bounds
+        lo, hi = self.inner_bounds
         bad = ~jnp.all(jnp.isfinite(state["x"])) | ~jnp.all(jnp.isfinite(state["v"]))
         bad = bad | jnp.any((state["x"] < lo) | (state["x"] >= hi))
         for g, st in zip(self.groups, state["law"]):

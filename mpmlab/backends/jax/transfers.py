@@ -15,14 +15,16 @@ import jax.numpy as jnp
 from ...core.errors import ConfigError
 
 
-def transfer_functions(transfer, dim: int, dtype=jnp.float64) -> SimpleNamespace:
+def transfer_functions(transfer, dim: int, dtype=jnp.float64, per_particle_Dinv: bool = False) -> SimpleNamespace:
+    """The scheme's JAX ``p2g`` / ``g2p``, traced once on the inputs the step will give them: ``Dinv`` a
+    Python float (B-spline shapes) or, with ``per_particle_Dinv`` (uGIMP), an [N, D, D] array."""
     transfer.check()
     where = transfer.describe()
     fns = transfer.implementation("jax", "transfer")(transfer, dim)
     for attr in ("p2g", "g2p"):
         if not callable(getattr(fns, attr, None)):
             raise ConfigError(f"{where}: its JAX factory gives no {attr}(...) (AbstractTransfer documents both).")
-    check_transfer(fns, transfer, dim, dtype)
+    check_transfer(fns, transfer, dim, dtype, per_particle_Dinv)
     return fns
 
 
@@ -30,17 +32,20 @@ def _first_line(e: Exception) -> str:
     return f"{type(e).__name__}: {e}".split("\n")[0]
 
 
-def check_transfer(fns, transfer, dim: int, dtype) -> None:
+def check_transfer(fns, transfer, dim: int, dtype, per_particle_Dinv: bool = False) -> None:
     N, D = 2, dim
     where = transfer.describe()
     S = lambda *shape: jax.ShapeDtypeStruct(shape, dtype)           # noqa: E731
     split = bool(transfer.split_force)
 
-    def p2g(m, V, v, C, tau):
-        return tuple(fns.p2g(SimpleNamespace(m=m, V=V, v=v, C=C, tau=tau, dt=1e-3, inv_dx=10.0, dx=0.1)))
+    Dinv = S(N, D, D) if per_particle_Dinv else None       # None: the float 400.0 (4 / dx^2, dx = 0.1)
+
+    def p2g(m, V, v, C, tau, Dinv):
+        return tuple(fns.p2g(SimpleNamespace(m=m, V=V, v=v, C=C, tau=tau, dt=1e-3, inv_dx=10.0, dx=0.1,
+                                             Dinv=400.0 if Dinv is None else Dinv)))
 
     try:
-        got = jax.eval_shape(p2g, S(N), S(N), S(N, D), S(N, D, D) if transfer.carries_C else None, S(N, D, D))
+        got = jax.eval_shape(p2g, S(N), S(N), S(N, D), S(N, D, D) if transfer.carries_C else None, S(N, D, D), Dinv)
     except Exception as e:  # noqa: BLE001 -- any failure here is the plugin's: say which and why
         raise ConfigError(f"{where}: its JAX p2g fails on the declared inputs: {_first_line(e)}") from None
     if len(got) != 5:
@@ -61,14 +66,14 @@ def check_transfer(fns, transfer, dim: int, dtype) -> None:
             raise ConfigError(f"{where}: JAX p2g returns {name} of shape {tuple(a.shape)} for {N} particles; "
                               f"it must be {shape}.")
 
-    def g2p(v, v_pic, v_old, first, grad, fx):
+    def g2p(v, v_pic, v_old, first, grad, fx, Dinv):
         return tuple(fns.g2p(SimpleNamespace(v=v, v_pic=v_pic, v_old=v_old, first=first, grad=grad, fx=fx,
-                                             inv_dx=10.0)))
+                                             inv_dx=10.0, dx=0.1, Dinv=400.0 if Dinv is None else Dinv)))
 
     try:
         res = jax.eval_shape(g2p, S(N, D), S(N, D), S(N, D) if split else None,
                              S(N, D, D) if "first" in transfer.moments else None,
-                             S(N, D, D) if "gradient" in transfer.moments else None, S(N, D))
+                             S(N, D, D) if "gradient" in transfer.moments else None, S(N, D), Dinv)
     except Exception as e:  # noqa: BLE001
         raise ConfigError(f"{where}: its JAX g2p fails on the declared moments {sorted(transfer.moments)}: "
                           f"{_first_line(e)}") from None

@@ -22,7 +22,8 @@ def _dn(r, xp):
     return xp.where(a < 1.0, inner, xp.where(a < 2.0, outer, 0.0 * a))
 
 
-def weights_1d(fx, lp=None, xp=np):
-    """(w, dw) of shape [..., 4]: N(fx - k) and dN/dx_p (cells) for k = 0 .. 3."""
-    r = xp.stack([fx - k for k in range(4)], axis=-1)
+def weights_1d(fx, lp=None, xp=np, axis=-1):
+    """(w, dw) of shape [..., 4]: N(fx - k) and dN/dx_p (cells) for k = 0 .. 3; ``axis``: where the node
+    axis goes."""
+    r = xp.stack([fx - k for k in range(4)], axis=axis)
     return _n(r, xp), _dn(r, xp)

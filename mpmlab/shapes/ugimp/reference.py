@@ -27,8 +27,9 @@ def _ds(r, lp, xp):
     return xp.where(a < lp, inner, xp.where(a <= 1.0 - lp, middle, xp.where(a < 1.0 + lp, outer, 0.0 * a)))
 
 
-def weights_1d(fx, lp, xp=np):
-    """(w, dw) of shape [..., 3]: S(fx - k) and dS/dx_p (cells) for k = 0, 1, 2; lp broadcasts with fx."""
-    r = xp.stack([fx - k for k in range(3)], axis=-1)
-    lp = lp[..., None]
+def weights_1d(fx, lp, xp=np, axis=-1):
+    """(w, dw) of shape [..., 3]: S(fx - k) and dS/dx_p (cells) for k = 0, 1, 2; lp broadcasts with fx;
+    ``axis``: where the node axis goes."""
+    r = xp.stack([fx - k for k in range(3)], axis=axis)
+    lp = xp.expand_dims(lp, axis)
     return _s(r, lp, xp), _ds(r, lp, xp)

@@ -1,14 +1,20 @@
-"""MLS-MPM on JAX (Hu et al. 2018: f_i = -sum V M^-1 tau (x_i - x_p) w, M^-1 = 4/dx^2)."""
+"""MLS-MPM on JAX (Hu et al. 2018: f_i = -sum V tau M^-1 (x_i - x_p) w, M^-1 = D^-1: ``p.Dinv``, 4/dx^2 I
+for quadratic B-splines)."""
 from __future__ import annotations
 
 from types import SimpleNamespace
 
+import jax.numpy as jnp
+
 from ...core.interfaces import G2PResult, P2GTerms
-from .._common.jax import apic_C, momentum
+from .._common.jax import apic_C, momentum, times_Dinv
 
 
 def p2g(p):
-    S = -(4.0 * p.inv_dx * p.inv_dx * p.dt) * p.V[:, None, None] * p.tau      # Hu et al. 2018
+    if jnp.ndim(p.Dinv) == 0:        # M^-1 = Dinv I (B-splines): one scalar factor (Hu et al. 2018)
+        S = -(p.Dinv * p.dt) * p.V[:, None, None] * p.tau
+    else:                            # per particle (uGIMP)
+        S = times_Dinv(-p.dt * p.V[:, None, None] * p.tau, p.Dinv)
     return P2GTerms(q=momentum(p), A=p.m[:, None, None] * p.C + S)
 
 

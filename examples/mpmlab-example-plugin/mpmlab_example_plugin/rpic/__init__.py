@@ -17,7 +17,8 @@ from mpmlab.core.interfaces import AbstractTransfer
 @dataclass(frozen=True)
 class RPIC(AbstractTransfer):
     """P2G: momentum m (v + C (x_i - x_p)) with C skew-symmetric, and the gradient force (JAX-MPM Eq. 12);
-    G2P: C = skew(B D^-1), D = dx^2/4 I; F updated with sum v_i (grad w)^T (JAX-MPM Eq. 18)."""
+    G2P: C = skew(B D^-1), D^-1 read as ``Dinv`` (dx^2/4 I for quadratic B-splines), so every shape function
+    works (``shapes = None``); F updated with sum v_i (grad w)^T (JAX-MPM Eq. 18)."""
 
     name: ClassVar[str] = "rpic"
     implementations: ClassVar[dict] = {"jax": "mpmlab_example_plugin.rpic.jax:make",
@@ -26,3 +27,4 @@ class RPIC(AbstractTransfer):
     momentum_terms: ClassVar[frozenset] = frozenset({"affine", "gradient"})
     moments: ClassVar[frozenset] = frozenset({"first", "gradient"})
     conserves: ClassVar[frozenset] = frozenset({"linear_momentum", "angular_momentum"})
+    shapes: ClassVar[frozenset | None] = None            # reads D^-1 as Dinv (mpmlab.shapes)

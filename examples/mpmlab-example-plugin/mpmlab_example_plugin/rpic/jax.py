@@ -16,7 +16,9 @@ def p2g(p):
 
 
 def g2p(g):
-    C = (4.0 * g.inv_dx) * (g.first - g.v_pic[:, :, None] * g.fx[:, None, :])   # B D^-1, D = dx^2/4 I
+    B = g.dx * (g.first - g.v_pic[:, :, None] * g.fx[:, None, :])     # sum_i w v_i (x_i - x_p)^T
+    # B D^-1: g.Dinv is a float c (D^-1 = c I: B-spline shapes, 4/dx^2 quadratic) or [N, D, D] (uGIMP)
+    C = g.Dinv * B if jnp.ndim(g.Dinv) == 0 else jnp.einsum("nij,njk->nik", B, g.Dinv)
     return G2PResult(v=g.v_pic, C=0.5 * (C - jnp.swapaxes(C, 1, 2)), grad_v=g.grad)
 
 
