@@ -13,11 +13,12 @@ def make(transfer, dim, precision):
 
     @wp.func
     def p2g_momentum(m: scalar, V: scalar, v: vec, C: mat, tau: mat, dt: scalar, inv_dx: scalar,
-                     tp: wp.array(dtype=scalar)):
+                     Dinv: mat, tp: wp.array(dtype=scalar)):
         return m * v, m * C, -(dt * V * inv_dx) * tau
 
     @wp.func
-    def g2p(v: vec, vp: vec, vo: vec, B: mat, Gv: mat, fx: vec, inv_dx: scalar, tp: wp.array(dtype=scalar)):
+    def g2p(v: vec, vp: vec, vo: vec, B: mat, Gv: mat, fx: vec, inv_dx: scalar, Dinv: mat,
+            tp: wp.array(dtype=scalar)):
         return vp, vp, Gv
 
     return SimpleNamespace(p2g_momentum=p2g_momentum, g2p=g2p)

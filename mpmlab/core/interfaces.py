@@ -426,10 +426,11 @@ class AbstractTransfer(_Pluggable, ABC):
       ``m, V, v, C, tau, dt, inv_dx, dx``; ``g`` has ``v, v_pic, v_old, first, grad, fx, inv_dx``
       (``None`` for what is not declared). ``grad`` and ``G`` are in physical units (1/length).
     * Warp (``@wp.func``s the kernel factories close over): ``p2g_momentum(m, V, v, C, tau, dt,
-      inv_dx, tp) -> (q, A, G)``, ``p2g_force(same) -> (F, H)`` (``split_force`` only) and
-      ``g2p(v, vp, vo, B, Gv, fx, inv_dx, tp) -> (v, C, grad_v)``; ``tp`` is the array of
-      ``scalars()``; G and H multiply the weight gradient in cell units (dx grad w, the kernels' own),
-      ``Gv`` is in physical units. Undeclared outputs are ignored (return zeros).
+      inv_dx, Dinv, tp) -> (q, A, G)``, ``p2g_force(same) -> (F, H)`` (``split_force`` only) and
+      ``g2p(v, vp, vo, B, Gv, fx, inv_dx, Dinv, tp) -> (v, C, grad_v)``; ``Dinv`` (a ``mat``, 1/length^2)
+      is the particle's D_p^-1 of the shape function (APIC's C = (B - vp fx^T) dx Dinv); ``tp`` is the
+      array of ``scalars()``; G and H multiply the weight gradient in cell units (dx grad w, the kernels'
+      own), ``Gv`` is in physical units. Undeclared outputs are ignored (return zeros).
     """
 
     carries_C: ClassVar[bool] = False
