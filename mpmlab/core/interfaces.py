@@ -494,7 +494,9 @@ class AbstractShape(_Pluggable, ABC):
 
     * JAX: ``weights(fx, lp) -> (w, dw)``, ``fx = x/dx - base`` [N, D], ``lp`` [N] the particle's half
       width in cells; ``w``, ``dw`` are [N, width, D], ``dw = dN/dx_p`` in cell units.
-    * Warp: ``@wp.func weights(fx: vec, lp: scalar) -> (W, DW)``, two ``width x D`` matrices.
+    * Warp: ``@wp.func weights(fx: vec, lp: scalar) -> (W, DW)``, two ``width x D`` matrices, and
+      ``hessian(fx, lp) -> DDW`` (d2N/dx_p^2 in cell units, ``width x D``: the hand-written adjoints'
+      derivative of the weight gradient).
     * The NumPy ``reference.weights_1d(fx, lp)`` (fp64, [N] -> [N, width] twice) is what the tests
       check partition of unity and linear completeness on.
 
