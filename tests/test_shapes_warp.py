@@ -184,12 +184,11 @@ def test_refusals():
 
 
 # ---- adjoints: one P2G launch, hand-written vs generated -----------------------------------------------------
-@pytest.mark.parametrize("shape,transfer", [("cubic", "apic"), ("cubic", "flip"), ("ugimp", "mls"),
-                                            ("ugimp", "flip")])
-def test_p2g_adjoint_launch(shape, transfer):
-    """As ``tests/test_warp_adjoints.py::test_p2g_adjoint_launch`` (2D, with an external force), with the
+@pytest.mark.parametrize("shape,transfer,dim", [("cubic", "apic", 2), ("cubic", "flip", 2), ("ugimp", "mls", 2),
+                                                ("ugimp", "flip", 2), ("cubic", "apic", 3)])
+def test_p2g_adjoint_launch(shape, transfer, dim):
+    """As ``tests/test_warp_adjoints.py::test_p2g_adjoint_launch`` (with an external force), with the
     shape function's window, weights and Hessian (and uGIMP's position-dependent Dinv in MLS's force)."""
-    dim = 2
     T = warp_types(dim, "fp64")
     tr = warp_transfer(registry.transfers.get(transfer)(), dim, "fp64")
     fwd = K.p2g_kernel(dim, "fp64", tr, True, atomic=True, shape=shape)
