@@ -235,35 +235,39 @@ def test_p2g_adjoint_launch(shape, transfer, dim):
 
 # ---- gradients through rollouts against central differences ---------------------------------------------------
 def grad_scene(dim=2):
-    """The gradient tests' block (``tests/test_grad_warp.py::law_scene``): 36 particles, walls."""
+    """The gradient tests' block (``tests/test_grad_warp.py::law_scene``): 36 particles (2D), walls."""
     from .test_grad_warp import law_scene
 
     return law_scene("fixed_corotated", dim)
 
 
 @lru_cache(maxsize=None)
-def grad_stepper(shape, transfer):
-    return mpmlab.build_stepper(grad_scene(), "warp", transfer, "fp64", shape=shape)
+def grad_stepper(shape, transfer, dim=2):
+    return mpmlab.build_stepper(grad_scene(dim), "warp", transfer, "fp64", shape=shape)
 
 
-@pytest.mark.parametrize("shape,transfer", [("cubic", "apic"), ("ugimp", "mls")])
-def test_gradients_against_central_differences(shape, transfer):
+@pytest.mark.parametrize("shape,transfer,dim", [
+    ("cubic", "apic", 2), ("ugimp", "mls", 2),
+    # 3D: the width-4 window's hand-written G2P adjoint compiles in ~1 min on 2 cores
+    pytest.param("cubic", "apic", 3, marks=pytest.mark.slow), pytest.param("ugimp", "mls", 3, marks=pytest.mark.slow)])
+def test_gradients_against_central_differences(shape, transfer, dim):
     """d/dx, d/dv and d/d(law parameters) of a random weighting of the observed velocities along a random
     direction, central differences vs autograd with each adjoint kind (relative 1e-6, as
     ``tests/test_grad_warp.py``); the two kinds agree to 1e-10."""
     from .test_grad_warp import sheared_controls
 
-    st = grad_stepper(shape, transfer)
+    st = grad_stepper(shape, transfer, dim)
     path = G.path_of(st)
     c = sheared_controls(st)
     got = {}
     try:
         for kind in ("hand", "generated"):
             path.adjoints = kind
-            errs = warp_fd_errors(st, c, Lagrangian(quantity="v"), (4, 8), ("x", "v", "law"), 0, {"x": 0.01})
+            errs = warp_fd_errors(st, c, Lagrangian(quantity="v"), (4, 8) if dim == 2 else (3, 5), ("x", "v", "law"),
+                                  0, {"x": 0.01})
             for k, (e, ad) in errs.items():
-                assert abs(ad) > 1e-9, f"{shape}/{transfer} {kind}: d/d{k} = {ad:g} is too small to test anything"
-                assert e <= 1e-6, f"{shape}/{transfer} {kind}: d/d{k} autograd vs central differences {e:.2e}"
+                assert abs(ad) > 1e-9, f"{shape}/{transfer} {dim}D {kind}: d/d{k} = {ad:g} is too small to test anything"
+                assert e <= 1e-6, f"{shape}/{transfer} {dim}D {kind}: d/d{k} autograd vs central differences {e:.2e}"
             got[kind] = {k: ad for k, (_, ad) in errs.items()}
     finally:
         path.adjoints = G.ADJOINTS
