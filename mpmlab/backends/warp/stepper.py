@@ -1,5 +1,10 @@
 """Warp stepper: P2G -> grid update (+ walls) -> grid boundaries -> G2P fused with each material's law.
 
+The grid shape function (``shape=``: ``quadratic`` by default, ``cubic``, ``ugimp``; ``mpmlab.shapes``)
+is part of every kernel's key: its window (width^D nodes from ``floor(x/dx - offset)``) and weights are
+compiled in, uGIMP's particle half widths ``lp`` are a per-particle array (sorted with the particles), and
+the guard's domain interior is the window's (``shape_inner_bounds``).
+
 What the scene does not need is not compiled and not launched: no ``C`` array or affine terms for
 PIC/FLIP, no old grid velocity except for FLIP, one G2P+law kernel per law present (built from a
 closure over its ``@wp.func``s), no boundary kernels for absent boundaries, no external-force array
