@@ -15,8 +15,9 @@ that take their window from the shape function.
 * Refusals: a transfer declaring quadratic only, and a uGIMP particle wider than the window.
 
 The kernels compile once per (shape, transfer, dim); the scenes are the conservation kit's and the
-gradient tests' tiny ones. With an empty Warp kernel cache the file takes ~4.5 min on 2 busy cores
-(~1.5 min of it the 3D cubic APIC step), about 3.5 min with ``-m "not slow"``; ~15 s once compiled.
+gradient tests' tiny ones. With an empty Warp kernel cache, ``-m "not slow"`` takes ~3.5 min on 2 busy
+cores (1.5 min of it the 3D cubic APIC step) and the slow 3D adjoint/gradient cases ~3 min more;
+~10 s once compiled.
 """
 from functools import lru_cache
 
