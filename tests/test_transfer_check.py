@@ -92,6 +92,7 @@ def test_jax_p2g_returning_an_undeclared_term_is_refused():
 @pytest.mark.parametrize("factory, message", [
     ("make", r"its Warp functions do not build against its declarations"),
     ("make_without_force", r"its Warp factory gives no p2g_force"),
+    ("make_without_dinv", r"its Warp p2g_momentum has no Dinv argument .*add `Dinv: mat` .* before `tp`"),
 ])
 def test_warp_functions_that_do_not_fit_are_refused_at_build(factory, message):
     decl = {"split_force": True, "force_terms": frozenset({"gradient"})} if factory == "make_without_force" else {}

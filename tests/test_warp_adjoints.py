@@ -74,8 +74,9 @@ def test_p2g_adjoint_launch(transfer, dim, ext):
     grid_mm = wp.zeros(Gn, dtype=gvec, requires_grad=True)
     grid_f = wp.zeros(Gn if tr.split_force else 1, dtype=T.vec, requires_grad=True)
     bbox = wp.zeros(2, dtype=T.ivec)
-    args = [ins["x"], ins["v"], ins["C"], ins["tau"], ins["mass"], ins["vol"], ins["ext"], origin, dx_s, dt_s, tp,
-            strides]
+    lp = wp.zeros(1, dtype=T.scalar)              # the particles' half widths: unused by the quadratic B-spline
+    args = [ins["x"], ins["v"], ins["C"], ins["tau"], ins["mass"], ins["vol"], ins["ext"], lp, origin, dx_s, dt_s,
+            tp, strides]
     tape = wp.Tape()
     with tape:
         wp.launch(fwd, dim=N, inputs=args + [0, 0, grid_mm, grid_f, bbox, 0])
@@ -91,7 +92,7 @@ def test_p2g_adjoint_launch(transfer, dim, ext):
     out = wp.zeros(N, dtype=T.scalar)
     ones = wp.full(N, value=T.scalar(1.0), dtype=T.scalar)
     wp.launch(adj, dim=N, inputs=args + [grid_mm.grad, grid_f.grad], outputs=[out],
-              adj_inputs=[a.grad for a in ins.values()] + [None] * 7, adj_outputs=[ones], adjoint=True)
+              adj_inputs=[a.grad for a in ins.values()] + [None] * 8, adj_outputs=[ones], adjoint=True)
     hand = {k: a.grad.numpy() for k, a in ins.items()}
     used = {"x", "v", "mass", "tau", "vol"} | ({"C"} if tr.carries_C else set()) | ({"ext"} if ext else set())
     for k in ins:

@@ -433,10 +433,11 @@ class AbstractTransfer(_Pluggable, ABC):
       cubic), an [N, D, D] array when it varies per particle (uGIMP: diagonal);
       ``mpmlab.transfers._common.jax.times_Dinv(M, Dinv)`` gives M D^-1 for either form.
     * Warp (``@wp.func``s the kernel factories close over): ``p2g_momentum(m, V, v, C, tau, dt,
-      inv_dx, tp) -> (q, A, G)``, ``p2g_force(same) -> (F, H)`` (``split_force`` only) and
-      ``g2p(v, vp, vo, B, Gv, fx, inv_dx, tp) -> (v, C, grad_v)``; ``tp`` is the array of
-      ``scalars()``; G and H multiply the weight gradient in cell units (dx grad w, the kernels' own),
-      ``Gv`` is in physical units. Undeclared outputs are ignored (return zeros).
+      inv_dx, Dinv, tp) -> (q, A, G)``, ``p2g_force(same) -> (F, H)`` (``split_force`` only) and
+      ``g2p(v, vp, vo, B, Gv, fx, inv_dx, Dinv, tp) -> (v, C, grad_v)``; ``Dinv`` (a ``mat``, 1/length^2)
+      is the particle's D_p^-1 of the shape function (APIC's C = (B - vp fx^T) dx Dinv); ``tp`` is the
+      array of ``scalars()``; G and H multiply the weight gradient in cell units (dx grad w, the kernels'
+      own), ``Gv`` is in physical units. Undeclared outputs are ignored (return zeros).
     """
 
     carries_C: ClassVar[bool] = False
@@ -500,7 +501,9 @@ class AbstractShape(_Pluggable, ABC):
 
     * JAX: ``weights(fx, lp) -> (w, dw)``, ``fx = x/dx - base`` [N, D], ``lp`` [N] the particle's half
       width in cells; ``w``, ``dw`` are [N, width, D], ``dw = dN/dx_p`` in cell units.
-    * Warp: ``@wp.func weights(fx: vec, lp: scalar) -> (W, DW)``, two ``width x D`` matrices.
+    * Warp: ``@wp.func weights(fx: vec, lp: scalar) -> (W, DW)``, two ``width x D`` matrices, and
+      ``hessian(fx, lp) -> DDW`` (d2N/dx_p^2 in cell units, ``width x D``: the hand-written adjoints'
+      derivative of the weight gradient).
     * The NumPy ``reference.weights_1d(fx, lp)`` (fp64, [N] -> [N, width] twice) is what the tests
       check partition of unity and linear completeness on.
 

@@ -95,7 +95,7 @@ class WarpBackend(AbstractBackend):
     #: the differentiable workflows' seam to this backend's arrays (mpmlab.core.autodiff)
     autodiff_adapter = "mpmlab.backends.warp.adapter:WarpAdapter"
     #: the options ``build`` takes beyond the precision
-    build_options = ("check_every", "device")
+    build_options = ("check_every", "device", "shape")
 
     @staticmethod
     def debug_output():

@@ -2,12 +2,12 @@
 
 Warp's generated adjoint of a kernel replays the whole forward body (every stencil node, every
 intermediate kept as an SSA value), zero-initialises one adjoint variable per SSA value of the
-unrolled 3^D loop, then runs the reverse sweep and adds each array read's adjoint back with an
+unrolled width^D loop, then runs the reverse sweep and adds each array read's adjoint back with an
 atomic add. For P2G that is the forward once more plus a reverse sweep about twice its size
 (``benchmarks/_adjoint_split_warp.py`` measures it: 3.2x the forward before this module).
 
 P2G's transpose is a *gather*: its inputs are per particle and its outputs are grid arrays, so the
-adjoint of a particle's inputs reads the adjoints of the 3^D nodes it wrote and accumulates into
+adjoint of a particle's inputs reads the adjoints of the width^D nodes it wrote and accumulates into
 that particle's own entries -- no atomics, no replay of the scatter. It is split in two kernels:
 
 * ``stencil`` (hand-written): per particle, the adjoints of the per-particle P2G terms the stencil
@@ -33,7 +33,10 @@ so, with the node adjoints (a_q, a_m) = adj mm_o and a_f = adj f_o,
     adj fx  = sum_o g_o (a_q . (q + A (o - fx) dx) + a_m m) - w_o dx A^T a_q + H_o Tg^T a_q  (+ force)
     adj x  += adj fx / dx                   (the floor in base has zero derivative)
 
-with H_o the Hessian of w_o (the B-spline's second derivatives 1, -2, 1).
+with H_o the Hessian of w_o (the shape function's ``hessian``: the quadratic B-spline's second derivatives
+1, -2, 1; the cubic's and uGIMP's piecewise). The window (width^D nodes from ``floor(x/dx - offset)``)
+is the shape function's (``kernels.stencil_funcs``). Where the scheme reads D_p^-1 (``Dinv``) and it
+varies with the position (uGIMP), its derivative is Warp's generated adjoint of the kernel body.
 """
 
 from functools import lru_cache
@@ -45,22 +48,29 @@ from . import kernels as K
 from .types import warp_types
 
 
+def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool, shape=None):
+    """P2G's adjoint with shape function ``shape`` (None: quadratic); see ``_p2g_adjoint_kernels``."""
+    return _p2g_adjoint_kernels(dim, precision, tr, bool(has_ext), K.as_shape(shape))
+
+
 @lru_cache(maxsize=None)
-def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
+def _p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool, shape):
     """P2G's adjoint for transfer ``tr`` (a ``WarpTransfer``) as one kernel, ``adjoint``, launched in
     Warp's adjoint mode: per particle it evaluates the transfer's per-particle terms (q, A, Tg; Fm, Fg)
     and hands them to ``pairing``, a function whose forward is 0 and whose hand-written gradient
-    (``wp.func_grad``) gathers the node adjoints of the 3^D stencil and returns the adjoints of those
+    (``wp.func_grad``) gathers the node adjoints of the width^D stencil and returns the adjoints of those
     terms, of the mass, the external force and the position. Warp's generated code then carries the
     terms' adjoints through the transfer's own ``p2g_momentum`` / ``p2g_force`` (a replay of those few
     per-particle operations only) into v, C, tau, mass, volume. The forward is
-    ``kernels.p2g_kernel(dim, precision, tr, has_ext, atomic=True)``; launch ``adjoint`` with
-    ``adj_outputs=[ones]``."""
+    ``kernels.p2g_kernel(dim, precision, tr, has_ext, atomic=True, shape=shape)``; launch ``adjoint`` with
+    ``adj_outputs=[ones]``. The particle's ``Dinv`` is computed in the kernel body (differentiable: for
+    uGIMP it depends on the position), the window's weights and their derivatives in ``pairing``."""
     T = warp_types(dim, precision)
-    S = K.stencil_funcs(dim, precision)
+    S = K._stencil_funcs(dim, precision, shape)
+    NW, OFFS = S.width, S.OFFS
+    uses_lp = S.uses_lp
     scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
     gvec = K.grid_vec_type(dim, precision)
-    vec3s = wp.types.vector(3, scalar)
     F = tr.funcs
     split = tr.split_force
     m_affine = "affine" in tr.momentum_terms
@@ -114,21 +124,20 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
         return w * aq, qo, dT, w * am, fo, f, dFg, afx
 
     @wp.func
-    def pairing(x: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat, m: scalar, fext: vec, origin: vec, dx: scalar,
-                strides: ivec, adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec)):
+    def pairing(x: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat, m: scalar, fext: vec, lp: scalar, origin: vec,
+                dx: scalar, strides: ivec, adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec)):
         """sum_o <adj node_o, P2G's contribution to node_o>, as far as the gradient is concerned: only its
         gradient (below) is ever evaluated, so the forward is a constant."""
         return scalar(0.0)
 
     @wp.func_grad(pairing)
-    def adj_pairing(x: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat, m: scalar, fext: vec, origin: vec,
-                    dx: scalar, strides: ivec, adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec),
+    def adj_pairing(x: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat, m: scalar, fext: vec, lp: scalar,
+                    origin: vec, dx: scalar, strides: ivec, adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec),
                     adj_ret: scalar):
         inv_dx = scalar(1.0) / dx
-        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))
-        DD = vec3s(scalar(1.0), scalar(-2.0), scalar(1.0))      # W'' of the quadratic B-spline
         base, fx = S.locate(x, origin, inv_dx)
-        W, DW = S.bspline(fx)
+        W, DW = S.weights(fx, lp)
+        DD = S.hessian(fx, lp)                                  # W'' per node and axis
         fxd = fx * dx
         nb = int(0)
         for d in range(dim):
@@ -144,23 +153,23 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
         af = vec()
         H = mat()
         if wp.static(dim == 3):
-            for i in range(3):
-                for j in range(3):
+            for i in range(NW):
+                for j in range(NW):
                     nij = nb + i * strides[0] + j * strides[1]
                     wxy = W[i, 0] * W[j, 1]
-                    for k in range(3):
+                    for k in range(NW):
                         w = wxy * W[k, 2]
                         gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
                         if wp.static(any_grad):
                             hxy = DW[i, 0] * DW[j, 1] * W[k, 2]
                             hxz = DW[i, 0] * W[j, 1] * DW[k, 2]
                             hyz = W[i, 0] * DW[j, 1] * DW[k, 2]
-                            H = mat(DD[i] * W[j, 1] * W[k, 2], hxy, hxz,
-                                    hxy, W[i, 0] * DD[j] * W[k, 2], hyz,
-                                    hxz, hyz, wxy * DD[k])
+                            H = mat(DD[i, 0] * W[j, 1] * W[k, 2], hxy, hxz,
+                                    hxy, W[i, 0] * DD[j, 1] * W[k, 2], hyz,
+                                    hxz, hyz, wxy * DD[k, 2])
                         if wp.static(split):
                             af = adj_f[nij + k]
-                        o = vec(OFF[i], OFF[j], OFF[k])
+                        o = vec(OFFS[i], OFFS[j], OFFS[k])
                         a, b, c, e, f, g, h, r = node(w, gw, H, o, adj_mm[nij + k], af, q, A, Tg, Fm, Fg, m, fext,
                                                       fxd, dx)
                         s_q = s_q + a
@@ -177,17 +186,17 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
                         if wp.static(f_grad):
                             s_Fg = s_Fg + h
         else:
-            for i in range(3):
+            for i in range(NW):
                 ni = nb + i * strides[0]
-                for j in range(3):
+                for j in range(NW):
                     w = W[i, 0] * W[j, 1]
                     gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
                     if wp.static(any_grad):
                         hxy = DW[i, 0] * DW[j, 1]
-                        H = mat(DD[i] * W[j, 1], hxy, hxy, W[i, 0] * DD[j])
+                        H = mat(DD[i, 0] * W[j, 1], hxy, hxy, W[i, 0] * DD[j, 1])
                     if wp.static(split):
                         af = adj_f[ni + j]
-                    o = vec(OFF[i], OFF[j])
+                    o = vec(OFFS[i], OFFS[j])
                     a, b, c, e, f, g, h, r = node(w, gw, H, o, adj_mm[ni + j], af, q, A, Tg, Fm, Fg, m, fext, fxd, dx)
                     s_q = s_q + a
                     s_m = s_m + e
@@ -222,28 +231,33 @@ def p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool):
     @wp.kernel(module="unique")
     def adjoint(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
                 mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
-                origin: vec, dx: scalar, dt: scalar, tp: wp.array(dtype=scalar), strides: ivec,
-                adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec), out: wp.array(dtype=scalar)):
+                lp: wp.array(dtype=scalar), origin: vec, dx: scalar, dt: scalar, tp: wp.array(dtype=scalar),
+                strides: ivec, adj_mm: wp.array(dtype=gvec), adj_f: wp.array(dtype=vec), out: wp.array(dtype=scalar)):
         """Run in adjoint mode only (adj out = 1): the forward value is 0."""
         p = wp.tid()
         inv_dx = scalar(1.0) / dx
         if S.in_grid(x[p], origin, inv_dx, strides, adj_mm.shape[0]) == 0:
             return                     # contributed nothing
         m = mass[p]
+        lpv = scalar(0.0)
+        if wp.static(uses_lp):
+            lpv = lp[p]
+        base, fx = S.locate(x[p], origin, inv_dx)
+        Dinv = S.dinv_at(fx, lpv, inv_dx)          # differentiable here: uGIMP's depends on x
         Cp = mat()
         if wp.static(carries_C):
             Cp = C[p]
-        q, A, Tg = F.p2g_momentum(m, vol[p], v[p], Cp, tau[p], dt, inv_dx, tp)
+        q, A, Tg = F.p2g_momentum(m, vol[p], v[p], Cp, tau[p], dt, inv_dx, Dinv, tp)
         Fm = mat()
         Fg = mat()
         if wp.static(split):
-            Fm, Fg = F.p2g_force(m, vol[p], v[p], Cp, tau[p], dt, inv_dx, tp)
+            Fm, Fg = F.p2g_force(m, vol[p], v[p], Cp, tau[p], dt, inv_dx, Dinv, tp)
         fext = vec()
         if wp.static(has_ext):
             fext = ext[p]
             if wp.static(not split):
                 q = q + dt * fext
-        out[p] = pairing(x[p], q, A, Tg, Fm, Fg, m, fext, origin, dx, strides, adj_mm, adj_f)
+        out[p] = pairing(x[p], q, A, Tg, Fm, Fg, m, fext, lpv, origin, dx, strides, adj_mm, adj_f)
 
     return SimpleNamespace(adjoint=adjoint)
 
@@ -269,17 +283,22 @@ class RecordedP2G:
         g = lambda a: a.grad if (isinstance(a, wp.array) and a.requires_grad) else None
         C = s.C if p.affine else p.empty_C
         adj_f = self.grid_f.grad if p.split else sc.f
-        inputs = [s.x, s.v, C, s.tau, ctl.mass, ctl.volume, self.ext, st.origin, st.dx_s, st.dt_s,
+        inputs = [s.x, s.v, C, s.tau, ctl.mass, ctl.volume, self.ext, st.lp, st.origin, st.dx_s, st.dt_s,
                   st.transfer_scalars, st.strides, self.grid_mm.grad, adj_f]
         wp.launch(p.k_p2g_adj.adjoint, dim=p.N, inputs=inputs, outputs=[sc.out],
                   adj_inputs=[g(s.x), g(s.v), g(C) if p.affine else None, g(s.tau), g(ctl.mass), g(ctl.volume),
-                              g(self.ext) if p.has_ext else None] + [None] * 7,
+                              g(self.ext) if p.has_ext else None] + [None] * 8,
                   adj_outputs=[sc.ones], adjoint=True, device=p.dev, record_tape=False)
 
 
 # ---- G2P fused with the law update ----------------------------------------------------------------------
+def g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape=None):
+    """G2P + law adjoint with shape function ``shape`` (None: quadratic); see ``_g2p_adjoint_kernel``."""
+    return _g2p_adjoint_kernel(law, dim, precision, tr, K.as_shape(shape))
+
+
 @lru_cache(maxsize=None)
-def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
+def _g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape):
     """G2P + law update (``kernels.g2p_law_kernel``) with the stencil's adjoint written by hand, as one
     kernel launched in Warp's adjoint mode with the forward kernel's arguments plus the node adjoint
     arrays ``adj_grid_v``, ``adj_grid_v_old``. The stencil gather is a function (``gather``) returning
@@ -290,14 +309,15 @@ def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
     ``g2p``, the law update and its stress, the stores -- is the forward kernel's code and keeps Warp's
     generated adjoint (the law's replay is needed anyway: nothing of it is saved)."""
     T = warp_types(dim, precision)
-    S = K.stencil_funcs(dim, precision)
+    S = K._stencil_funcs(dim, precision, shape)
+    NW, OFFS = S.width, S.OFFS
+    uses_lp = S.uses_lp
     L = K.law_types(law, dim, precision)
     scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
     need_grad = "gradient" in tr.moments
     apic = "first" in tr.moments
     flip = tr.split_force
     F = tr.funcs
-    vec3s = wp.types.vector(3, scalar)
     NC = 2 + 2 * dim
     pmat = wp.types.matrix((dim, NC), scalar)         # packed moments
     impl = law.implementation("warp", "law")(law, dim, precision)
@@ -338,12 +358,11 @@ def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
                             c0[1], c1[1], B[1, 0], B[1, 1], Gs[1, 0], Gs[1, 1])
 
     @wp.func
-    def gather(x: vec, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
+    def gather(x: vec, lp: scalar, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
                grid_v_old: wp.array(dtype=vec), adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec)):
         inv_dx = scalar(1.0) / dx
-        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))
         base, fx = S.locate(x, origin, inv_dx)
-        W, DW = S.bspline(fx)
+        W, DW = S.weights(fx, lp)
         nb = int(0)
         for d in range(dim):
             nb = nb + base[d] * strides[d]
@@ -351,25 +370,25 @@ def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
         go = vec()
         gw = vec()
         if wp.static(dim == 3):
-            for i in range(3):
-                for j in range(3):
+            for i in range(NW):
+                for j in range(NW):
                     nij = nb + i * strides[0] + j * strides[1]
                     wxy = W[i, 0] * W[j, 1]
-                    for k in range(3):
+                    for k in range(NW):
                         if wp.static(need_grad):
                             gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
                         if wp.static(flip):
                             go = grid_v_old[nij + k]
-                        M = gather_node(M, wxy * W[k, 2], gw, vec(OFF[i], OFF[j], OFF[k]), grid_v[nij + k], go)
+                        M = gather_node(M, wxy * W[k, 2], gw, vec(OFFS[i], OFFS[j], OFFS[k]), grid_v[nij + k], go)
         else:
-            for i in range(3):
+            for i in range(NW):
                 ni = nb + i * strides[0]
-                for j in range(3):
+                for j in range(NW):
                     if wp.static(need_grad):
                         gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
                     if wp.static(flip):
                         go = grid_v_old[ni + j]
-                    M = gather_node(M, W[i, 0] * W[j, 1], gw, vec(OFF[i], OFF[j]), grid_v[ni + j], go)
+                    M = gather_node(M, W[i, 0] * W[j, 1], gw, vec(OFFS[i], OFFS[j]), grid_v[ni + j], go)
         return M
 
     @wp.func
@@ -393,14 +412,13 @@ def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
         return afx
 
     @wp.func_grad(gather)
-    def adj_gather(x: vec, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
+    def adj_gather(x: vec, lp: scalar, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
                    grid_v_old: wp.array(dtype=vec), adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec),
                    adj_ret: pmat):
         inv_dx = scalar(1.0) / dx
-        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))
-        DD = vec3s(scalar(1.0), scalar(-2.0), scalar(1.0))      # W'' of the quadratic B-spline
         base, fx = S.locate(x, origin, inv_dx)
-        W, DW = S.bspline(fx)
+        W, DW = S.weights(fx, lp)
+        DD = S.hessian(fx, lp)                                  # W'' per node and axis
         nb = int(0)
         for d in range(dim):
             nb = nb + base[d] * strides[d]
@@ -416,41 +434,41 @@ def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
         go = vec()
         H = mat()
         if wp.static(dim == 3):
-            for i in range(3):
-                for j in range(3):
+            for i in range(NW):
+                for j in range(NW):
                     nij = nb + i * strides[0] + j * strides[1]
                     wxy = W[i, 0] * W[j, 1]
-                    for k in range(3):
+                    for k in range(NW):
                         gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
                         if wp.static(need_grad):
                             hxy = DW[i, 0] * DW[j, 1] * W[k, 2]
                             hxz = DW[i, 0] * W[j, 1] * DW[k, 2]
                             hyz = W[i, 0] * DW[j, 1] * DW[k, 2]
-                            H = mat(DD[i] * W[j, 1] * W[k, 2], hxy, hxz,
-                                    hxy, W[i, 0] * DD[j] * W[k, 2], hyz,
-                                    hxz, hyz, wxy * DD[k])
+                            H = mat(DD[i, 0] * W[j, 1] * W[k, 2], hxy, hxz,
+                                    hxy, W[i, 0] * DD[j, 1] * W[k, 2], hyz,
+                                    hxz, hyz, wxy * DD[k, 2])
                         if wp.static(flip):
                             go = grid_v_old[nij + k]
                         afx = afx + scatter_node(adj_gv, adj_gvo, nij + k, wxy * W[k, 2], gw, H,
-                                                 vec(OFF[i], OFF[j], OFF[k]), grid_v[nij + k], go, a_vp, a_vo, aB, aG)
+                                                 vec(OFFS[i], OFFS[j], OFFS[k]), grid_v[nij + k], go, a_vp, a_vo, aB, aG)
         else:
-            for i in range(3):
+            for i in range(NW):
                 ni = nb + i * strides[0]
-                for j in range(3):
+                for j in range(NW):
                     gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
                     if wp.static(need_grad):
                         hxy = DW[i, 0] * DW[j, 1]
-                        H = mat(DD[i] * W[j, 1], hxy, hxy, W[i, 0] * DD[j])
+                        H = mat(DD[i, 0] * W[j, 1], hxy, hxy, W[i, 0] * DD[j, 1])
                     if wp.static(flip):
                         go = grid_v_old[ni + j]
-                    afx = afx + scatter_node(adj_gv, adj_gvo, ni + j, W[i, 0] * W[j, 1], gw, H, vec(OFF[i], OFF[j]),
+                    afx = afx + scatter_node(adj_gv, adj_gvo, ni + j, W[i, 0] * W[j, 1], gw, H, vec(OFFS[i], OFFS[j]),
                                              grid_v[ni + j], go, a_vp, a_vo, aB, aG)
         wp.adjoint[x] += inv_dx * afx
 
     @wp.kernel(module="unique", module_options=K.law_module_options(impl))
     def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
             grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
-            tp: wp.array(dtype=scalar), goff: int, start: int,
+            tp: wp.array(dtype=scalar), lp: wp.array(dtype=scalar), goff: int, start: int,
             state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights,
             x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
             state_out: L.StateArrays, tau: wp.array(dtype=mat),
@@ -468,7 +486,10 @@ def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
             tau[p] = impl.kirchhoff(s0, P0, w)
             return
         base, fx = S.locate(xp, origin, inv_dx)
-        M = gather(xp, origin, dx, strides, grid_v, grid_v_old, adj_gv, adj_gvo)
+        lpv = scalar(0.0)
+        if wp.static(uses_lp):
+            lpv = lp[p]
+        M = gather(xp, lpv, origin, dx, strides, grid_v, grid_v_old, adj_gv, adj_gvo)
         vp = col(M, 0)
         vo = col(M, 1)
         Gv = mat()
@@ -477,7 +498,8 @@ def g2p_adjoint_kernel(law, dim: int, precision: str, tr):
         B = mat()
         if wp.static(apic):
             B = cols(col(M, 2), col(M, 3), col(M, 1 + dim))
-        vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, tp)
+        Dinv = S.dinv_at(fx, lpv, inv_dx)          # differentiable here: uGIMP's depends on x
+        vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, Dinv, tp)
         v_out[p] = vnew
         x_out[p] = xp + dt * vp                                                      # JAX-MPM Eq. 17
         if wp.static(tr.carries_C):

@@ -142,7 +142,7 @@ class GradPath:
         self.has_ext = any(bc.stage == "particle_force" for bc in self.bcs)
         # P2G: the fast path's kernel in its atomic form (one grid, atomic adds: what CUDA runs), which is
         # tape-safe; the bounding box it skips is a dummy here
-        self.k_p2g = K.p2g_kernel(D, prec, st.warp_transfer, self.has_ext, atomic=True)
+        self.k_p2g = K.p2g_kernel(D, prec, st.warp_transfer, self.has_ext, atomic=True, shape=st.shape)
         self.bbox = wp.zeros(2, dtype=T.ivec, device=dev)
         self.k_grid = K.grid_update_kernel(D, prec, self.split, tape=True)   # the fast path's, tape-safe form
         self.k_g2p = st.k_g2p
@@ -178,14 +178,16 @@ class GradPath:
         k = self.__dict__.get("_k_p2g_adj")
         if k is None:
             k = self.__dict__["_k_p2g_adj"] = ADJ.p2g_adjoint_kernels(self.dim, self.st.precision,
-                                                                        self.st.warp_transfer, self.has_ext)
+                                                                        self.st.warp_transfer, self.has_ext,
+                                                                        shape=self.st.shape)
         return k
 
     def k_g2p_adj(self, i: int):
         """Group i's G2P + law kernel with the hand-written stencil adjoint (compiled on first use)."""
         ks = self.__dict__.setdefault("_k_g2p_adj", {})
         if i not in ks:
-            ks[i] = ADJ.g2p_adjoint_kernel(self.st.groups[i].law, self.dim, self.st.precision, self.st.warp_transfer)
+            ks[i] = ADJ.g2p_adjoint_kernel(self.st.groups[i].law, self.dim, self.st.precision, self.st.warp_transfer,
+                                           shape=self.st.shape)
         return ks[i]
 
     def p2g_adj_scratch(self):
@@ -390,8 +392,8 @@ class GradPath:
                     bc.force(ext, c, t, ctl, s.x)
         self.steps_run += 1
         grid_mm, grid_f = buf.grid_mm, buf.grid_f
-        p2g_in = [s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.origin, st.dx_s, st.dt_s, st.transfer_scalars,
-                  st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0]
+        p2g_in = [s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.lp, st.origin, st.dx_s, st.dt_s,
+                  st.transfer_scalars, st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0]
         tape = _active_tape() if (grad and self._adjoints == "hand") else None
         if tape is not None and grid_mm.requires_grad:
             # the forward off the tape, its hand-written adjoint (a gather, adjoints.py) on it
@@ -415,7 +417,7 @@ class GradPath:
         o = SimpleNamespace(**vars(buf.state))
         for i, (g, k, ls, lo) in enumerate(zip(st.groups, self.k_g2p, s.law, o.law)):
             g2p_in = [s.x, s.v, grid_v, grid_v_old, st.origin, st.dx_s, st.dt_s, st.strides, st.transfer_scalars,
-                      g.start, 0, *st._law_args(i, ls, ctl.law[i], ctl.weights_struct[i]),
+                      st.lp, g.start, 0, *st._law_args(i, ls, ctl.law[i], ctl.weights_struct[i]),
                       o.x, o.v, o.C, self.law_types[i].state_arrays(lo), o.tau]
             if tape is not None and grid_v.requires_grad:
                 # the forward off the tape, the adjoint with the hand-written stencil part on it

@@ -24,41 +24,49 @@ WALL_NONE, WALL_STICKY, WALL_SLIP, WALL_SEPARATE = 0, 1, 2, 3
 WALL_CODES = {"none": WALL_NONE, "sticky": WALL_STICKY, "slip": WALL_SLIP, "separate": WALL_SEPARATE}
 
 
+def as_shape(shape=None):
+    """The shape function instance a kernel factory is keyed by (None: the default quadratic B-spline)."""
+    from ...shapes import make_shape
+
+    return make_shape("quadratic" if shape is None else shape)
+
+
+def stencil_funcs(dim: int, precision: str, shape=None):
+    """The stencil of shape function ``shape`` (``mpmlab.shapes``; None: quadratic) as ``@wp.func``s:
+    ``locate``, ``weights`` / ``hessian`` (the shape's own Warp functions), ``in_grid``, ``dinv``."""
+    return _stencil_funcs(dim, precision, as_shape(shape))
+
+
 @lru_cache(maxsize=None)
-def stencil_funcs(dim: int, precision: str):
+def _stencil_funcs(dim: int, precision: str, shape):
     T = warp_types(dim, precision)
-    scalar, vec, ivec = T.scalar, T.vec, T.ivec
-    wmat = wp.types.matrix((3, dim), scalar)
+    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
+    shape.check()
+    width = int(shape.width)
+    offset = float(shape.offset)
+    inv_D = shape.inv_D_cells
+    inv_D_val = float(inv_D) if inv_D is not None else 0.0
+    SF = shape.implementation("warp", "shape")(shape, dim, precision)
+    wmat = wp.types.matrix((width, dim), scalar)
+    # the node offsets 0 .. width-1 as scalars, a closure constant (Warp 1.19: ``scalar(i)`` of an unrolled
+    # loop index turns the index itself into a float)
+    OFFS = wp.types.vector(width, scalar)(*[float(k) for k in range(width)])
 
     @wp.func
     def locate(x: vec, origin: vec, inv_dx: scalar):
-        """Base node (lower corner of the 3^D stencil) and fx = x/dx - base in [0.5, 1.5) per axis."""
+        """Base node (lower corner of the width^D window) and fx = x/dx - base per axis (in
+        [offset, offset + 1))."""
         Xp = (x - origin) * inv_dx
         base = ivec()
         fx = vec()
         for d in range(dim):
-            base[d] = int(wp.floor(Xp[d] - scalar(0.5)))
+            base[d] = int(wp.floor(Xp[d] - scalar(offset)))
             fx[d] = Xp[d] - scalar(base[d])
         return base, fx
 
     @wp.func
-    def bspline(fx: vec):
-        """Quadratic B-spline weights W[k, d] and their derivatives DW[k, d] (cell units), fx in [0.5, 1.5)."""
-        W = wmat()
-        DW = wmat()
-        for d in range(dim):
-            f = fx[d]
-            W[0, d] = scalar(0.5) * (scalar(1.5) - f) * (scalar(1.5) - f)
-            W[1, d] = scalar(0.75) - (f - scalar(1.0)) * (f - scalar(1.0))
-            W[2, d] = scalar(0.5) * (f - scalar(0.5)) * (f - scalar(0.5))
-            DW[0, d] = f - scalar(1.5)
-            DW[1, d] = scalar(-2.0) * (f - scalar(1.0))
-            DW[2, d] = f - scalar(0.5)
-        return W, DW
-
-    @wp.func
     def in_grid(x: vec, origin: vec, inv_dx: scalar, strides: ivec, G: int):
-        """1 when the 3^D stencil of a particle at x lies on the grid of G nodes (row-major ``strides``),
+        """1 when the width^D window of a particle at x lies on the grid of G nodes (row-major ``strides``),
         else 0 -- also for a non-finite x. A particle that left the grid (a diverged run; the guard
         reports it by step, particle and field) must never make a kernel touch memory outside the grid:
         Warp's CPU kernels do not bounds-check (a 200 m/s particle segfaulted P2G), and a write wrapped
@@ -70,12 +78,39 @@ def stencil_funcs(dim: int, precision: str):
             n = G // strides[0]
             if d > 0:
                 n = strides[d - 1] // strides[d]
-            b = wp.float64(wp.floor(Xp[d] - scalar(0.5)))
-            if not (b >= wp.float64(0.0) and b + wp.float64(2.0) < wp.float64(n)):
+            b = wp.float64(wp.floor(Xp[d] - scalar(offset)))
+            if not (b >= wp.float64(0.0) and b + wp.float64(width - 1) < wp.float64(n)):
                 ok = 0
         return ok
 
-    return SimpleNamespace(locate=locate, bspline=bspline, wmat=wmat, in_grid=in_grid)
+    @wp.func
+    def dinv(W: wmat, fx: vec, inv_dx: scalar):
+        """D_p^-1 (1/length^2), D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T (Jiang et al. 2015): dx^2 /
+        inv_D_cells I for B-splines; for the others diagonal from the particle's own weights,
+        D_cells[d] = sum_k W[k, d] (k - fx_d)^2 (separable, linearly complete weights)."""
+        if wp.static(inv_D is not None):
+            return wp.identity(n=dim, dtype=scalar) * (scalar(inv_D_val) * inv_dx * inv_dx)
+        else:
+            M = mat()
+            for d in range(dim):
+                sd = scalar(0.0)
+                for k in range(width):
+                    r = OFFS[k] - fx[d]
+                    sd = sd + W[k, d] * r * r
+                M[d, d] = inv_dx * inv_dx / sd
+            return M
+
+    @wp.func
+    def dinv_at(fx: vec, lp: scalar, inv_dx: scalar):
+        """``dinv`` where the weights are not at hand (evaluates them only if D varies per particle)."""
+        W = wmat()
+        if wp.static(inv_D is None):
+            W, DW = SF.weights(fx, lp)
+        return dinv(W, fx, inv_dx)
+
+    return SimpleNamespace(locate=locate, weights=SF.weights, hessian=SF.hessian, wmat=wmat, in_grid=in_grid,
+                           dinv=dinv, dinv_at=dinv_at, width=width, offset=offset, OFFS=OFFS,
+                           uses_lp=bool(shape.uses_particle_size), shape=shape)
 
 
 def grid_vec_type(dim: int, precision: str):
@@ -83,18 +118,26 @@ def grid_vec_type(dim: int, precision: str):
     return wp.types.vector(dim + 1, warp_types(dim, precision).scalar)
 
 
+def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False, shape=None):
+    """P2G with shape function ``shape`` (None: quadratic); see ``_p2g_kernel``."""
+    return _p2g_kernel(dim, precision, tr, bool(has_ext), bool(atomic), as_shape(shape))
+
+
 @lru_cache(maxsize=None)
-def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False):
+def _p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool, shape):
     """P2G of transfer scheme ``tr`` (a ``WarpTransfer``): mass, and per node o with weight w_o the
     scheme's momentum terms w_o (q + A (o - fx) dx) + G (dx grad w_o) and, for ``split_force`` schemes
     (FLIP needs the old grid velocity), its force terms w_o F (o - fx) dx + H (dx grad w_o) on a grid of
     their own. Only the terms the scheme declares are compiled; the per-particle terms come from the
-    scheme's ``p2g_momentum`` / ``p2g_force`` before the stencil loop (MLS: ``A = m C - 4 dt V / dx^2
-    tau``, the mpm3d form). External particle forces add dt f to q, or f to the force grid.
+    scheme's ``p2g_momentum`` / ``p2g_force`` before the stencil loop, which get the particle's D_p^-1 as
+    ``Dinv`` (MLS: ``A = m C - dt V tau Dinv``, the mpm3d form for quadratic B-splines). External
+    particle forces add dt f to q, or f to the force grid. The window is the shape function's
+    (``stencil_funcs``: width^D nodes from ``floor(x/dx - offset)``); ``lp`` [N] is the particles' half
+    width in cells, read only by shape functions that use it (``uses_particle_size``; else a dummy).
 
     Launched on a chunk of particles (``start``) into one private grid copy (``goff``), so chunks can run
     on different CPU threads (Warp's CPU atomics are plain adds); the copies are summed by the grid
-    update. The loops over the 3^D nodes are unrolled. Also records the chunk's bounding box of base
+    update. The loops over the width^D nodes are unrolled. Also records the chunk's bounding box of base
     nodes (``bbox[2 slot]``, ``bbox[2 slot + 1]``), so the grid update visits only nodes particles reach.
 
     ``atomic`` (CUDA, and the tape path): all particles run concurrently into one grid, so the node sums
@@ -102,10 +145,11 @@ def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False
     read-add-write of the CPU form would be a data race there.
     """
     T = warp_types(dim, precision)
-    S = stencil_funcs(dim, precision)
+    S = _stencil_funcs(dim, precision, shape)
     scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
     gvec = grid_vec_type(dim, precision)
-    vec3s = wp.types.vector(3, scalar)
+    NW, OFFS = S.width, S.OFFS
+    uses_lp = S.uses_lp
     F = tr.funcs
     split = tr.split_force
     m_affine = "affine" in tr.momentum_terms
@@ -134,15 +178,19 @@ def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False
     @wp.kernel(module="unique")
     def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
             mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
-            origin: vec, dx: scalar, dt: scalar, tp: wp.array(dtype=scalar), strides: ivec, start: int, goff: int,
-            grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), bbox: wp.array(dtype=ivec), slot: int):
+            lp: wp.array(dtype=scalar), origin: vec, dx: scalar, dt: scalar, tp: wp.array(dtype=scalar), strides: ivec,
+            start: int, goff: int, grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec),
+            bbox: wp.array(dtype=ivec), slot: int):
         p = wp.tid() + start
         inv_dx = scalar(1.0) / dx
-        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))   # node offsets as scalars
         if S.in_grid(x[p], origin, inv_dx, strides, grid_mm.shape[0] // (bbox.shape[0] // 2)) == 0:
             return                     # off the grid: contributes nothing (G2P keeps it off; the guard names it)
         base, fx = S.locate(x[p], origin, inv_dx)
-        W, DW = S.bspline(fx)
+        lpv = scalar(0.0)
+        if wp.static(uses_lp):
+            lpv = lp[p]
+        W, DW = S.weights(fx, lpv)
+        Dinv = S.dinv(W, fx, inv_dx)
         if wp.static(not atomic):
             bbox[2 * slot] = wp.min(bbox[2 * slot], base)
             bbox[2 * slot + 1] = wp.max(bbox[2 * slot + 1], base)
@@ -151,11 +199,11 @@ def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False
         Cp = mat()
         if wp.static(tr.carries_C):
             Cp = C[p]
-        q, A, Tg = F.p2g_momentum(m, V, v[p], Cp, tau[p], dt, inv_dx, tp)
+        q, A, Tg = F.p2g_momentum(m, V, v[p], Cp, tau[p], dt, inv_dx, Dinv, tp)
         Fm = mat()
         Fg = mat()
         if wp.static(split):
-            Fm, Fg = F.p2g_force(m, V, v[p], Cp, tau[p], dt, inv_dx, tp)
+            Fm, Fg = F.p2g_force(m, V, v[p], Cp, tau[p], dt, inv_dx, Dinv, tp)
         fext = vec()
         if wp.static(has_ext):
             fext = ext[p]
@@ -182,22 +230,22 @@ def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False
         for d in range(dim):
             nb = nb + base[d] * strides[d]
         if wp.static(dim == 3):
-            for i in range(3):
+            for i in range(NW):
                 qi = q4
                 if wp.static(m_affine):
-                    qi = q4 + OFF[i] * a40
-                for j in range(3):
+                    qi = q4 + OFFS[i] * a40
+                for j in range(NW):
                     wxy = W[i, 0] * W[j, 1]
                     qij = qi
                     if wp.static(m_affine):
-                        qij = qi + OFF[j] * a41
-                    fij = f0 + OFF[i] * Fd[0] + OFF[j] * Fd[1]
+                        qij = qi + OFFS[j] * a41
+                    fij = f0 + OFFS[i] * Fd[0] + OFFS[j] * Fd[1]
                     nij = nb + i * strides[0] + j * strides[1]
-                    for k in range(3):
+                    for k in range(NW):
                         wgt = wxy * W[k, 2]
                         val = wgt * qij
                         if wp.static(m_affine):
-                            val = wgt * (qij + OFF[k] * a42)
+                            val = wgt * (qij + OFFS[k] * a42)
                         if wp.static(any_grad):
                             g0 = DW[i, 0] * W[j, 1] * W[k, 2]
                             g1 = W[i, 0] * DW[j, 1] * W[k, 2]
@@ -210,22 +258,22 @@ def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False
                             if wp.static(m_grad):
                                 val = val + g0 * t40 + g1 * t41 + g2 * t42
                         if wp.static(f_affine):
-                            add(grid_f, nij + k, wgt * (fij + OFF[k] * Fd[2]))
+                            add(grid_f, nij + k, wgt * (fij + OFFS[k] * Fd[2]))
                         if wp.static(ext_alone):
                             add(grid_f, nij + k, wgt * fext)
                         add(grid_mm, nij + k, val)
         else:
-            for i in range(3):
+            for i in range(NW):
                 qi = q4
                 if wp.static(m_affine):
-                    qi = q4 + OFF[i] * a40
-                fi = f0 + OFF[i] * Fd[0]
+                    qi = q4 + OFFS[i] * a40
+                fi = f0 + OFFS[i] * Fd[0]
                 ni = nb + i * strides[0]
-                for j in range(3):
+                for j in range(NW):
                     wgt = W[i, 0] * W[j, 1]
                     val = wgt * qi
                     if wp.static(m_affine):
-                        val = wgt * (qi + OFF[j] * a41)
+                        val = wgt * (qi + OFFS[j] * a41)
                     if wp.static(any_grad):
                         g0 = DW[i, 0] * W[j, 1]
                         g1 = W[i, 0] * DW[j, 1]
@@ -237,7 +285,7 @@ def p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool = False
                         if wp.static(m_grad):
                             val = val + g0 * t40 + g1 * t41
                     if wp.static(f_affine):
-                        add(grid_f, ni + j, wgt * (fi + OFF[j] * Fd[1]))
+                        add(grid_f, ni + j, wgt * (fi + OFFS[j] * Fd[1]))
                     if wp.static(ext_alone):
                         add(grid_f, ni + j, wgt * fext)
                     add(grid_mm, ni + j, val)
@@ -406,27 +454,33 @@ def law_module_options(impl) -> dict:
     return dict(getattr(impl, "module_options", None) or {})
 
 
+def g2p_law_kernel(law, dim: int, precision: str, tr, shape=None):
+    """G2P + law with shape function ``shape`` (None: quadratic); see ``_g2p_law_kernel``."""
+    return _g2p_law_kernel(law, dim, precision, tr, as_shape(shape))
+
+
 @lru_cache(maxsize=None)
-def g2p_law_kernel(law, dim: int, precision: str, tr):
+def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
     """G2P of transfer scheme ``tr`` (a ``WarpTransfer``) fused with the law update of one material
     group (a closure over the scheme's and the law's ``@wp.func``s).
 
-    Gathers the 3^D stencil with separable partial sums (z lines first) -- v_pic = sum w v_i and the
+    Gathers the shape function's width^D window with separable partial sums (z lines first) -- v_pic = sum w v_i and the
     moments the scheme declares (``first``: B = sum w v_i o^T; ``gradient``: sum v_i (grad w)^T; the
-    old grid velocity for ``split_force``) -- lets the scheme's ``g2p`` turn them into (v, C, grad_v),
+    old grid velocity for ``split_force``) -- lets the scheme's ``g2p`` turn them into (v, C, grad_v) (with the particle's D_p^-1 as ``Dinv``),
     writes x (moved with v_pic, JAX-MPM Eq. 17), v, C, then feeds the velocity gradient straight into
     the law's ``update`` and stores the new law state and its Kirchhoff stress, so the velocity gradient
     never goes through memory. Launched on a chunk ``start`` of the group that begins at particle ``goff``.
     """
     T = warp_types(dim, precision)
-    S = stencil_funcs(dim, precision)
+    S = _stencil_funcs(dim, precision, shape)
+    NW, OFFS = S.width, S.OFFS
+    uses_lp = S.uses_lp
     L = law_types(law, dim, precision)
     scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
     need_grad = "gradient" in tr.moments
     apic = "first" in tr.moments          # the first moment (APIC's B)
     flip = tr.split_force
     F = tr.funcs
-    vec3s = wp.types.vector(3, scalar)
     impl = law.implementation("warp", "law")(law, dim, precision)
 
     @wp.func
@@ -439,14 +493,13 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
     @wp.kernel(module="unique", module_options=law_module_options(impl))
     def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
             grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
-            tp: wp.array(dtype=scalar), goff: int, start: int,
+            tp: wp.array(dtype=scalar), lp: wp.array(dtype=scalar), goff: int, start: int,
             state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights,
             x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
             state_out: L.StateArrays, tau: wp.array(dtype=mat)):
         q = wp.tid() + start
         p = goff + q
         inv_dx = scalar(1.0) / dx
-        OFF = vec3s(scalar(0.0), scalar(1.0), scalar(2.0))   # node offsets as scalars
         xp = x[p]
         if S.in_grid(xp, origin, inv_dx, strides, grid_v.shape[0]) == 0:
             # off the grid: moves on ballistically, outside the domain, so the guard reports it; its law
@@ -460,7 +513,10 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
             tau[p] = impl.kirchhoff(s0, P0, w)
             return
         base, fx = S.locate(xp, origin, inv_dx)
-        W, DW = S.bspline(fx)
+        lpv = scalar(0.0)
+        if wp.static(uses_lp):
+            lpv = lp[p]
+        W, DW = S.weights(fx, lpv)
         nb = int(0)
         for d in range(dim):
             nb = nb + base[d] * strides[d]
@@ -469,18 +525,18 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
         G0 = vec(); G1 = vec(); G2 = vec()     # sum_i v_i (grad w_i)_d, d = 0, 1, 2
         B0 = vec(); B1 = vec(); B2 = vec()     # sum_i w_i v_i o_d
         if wp.static(dim == 3):
-            for i in range(3):
+            for i in range(NW):
                 sy = vec(); sdy = vec(); syd = vec(); jy = vec(); kz = vec(); oy = vec()
-                for j in range(3):
+                for j in range(NW):
                     s = vec(); sd = vec(); st = vec(); so = vec()
                     nij = nb + i * strides[0] + j * strides[1]
-                    for k in range(3):
+                    for k in range(NW):
                         g = grid_v[nij + k]
                         s = s + W[k, 2] * g
                         if wp.static(need_grad):
                             sd = sd + DW[k, 2] * g
                         if wp.static(apic):
-                            st = st + (OFF[k] * W[k, 2]) * g
+                            st = st + (OFFS[k] * W[k, 2]) * g
                         if wp.static(flip):
                             so = so + W[k, 2] * grid_v_old[nij + k]
                     wy = W[j, 1]
@@ -489,7 +545,7 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
                         sdy = sdy + DW[j, 1] * s
                         syd = syd + wy * sd
                     if wp.static(apic):
-                        jy = jy + (OFF[j] * wy) * s
+                        jy = jy + (OFFS[j] * wy) * s
                         kz = kz + wy * st
                     if wp.static(flip):
                         oy = oy + wy * so
@@ -500,22 +556,22 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
                     G1 = G1 + wx * sdy
                     G2 = G2 + wx * syd
                 if wp.static(apic):
-                    B0 = B0 + (OFF[i] * wx) * sy
+                    B0 = B0 + (OFFS[i] * wx) * sy
                     B1 = B1 + wx * jy
                     B2 = B2 + wx * kz
                 if wp.static(flip):
                     vo = vo + wx * oy
         else:
-            for i in range(3):
+            for i in range(NW):
                 s = vec(); sd = vec(); st = vec(); so = vec()
                 ni = nb + i * strides[0]
-                for j in range(3):
+                for j in range(NW):
                     g = grid_v[ni + j]
                     s = s + W[j, 1] * g
                     if wp.static(need_grad):
                         sd = sd + DW[j, 1] * g
                     if wp.static(apic):
-                        st = st + (OFF[j] * W[j, 1]) * g
+                        st = st + (OFFS[j] * W[j, 1]) * g
                     if wp.static(flip):
                         so = so + W[j, 1] * grid_v_old[ni + j]
                 wx = W[i, 0]
@@ -524,7 +580,7 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
                     G0 = G0 + DW[i, 0] * s
                     G1 = G1 + wx * sd
                 if wp.static(apic):
-                    B0 = B0 + (OFF[i] * wx) * s
+                    B0 = B0 + (OFFS[i] * wx) * s
                     B1 = B1 + wx * st
                 if wp.static(flip):
                     vo = vo + wx * so
@@ -534,7 +590,8 @@ def g2p_law_kernel(law, dim: int, precision: str, tr):
         B = mat()
         if wp.static(apic):
             B = cols(B0, B1, B2)
-        vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, tp)
+        Dinv = S.dinv(W, fx, inv_dx)
+        vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, Dinv, tp)
         v_out[p] = vnew
         x_out[p] = xp + dt * vp                                                      # JAX-MPM Eq. 17
         if wp.static(tr.carries_C):

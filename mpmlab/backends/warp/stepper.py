@@ -1,5 +1,10 @@
 """Warp stepper: P2G -> grid update (+ walls) -> grid boundaries -> G2P fused with each material's law.
 
+The grid shape function (``shape=``: ``quadratic`` by default, ``cubic``, ``ugimp``; ``mpmlab.shapes``)
+is part of every kernel's key: its window (width^D nodes from ``floor(x/dx - offset)``) and weights are
+compiled in, uGIMP's particle half widths ``lp`` are a per-particle array (sorted with the particles), and
+the guard's domain interior is the window's (``shape_inner_bounds``).
+
 What the scene does not need is not compiled and not launched: no ``C`` array or affine terms for
 PIC/FLIP, no old grid velocity except for FLIP, one G2P+law kernel per law present (built from a
 closure over its ``@wp.func``s), no boundary kernels for absent boundaries, no external-force array
@@ -26,6 +31,17 @@ from . import kernels as K
 from .kernels import WALL_CODES
 from .transfers import warp_transfer
 from .types import warp_types
+from ...shapes import resolve as resolve_shape
+
+
+def shape_inner_bounds(scene, shape):
+    """Region a particle may occupy with shape function ``shape``: its width^D window, from
+    ``floor(x/dx - offset)``, stays on the grid (``scene.inner_bounds`` for the quadratic window)."""
+    if int(shape.width) == 3 and float(shape.offset) == 0.5:
+        return scene.inner_bounds
+    lo = scene.origin + float(shape.offset) * scene.dx
+    hi = scene.origin + (np.asarray(scene.cells) - int(shape.width) + 2 + float(shape.offset)) * scene.dx
+    return lo, hi
 
 
 class WarpState(SimpleNamespace):
@@ -88,7 +104,7 @@ class WarpStepper(BaseStepper):
     backend_name = "warp"
 
     def __init__(self, scene, transfer, precision="fp32", check_every=None, device: str | None = None,
-                 threads: int | None = None, p2g_atomic: bool | None = None):
+                 threads: int | None = None, p2g_atomic: bool | None = None, shape="quadratic"):
         super().__init__(scene, transfer, precision, check_every)
         init_warp()   # quiet: no "could not find the CUDA driver" line on a CPU machine
         # backend.device wins; MPMLAB_WARP_DEVICE sets the default (e.g. cuda:0 to run the test suite
@@ -100,6 +116,9 @@ class WarpStepper(BaseStepper):
         T = self.T = warp_types(self.dim, precision)
         D = self.dim
         tr = transfer
+        #: the grid shape function (``mpmlab.shapes``; checked against the transfer) and, for one that uses
+        #: the particle size (uGIMP), each particle's half width in cells (scene order; constant)
+        self.shape, lp = resolve_shape(shape, tr, D, scene.dx, self.particles.volume)
         #: the scheme's @wp.funcs and declarations (mpmlab/transfers/<name>/warp.py), the kernels' key
         self.warp_transfer = warp_transfer(tr, D, precision)
         self.split_force = self.warp_transfer.split_force
@@ -154,15 +173,18 @@ class WarpStepper(BaseStepper):
         #: P2G sums with atomic adds into one grid (CUDA: required, every particle runs at once; None =
         #: by device) instead of plain adds into per-thread copies (CPU)
         self.p2g_atomic = not self.device.startswith("cpu") if p2g_atomic is None else bool(p2g_atomic)
-        self.k_p2g = K.p2g_kernel(D, precision, self.warp_transfer, bool(self.force_bcs), atomic=self.p2g_atomic)
+        self.k_p2g = K.p2g_kernel(D, precision, self.warp_transfer, bool(self.force_bcs), atomic=self.p2g_atomic,
+                                  shape=self.shape)
         self.k_grid = K.grid_update_kernel(D, precision, self.split_force)
-        self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, self.warp_transfer) for g in self.groups]
+        self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, self.warp_transfer, shape=self.shape) for g in self.groups]
         self.k_laws = [K.law_kernels(g.law, D, precision) for g in self.groups]
         _compile_step_kernels(self)
         self.k_guard = K.guard_kernel(D, precision)
         # static per-particle data and scratch
         self.mass = wp.array(P.mass, dtype=T.scalar, device=dev)
         self.vol = wp.array(P.volume, dtype=T.scalar, device=dev)
+        #: half particle widths in cells for the shape function (a one-entry dummy when it does not use them)
+        self.lp = wp.array(lp if lp is not None else np.zeros(1), dtype=T.scalar, device=dev)
         self.law_params = [wp.array(g.params, dtype=T.scalar, device=dev) for g in self.groups]
         #: each group's shared law weights: {name: wp.array} and the law's ``Weights`` struct over them
         self.law_weights = [{k: wp.array(a, dtype=T.scalar, device=dev) for k, a in g.weights.items()}
@@ -182,7 +204,7 @@ class WarpStepper(BaseStepper):
         self.ext = wp.zeros(N if self.force_bcs else 1, dtype=T.vec, device=dev)
         self.flag = wp.zeros(1, dtype=int, device=dev)
         self._gravity_unused = wp.zeros(1, dtype=T.vec, device=dev)   # the tape form's gravity argument
-        lo, hi = scene.inner_bounds
+        lo, hi = shape_inner_bounds(scene, self.shape)
         self.lo, self.hi = T.vec(*lo), T.vec(*hi)
         #: the scheme's runtime numbers (``scalars()``, e.g. the FLIP ratio), read by its Warp functions
         self.transfer_scalars = wp.array(np.asarray(tuple(tr.scalars()) or (0.0,), dtype=self.np_dtype),
@@ -190,7 +212,7 @@ class WarpStepper(BaseStepper):
         #: re-sort particles by cell every this many steps (CPU only; None: never). Particle boundaries
         #: and loads address particles by scene index, so scenes with them are not sorted.
         self.sort_every = 100 if (self.device == "cpu" and not self.particle_bcs and not self.force_bcs) else None
-        self._base_order = SimpleNamespace(perm=None, mass=self.mass, vol=self.vol, params=self.law_params)
+        self._base_order = SimpleNamespace(perm=None, mass=self.mass, vol=self.vol, params=self.law_params, lp=self.lp)
 
     def __del__(self):
         pool = getattr(self, "_pool", None)
@@ -231,7 +253,7 @@ class WarpStepper(BaseStepper):
     def _sort_into(self, s: WarpState, d: WarpState) -> None:
         """d <- s with particles sorted by base node within each group (NumPy views of CPU arrays)."""
         x = s.x.numpy()
-        cell = np.floor((x - np.asarray(self.scene.origin)) / self.scene.dx - 0.5)
+        cell = np.floor((x - np.asarray(self.scene.origin)) / self.scene.dx - float(self.shape.offset))
         # a diverged particle (NaN/inf or far off the grid; the next guard check names it) gets a clipped
         # key instead of an invalid integer cast
         shape = np.asarray(self.grid_shape, dtype=float)
@@ -250,9 +272,11 @@ class WarpStepper(BaseStepper):
         o = s.order
         T, dev = self.T, self.device
         perm = p if o.perm is None else o.perm[p]
+        lp = getattr(o, "lp", self.lp)
         d.order = SimpleNamespace(
             perm=perm, mass=wp.array(o.mass.numpy()[p], dtype=T.scalar, device=dev),
             vol=wp.array(o.vol.numpy()[p], dtype=T.scalar, device=dev),
+            lp=wp.array(lp.numpy()[p], dtype=T.scalar, device=dev) if lp.shape[0] > 1 else lp,
             params=[wp.array(a.numpy()[p[g.start:g.stop] - g.start], dtype=T.scalar, device=dev)
                     for g, a in zip(self.groups, o.params)])
         d.t, d.age = s.t, 0
@@ -301,7 +325,8 @@ class WarpStepper(BaseStepper):
     def _record(self, s: WarpState, o: WarpState) -> SimpleNamespace:
         dev, N, G = self.device, self.particles.count, self.node_count
         rec = lambda kernel, n, inputs: wp.launch(kernel, dim=n, inputs=inputs, device=dev, record_cmd=True)
-        p2g = [rec(self.k_p2g, cnt, [s.x, s.v, s.C, s.tau, s.order.mass, s.order.vol, self.ext, self.origin, self.dx_s,
+        lp = getattr(s.order, "lp", self.lp)
+        p2g = [rec(self.k_p2g, cnt, [s.x, s.v, s.C, s.tau, s.order.mass, s.order.vol, self.ext, lp, self.origin, self.dx_s,
                                      self.dt_s, self.transfer_scalars, self.strides, start, c * G, self.grid_mm, self.grid_f, self.bbox, c])
                for c, (start, cnt) in enumerate(self._chunks(N, self.threads))]
         zero = self.T.ivec()
@@ -315,7 +340,7 @@ class WarpStepper(BaseStepper):
             law_out = self.k_laws[i].types.state_arrays(ot)
             for start, cnt in self._chunks(g.count, self._dyn_chunks):
                 g2p.append(rec(k, cnt, [s.x, s.v, self.grid_v, self.grid_v_old, self.origin, self.dx_s, self.dt_s,
-                                        self.strides, self.transfer_scalars, g.start, start, *law_in, o.x, o.v,
+                                        self.strides, self.transfer_scalars, lp, g.start, start, *law_in, o.x, o.v,
                                         o.C, law_out, o.tau]))
         return SimpleNamespace(p2g=p2g, grid=grid, g2p=g2p)
 
@@ -344,7 +369,7 @@ class WarpStepper(BaseStepper):
         if self.limit_grid and bb is not None:
             used = bb[: 2 * len(cmds.p2g)]
             lo = np.maximum(used[0::2].min(axis=0), 0)
-            hi = np.minimum(used[1::2].max(axis=0) + 3, self.grid_shape)   # + the stencil of the last base node
+            hi = np.minimum(used[1::2].max(axis=0) + self.shape.width, self.grid_shape)   # + the last base node's window
         else:
             lo, hi = np.zeros(D, int), np.asarray(self.grid_shape)
         ext = np.maximum(hi - lo, 0)   # 0 when no particle is on the grid (all diverged off it): nothing to do
@@ -408,6 +433,19 @@ class WarpStepper(BaseStepper):
         return float(np.sqrt(np.max(np.sum(v.astype(np.float64) ** 2, axis=1), initial=0.0)))
 
     # ---- guards -----------------------------------------------------------------------------------
+    def locate_failure(self, npstate):
+        """As the base stepper's, with the domain interior of this stepper's shape function (a cubic
+        B-spline's window reaches half a cell further than the quadratic one ``scene.inner_bounds`` is for)."""
+        out = super().locate_failure(npstate)
+        if out is None and "x" in npstate:
+            lo, hi = shape_inner_bounds(self.scene, self.shape)
+            x = npstate["x"]
+            bad = np.any((x < lo) | (x >= hi), axis=1)
+            if bad.any():
+                p = int(np.argmax(bad))
+                return p, "x (outside the domain)", x[p].tolist()
+        return out
+
     def _is_bad(self, state) -> bool:
         self.flag.zero_()
         wp.launch(self.k_guard, dim=self.particles.count, inputs=[state.x, state.v, self.lo, self.hi, self.flag],

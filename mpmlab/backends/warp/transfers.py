@@ -27,6 +27,20 @@ class WarpTransfer:
 _SPECS: dict = {}
 
 
+def _arg_names(func):
+    """The argument names of a ``@wp.func`` (None when they cannot be read)."""
+    import inspect
+
+    types = getattr(func, "input_types", None)
+    if isinstance(types, dict) and types:
+        return list(types)
+    fn = getattr(func, "func", func)
+    try:
+        return list(inspect.signature(fn).parameters)
+    except (TypeError, ValueError):
+        return None
+
+
 def warp_transfer(transfer, dim: int, precision: str) -> WarpTransfer:
     transfer.check()
     where = transfer.describe()
@@ -36,6 +50,12 @@ def warp_transfer(transfer, dim: int, precision: str) -> WarpTransfer:
         if getattr(funcs, attr, None) is None:
             raise ConfigError(f"{where}: its Warp factory gives no {attr} @wp.func (AbstractTransfer documents "
                               f"p2g_momentum, p2g_force for split_force schemes, and g2p).")
+    for attr in needed:
+        names = _arg_names(getattr(funcs, attr))
+        if names is not None and "Dinv" not in names:
+            raise ConfigError(f"{where}: its Warp {attr} has no Dinv argument (arguments {', '.join(names)}); since "
+                              f"shape functions are a choice, add `Dinv: mat` (the particle's D_p^-1) right "
+                              f"before `tp` (AbstractTransfer documents the signatures).")
     decl = (bool(transfer.carries_C), bool(transfer.split_force), frozenset(transfer.momentum_terms),
             frozenset(transfer.force_terms) if transfer.split_force else frozenset(), frozenset(transfer.moments))
     key = (id(funcs), decl)

@@ -20,8 +20,10 @@ def forms(dim: int, precision: str):
         return -(V * inv_dx) * tau
 
     @wp.func
-    def apic_C(B: mat, vp: vec, fx: vec, inv_dx: scalar):
-        """C = B D^-1, D = dx^2/4 I (Jiang et al. 2015; JAX-MPM Eq. B.1): 4/dx (sum w v_i o^T - v_pic fx^T)."""
-        return (scalar(4.0) * inv_dx) * (B - wp.outer(vp, fx))
+    def apic_C(B: mat, vp: vec, fx: vec, inv_dx: scalar, Dinv: mat):
+        """C = B_p D_p^-1 (Jiang et al. 2015; JAX-MPM Eq. B.1) with B_p = sum w v_i (x_i - x_p)^T =
+        (sum w v_i o^T - v_pic fx^T) dx (o the node offsets in cells; the kernels gather the first term)
+        and the shape function's D_p^-1 (``Dinv``; 4/dx^2 I for quadratic B-splines)."""
+        return ((B - wp.outer(vp, fx)) @ Dinv) * (scalar(1.0) / inv_dx)
 
     return SimpleNamespace(gradient_force=gradient_force, apic_C=apic_C, T=T)

@@ -15,11 +15,12 @@ def funcs(dim: int, precision: str):
 
     @wp.func
     def p2g_momentum(m: scalar, V: scalar, v: vec, C: mat, tau: mat, dt: scalar, inv_dx: scalar,
-                     tp: wp.array(dtype=scalar)):
+                     Dinv: mat, tp: wp.array(dtype=scalar)):
         return m * v, mat(), dt * F.gradient_force(V, tau, inv_dx)
 
     @wp.func
-    def g2p(v: vec, vp: vec, vo: vec, B: mat, Gv: mat, fx: vec, inv_dx: scalar, tp: wp.array(dtype=scalar)):
+    def g2p(v: vec, vp: vec, vo: vec, B: mat, Gv: mat, fx: vec, inv_dx: scalar, Dinv: mat,
+            tp: wp.array(dtype=scalar)):
         return vp, mat(), Gv
 
     return SimpleNamespace(p2g_momentum=p2g_momentum, g2p=g2p)

@@ -16,7 +16,8 @@ def funcs(dim: int, precision: str):
     scalar, vec, mat = T.scalar, T.vec, T.mat
 
     @wp.func
-    def g2p(v: vec, vp: vec, vo: vec, B: mat, Gv: mat, fx: vec, inv_dx: scalar, tp: wp.array(dtype=scalar)):
+    def g2p(v: vec, vp: vec, vo: vec, B: mat, Gv: mat, fx: vec, inv_dx: scalar, Dinv: mat,
+            tp: wp.array(dtype=scalar)):
         return vp, Gv, Gv
 
     return SimpleNamespace(p2g_momentum=A.p2g_momentum, g2p=g2p)
