@@ -300,14 +300,14 @@ def test_ugimp_particle_sizes_follow_the_sort():
 def test_guard_interior_follows_the_window():
     """The guard's interior is the shape function's: the cubic window needs one cell to the grid's edge,
     the quadratic one half a cell; a particle in between is reported as outside for cubic only."""
-    from mpmlab.backends.warp.stepper import shape_inner_bounds
+    from mpmlab.shapes import inner_bounds
 
     scene = conservation_scene(2)
-    lo, hi = shape_inner_bounds(scene, make_shape("cubic"))
+    lo, hi = inner_bounds(make_shape("cubic"), scene)
     np.testing.assert_allclose(lo, scene.origin + scene.dx)
     np.testing.assert_allclose(hi, scene.origin + (np.asarray(scene.cells) - 1) * scene.dx)
     for shape in ("quadratic", "ugimp"):
-        ql, qh = shape_inner_bounds(scene, make_shape(shape))
+        ql, qh = inner_bounds(make_shape(shape), scene)
         np.testing.assert_array_equal(ql, scene.inner_bounds[0])
         np.testing.assert_array_equal(qh, scene.inner_bounds[1])
     x = np.asarray(scene.particles().x, float).copy()

@@ -3,7 +3,7 @@
 The grid shape function (``shape=``: ``quadratic`` by default, ``cubic``, ``ugimp``; ``mpmlab.shapes``)
 is part of every kernel's key: its window (width^D nodes from ``floor(x/dx - offset)``) and weights are
 compiled in, uGIMP's particle half widths ``lp`` are a per-particle array (sorted with the particles), and
-the guard's domain interior is the window's (``shape_inner_bounds``).
+the guard's domain interior is the window's (``mpmlab.shapes.inner_bounds``).
 
 What the scene does not need is not compiled and not launched: no ``C`` array or affine terms for
 PIC/FLIP, no old grid velocity except for FLIP, one G2P+law kernel per law present (built from a
@@ -31,17 +31,8 @@ from . import kernels as K
 from .kernels import WALL_CODES
 from .transfers import warp_transfer
 from .types import warp_types
+from ...shapes import inner_bounds as shape_inner_bounds
 from ...shapes import resolve as resolve_shape
-
-
-def shape_inner_bounds(scene, shape):
-    """Region a particle may occupy with shape function ``shape``: its width^D window, from
-    ``floor(x/dx - offset)``, stays on the grid (``scene.inner_bounds`` for the quadratic window)."""
-    if int(shape.width) == 3 and float(shape.offset) == 0.5:
-        return scene.inner_bounds
-    lo = scene.origin + float(shape.offset) * scene.dx
-    hi = scene.origin + (np.asarray(scene.cells) - int(shape.width) + 2 + float(shape.offset)) * scene.dx
-    return lo, hi
 
 
 class WarpState(SimpleNamespace):
@@ -204,7 +195,9 @@ class WarpStepper(BaseStepper):
         self.ext = wp.zeros(N if self.force_bcs else 1, dtype=T.vec, device=dev)
         self.flag = wp.zeros(1, dtype=int, device=dev)
         self._gravity_unused = wp.zeros(1, dtype=T.vec, device=dev)   # the tape form's gravity argument
-        lo, hi = shape_inner_bounds(scene, self.shape)
+        #: the region the shape's window stays on the grid (one cell less per side for cubic B-splines)
+        self.inner_bounds = lo, hi = shape_inner_bounds(self.shape, scene)
+        shape_inner_bounds(self.shape, scene, self.particles.x)        # refuses particles outside it, one line
         self.lo, self.hi = T.vec(*lo), T.vec(*hi)
         #: the scheme's runtime numbers (``scalars()``, e.g. the FLIP ratio), read by its Warp functions
         self.transfer_scalars = wp.array(np.asarray(tuple(tr.scalars()) or (0.0,), dtype=self.np_dtype),
@@ -433,19 +426,6 @@ class WarpStepper(BaseStepper):
         return float(np.sqrt(np.max(np.sum(v.astype(np.float64) ** 2, axis=1), initial=0.0)))
 
     # ---- guards -----------------------------------------------------------------------------------
-    def locate_failure(self, npstate):
-        """As the base stepper's, with the domain interior of this stepper's shape function (a cubic
-        B-spline's window reaches half a cell further than the quadratic one ``scene.inner_bounds`` is for)."""
-        out = super().locate_failure(npstate)
-        if out is None and "x" in npstate:
-            lo, hi = shape_inner_bounds(self.scene, self.shape)
-            x = npstate["x"]
-            bad = np.any((x < lo) | (x >= hi), axis=1)
-            if bad.any():
-                p = int(np.argmax(bad))
-                return p, "x (outside the domain)", x[p].tolist()
-        return out
-
     def _is_bad(self, state) -> bool:
         self.flag.zero_()
         wp.launch(self.k_guard, dim=self.particles.count, inputs=[state.x, state.v, self.lo, self.hi, self.flag],
