@@ -3,7 +3,7 @@
 The sharded runs need forced host devices, which XLA takes only when JAX starts: they run in one
 subprocess (``tests/_sharding_check.py``, 3 host devices, so that material groups of 16 particles are
 padded) that compares against the single-device stepper: fp64 trajectories of a six-material scene on
-2-cell walls for every transfer (and APIC with the cubic B-spline and uGIMP shape functions), gradients
+2-cell walls for every transfer (and APIC with the uGIMP shape function), gradients
 of an observed-velocity loss, and the CLI. The refusals run
 here, in this one-device process.
 """
@@ -51,10 +51,10 @@ def test_sharded_trajectories_match_one_device(report):
 
 @pytest.mark.slow
 def test_sharded_shape_functions_match_one_device(report):
-    """APIC with cubic B-splines and uGIMP (lp laid out with the particles) on 3 devices, 160 steps."""
+    """APIC with uGIMP (its per-particle lp laid out with the particles) on 3 devices, 160 steps."""
     for shape, r in report["shapes"].items():
         assert r["x"] <= TRAJECTORY_TOL and r["v"] <= TRAJECTORY_TOL and r["C_rel"] <= TRAJECTORY_TOL, (shape, r)
-    assert set(report["shapes"]) == {"cubic", "ugimp"}
+    assert set(report["shapes"]) == {"ugimp"}
 
 
 @pytest.mark.slow
