@@ -431,11 +431,16 @@ class AbstractTransfer(_Pluggable, ABC):
       D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T, Jiang et al. 2015): a Python float c meaning c I for
       every particle when the shape function's D_p is a constant (B-splines: 4/dx^2 quadratic, 3/dx^2
       cubic), an [N, D, D] array when it varies per particle (uGIMP: diagonal);
-      ``mpmlab.transfers._common.jax.times_Dinv(M, Dinv)`` gives M D^-1 for either form.
+      ``mpmlab.transfers._common.jax.times_Dinv(M, Dinv)`` gives M D^-1 for either form. ``p.Dinv`` is
+      D_p^-1 at the P2G position x_p; ``g.Dinv`` at the position the particle moves to, x_p + dt v_pic,
+      where the next P2G applies the C that ``g2p`` returns (so C D_p there is the B gathered; the same
+      for B-splines). A scheme whose C must carry B's angular momentum exactly reads it from C D_p, not
+      from C alone, where D_p is not isotropic (the example plugin's RPIC).
     * Warp (``@wp.func``s the kernel factories close over): ``p2g_momentum(m, V, v, C, tau, dt,
       inv_dx, Dinv, tp) -> (q, A, G)``, ``p2g_force(same) -> (F, H)`` (``split_force`` only) and
       ``g2p(v, vp, vo, B, Gv, fx, inv_dx, Dinv, tp) -> (v, C, grad_v)``; ``Dinv`` (a ``mat``, 1/length^2)
-      is the particle's D_p^-1 of the shape function (APIC's C = (B - vp fx^T) dx Dinv); ``tp`` is the
+      is the particle's D_p^-1 of the shape function (APIC's C = (B - vp fx^T) dx Dinv; in ``g2p`` at
+      x_p + dt vp, in the P2G functions at x_p, as on JAX); ``tp`` is the
       array of ``scalars()``; G and H multiply the weight gradient in cell units (dx grad w, the kernels'
       own), ``Gv`` is in physical units. Undeclared outputs are ignored (return zeros).
     """

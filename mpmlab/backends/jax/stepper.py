@@ -291,7 +291,8 @@ class JaxStepper(BaseStepper):
         first = jnp.stack([out[f"o{d}"][:, :D] for d in range(D)], axis=-1) if "first" in T.moments else None
         grad = jnp.stack([out[f"d{e}"][:, :D] for e in range(D)], axis=-1) if "gradient" in T.moments else None  # Eq. 18
         res = tf.g2p(SimpleNamespace(v=v, v_pic=v_pic, v_old=out["v"][:, D:] if split else None, first=first,
-                                     grad=grad, fx=fx, inv_dx=inv_dx, dx=dx, Dinv=Dinv))
+                                     grad=grad, fx=fx, inv_dx=inv_dx, dx=dx,
+                                     Dinv=self._Dinv_moved(x + dt * v_pic, lp, Dinv)))
         v_p, grad_v = res.v, res.grad_v
         if T.carries_C:
             new["C"] = res.C
@@ -331,6 +332,22 @@ class JaxStepper(BaseStepper):
         r = jnp.arange(W, dtype=fx.dtype)[None, :, None] - fx[:, None, :]       # node offsets in cells [N, W, D]
         Dc = jnp.sum(w1 * r * r, axis=1)                                          # [N, D]
         return jnp.eye(D, dtype=fx.dtype) * ((inv_dx * inv_dx) / Dc)[:, None, :]
+
+    def _Dinv_moved(self, x_new, lp, Dinv):
+        """G2P's D_p^-1: that of the position the particle moves to, x_new = x + dt v_pic, where the next
+        P2G spreads C (``g.Dinv``). C = B D^-1 is applied there as C (x_i - x_new) with the weights, and so
+        the D_p, of x_new: with D_p of x_new the affine momentum the next P2G puts on the grid is exactly
+        the B gathered here (Jiang et al. 2015 store B and form C at P2G for this reason), and APIC / MLS
+        conserve angular momentum to round-off with uGIMP too. B-splines (constant D_p): ``Dinv`` itself,
+        unchanged. The base of x_new is its own; its floor has zero derivative, so reverse mode reaches x
+        and v_pic through fx and the weights."""
+        if self.shape.inv_D_cells is not None:
+            return Dinv
+        inv_dx = 1.0 / self.scene.dx
+        Xp = (x_new - self._node_x[0]) * inv_dx
+        fx = Xp - jnp.floor(Xp - self.shape.offset)
+        w1, _ = self._shape_fns.weights(fx, lp)
+        return self._Dinv(w1, fx, inv_dx)
 
     def _advance_impl(self, state, params, steps, dt=None):
         def body(s, _):

@@ -36,7 +36,8 @@ so, with the node adjoints (a_q, a_m) = adj mm_o and a_f = adj f_o,
 with H_o the Hessian of w_o (the shape function's ``hessian``: the quadratic B-spline's second derivatives
 1, -2, 1; the cubic's and uGIMP's piecewise). The window (width^D nodes from ``floor(x/dx - offset)``)
 is the shape function's (``kernels.stencil_funcs``). Where the scheme reads D_p^-1 (``Dinv``) and it
-varies with the position (uGIMP), its derivative is Warp's generated adjoint of the kernel body.
+varies with the position (uGIMP), its derivative is Warp's generated adjoint of the kernel body: in P2G
+of x_p, in G2P of x_p + dt v_pic (``dinv_moved``), whose v_pic adjoint joins the gather's (``adj_gather``).
 """
 
 from functools import lru_cache
@@ -498,10 +499,13 @@ def _g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape):
         B = mat()
         if wp.static(apic):
             B = cols(col(M, 2), col(M, 3), col(M, 1 + dim))
-        Dinv = S.dinv_at(fx, lpv, inv_dx)          # differentiable here: uGIMP's depends on x
+        xn = xp + dt * vp                                                            # JAX-MPM Eq. 17
+        # D_p^-1 of xn, the next P2G's position (kernels.g2p_law_kernel); differentiable here: uGIMP's
+        # depends on x and on v_pic, whose adjoint reaches the gather's (adj_gather: the nodes and x)
+        Dinv = S.dinv_moved(xn, origin, inv_dx, lpv)
         vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, Dinv, tp)
         v_out[p] = vnew
-        x_out[p] = xp + dt * vp                                                      # JAX-MPM Eq. 17
+        x_out[p] = xn
         if wp.static(tr.carries_C):
             C_out[p] = Cn
         P = L.load_params(prm, q)

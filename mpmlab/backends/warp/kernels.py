@@ -108,8 +108,22 @@ def _stencil_funcs(dim: int, precision: str, shape):
             W, DW = SF.weights(fx, lp)
         return dinv(W, fx, inv_dx)
 
+    @wp.func
+    def dinv_moved(xn: vec, origin: vec, inv_dx: scalar, lp: scalar):
+        """G2P's D_p^-1: that of the position xn = x + dt v_pic the particle moves to, where the next P2G
+        applies C = B D^-1 as C (x_i - xn) with the weights, and so the D_p, of xn -- the affine momentum it
+        spreads is then exactly the B gathered (Jiang et al. 2015 store B and form C at P2G), and APIC /
+        MLS conserve angular momentum to round-off with uGIMP too. Where D_p is constant (B-splines) this is
+        ``dinv``'s constant, nothing evaluated. Differentiable in xn (the floor of its base has zero
+        derivative)."""
+        if wp.static(inv_D is None):
+            bn, fxn = locate(xn, origin, inv_dx)
+            return dinv_at(fxn, lp, inv_dx)
+        else:
+            return dinv(wmat(), vec(), inv_dx)
+
     return SimpleNamespace(locate=locate, weights=SF.weights, hessian=SF.hessian, wmat=wmat, in_grid=in_grid,
-                           dinv=dinv, dinv_at=dinv_at, width=width, offset=offset, OFFS=OFFS,
+                           dinv=dinv, dinv_at=dinv_at, dinv_moved=dinv_moved, width=width, offset=offset, OFFS=OFFS,
                            uses_lp=bool(shape.uses_particle_size), shape=shape)
 
 
@@ -590,10 +604,11 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
         B = mat()
         if wp.static(apic):
             B = cols(B0, B1, B2)
-        Dinv = S.dinv(W, fx, inv_dx)
+        xn = xp + dt * vp                                                            # JAX-MPM Eq. 17
+        Dinv = S.dinv_moved(xn, origin, inv_dx, lpv)                                 # D_p^-1 of xn (the next P2G's)
         vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, Dinv, tp)
         v_out[p] = vnew
-        x_out[p] = xp + dt * vp                                                      # JAX-MPM Eq. 17
+        x_out[p] = xn
         if wp.static(tr.carries_C):
             C_out[p] = Cn
         # law update of this particle's material (state and parameters by name: law_types.py)

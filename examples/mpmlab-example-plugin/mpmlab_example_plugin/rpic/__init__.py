@@ -18,7 +18,9 @@ from mpmlab.core.interfaces import AbstractTransfer
 class RPIC(AbstractTransfer):
     """P2G: momentum m (v + C (x_i - x_p)) with C skew-symmetric, and the gradient force (JAX-MPM Eq. 12);
     G2P: C = skew(B D^-1), D^-1 read as ``Dinv`` (dx^2/4 I for quadratic B-splines), so every shape function
-    works (``shapes = None``); F updated with sum v_i (grad w)^T (JAX-MPM Eq. 18)."""
+    works (``shapes = None``); where D_p is not isotropic (uGIMP) C = [omega]_x with omega = K^-1 axial(B),
+    K = tr(D) I - D the particle's inertia tensor (the same for D = d I), so that C puts B's angular
+    momentum back on the grid; F updated with sum v_i (grad w)^T (JAX-MPM Eq. 18)."""
 
     name: ClassVar[str] = "rpic"
     implementations: ClassVar[dict] = {"jax": "mpmlab_example_plugin.rpic.jax:make",

@@ -19,10 +19,38 @@ def funcs(dim: int, precision: str):
         return m * v, m * C, dt * (-(V * inv_dx) * tau)
 
     @wp.func
+    def isotropic(Dinv: mat):
+        """1 when D^-1 = c I (B-spline shapes), else 0 (uGIMP: per particle, diagonal, anisotropic)."""
+        out = int(1)
+        for i in range(dim):
+            for j in range(dim):
+                if i == j:
+                    if Dinv[i, j] != Dinv[0, 0]:
+                        out = 0
+                elif Dinv[i, j] != scalar(0.0):
+                    out = 0
+        return out
+
+    @wp.func
     def g2p(v: vec, vp: vec, vo: vec, B: mat, Gv: mat, fx: vec, inv_dx: scalar, Dinv: mat,
             tp: wp.array(dtype=scalar)):
-        C = ((B - wp.outer(vp, fx)) @ Dinv) * (scalar(1.0) / inv_dx)     # B D^-1 (B in cells: times dx)
-        return vp, scalar(0.5) * (C - wp.transpose(C)), Gv
+        C = mat()
+        if isotropic(Dinv) == 1:
+            C = ((B - wp.outer(vp, fx)) @ Dinv) * (scalar(1.0) / inv_dx)     # B D^-1 (B in cells: times dx)
+            C = scalar(0.5) * (C - wp.transpose(C))
+        else:
+            # omega = K^-1 axial(B), K = tr(D) I - D the inertia tensor (jax.py: rigid_C)
+            Bl = (B - wp.outer(vp, fx)) * (scalar(1.0) / inv_dx)
+            D = wp.inverse(Dinv)
+            if wp.static(dim == 2):
+                c = (Bl[1, 0] - Bl[0, 1]) / (D[0, 0] + D[1, 1])
+                C = mat(scalar(0.0), -c, c, scalar(0.0))
+            else:
+                a = vec(Bl[2, 1] - Bl[1, 2], Bl[0, 2] - Bl[2, 0], Bl[1, 0] - Bl[0, 1])
+                K = wp.identity(n=3, dtype=scalar) * wp.trace(D) - D
+                w = wp.inverse(K) @ a
+                C = mat(scalar(0.0), -w[2], w[1], w[2], scalar(0.0), -w[0], -w[1], w[0], scalar(0.0))
+        return vp, C, Gv
 
     return SimpleNamespace(p2g_momentum=p2g_momentum, g2p=g2p)
 
