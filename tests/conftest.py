@@ -26,3 +26,16 @@ try:
     _absl_logging.get_absl_handler().python_handler.stream = sys.__stderr__
 except ImportError:  # pragma: no cover - absl comes with JAX
     pass
+
+
+def pytest_collection_modifyitems(config, items):
+    """``@pytest.mark.full`` cases run only with MPMLAB_FULL_TESTS=1 (or MPMLAB_FULL_ADJOINT_TESTS=1): the
+    rest of a matrix whose default run keeps one case per code path, so that CI stays within its time."""
+    import pytest
+
+    if any(os.environ.get(k, "") not in ("", "0") for k in ("MPMLAB_FULL_TESTS", "MPMLAB_FULL_ADJOINT_TESTS")):
+        return
+    skip = pytest.mark.skip(reason="more of a sampled matrix: set MPMLAB_FULL_TESTS=1 to run it")
+    for item in items:
+        if "full" in item.keywords:
+            item.add_marker(skip)

@@ -208,7 +208,7 @@ def test_refusals():
 @pytest.mark.parametrize("shape,transfer,dim", [("cubic", "apic", 2), ("cubic", "flip", 2), ("ugimp", "mls", 2),
                                                 ("ugimp", "flip", 2),
                                                 # 3D width-4 window: ~1 min of compiles on 2 cores
-                                                pytest.param("cubic", "apic", 3, marks=pytest.mark.slow)])
+                                                pytest.param("cubic", "apic", 3, marks=pytest.mark.full)])
 def test_p2g_adjoint_launch(shape, transfer, dim):
     """As ``tests/test_warp_adjoints.py::test_p2g_adjoint_launch`` (with an external force), with the
     shape function's window, weights and Hessian (and uGIMP's position-dependent Dinv in MLS's force)."""
@@ -272,7 +272,7 @@ def grad_stepper(shape, transfer, dim=2):
 @pytest.mark.parametrize("shape,transfer,dim", [
     ("cubic", "apic", 2), ("ugimp", "mls", 2),
     # 3D: the width-4 window's hand-written G2P adjoint compiles in ~1 min on 2 cores
-    pytest.param("cubic", "apic", 3, marks=pytest.mark.slow), pytest.param("ugimp", "mls", 3, marks=pytest.mark.slow)])
+    pytest.param("cubic", "apic", 3, marks=pytest.mark.slow), pytest.param("ugimp", "mls", 3, marks=pytest.mark.full)])
 def test_gradients_against_central_differences(shape, transfer, dim):
     """d/dx, d/dv and d/d(law parameters) of a random weighting of the observed velocities along a random
     direction, central differences vs autograd with each adjoint kind (relative 1e-6, as
