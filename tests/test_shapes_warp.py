@@ -21,9 +21,7 @@ gradient tests' tiny ones. With an empty Warp kernel cache, ``-m "not slow"`` ta
 cores (1.5 min of it the 3D cubic APIC step) and the slow 3D adjoint/gradient cases ~3 min more;
 ~10 s once compiled.
 """
-import sys
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -45,17 +43,10 @@ from mpmlab.shapes.ugimp import reference as ugimp_ref
 from mpmlab.testing.gradients import warp_fd_errors
 from mpmlab.testing.transfers import conservation_scene
 
+from .test_shapes_jax import _rpic          # the example plugin's RPIC, registered once
+
 REFERENCE = {"quadratic": quadratic_ref, "cubic": cubic_ref, "ugimp": ugimp_ref}
 TRANSFERS = registry.transfers.names()
-PLUGIN = Path(__file__).resolve().parents[1] / "examples" / "mpmlab-example-plugin"
-
-
-def _rpic():
-    """The example plugin's RPIC (Jiang et al. 2015 Sec. 5.3), registered from its source folder."""
-    if "rpic" not in registry.transfers.names():
-        sys.path.insert(0, str(PLUGIN))
-        registry.transfers.register("rpic", "mpmlab_example_plugin.rpic:RPIC", provenance="tests")
-    return "rpic"
 
 
 # ---- the weights against the NumPy reference ------------------------------------------------------------
