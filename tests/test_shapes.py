@@ -138,8 +138,7 @@ def test_resolve_refusals():
     assert s.name == "ugimp" and np.allclose(lp, [0.25, 0.5])
     with pytest.raises(ConfigError, match=r"particle 1 has half width 0.6 cells.*particles_per_cell >= 1"):
         resolve("ugimp", apic, 2, 0.1, [0.01 ** 2, 0.12 ** 2])
-    with pytest.raises(ConfigError, match=r"kind 'corners'.*choose shape quadratic, cubic or ugimp"):
-        resolve("cpdi", apic, 2, 0.1, [1e-4])
+    assert resolve("cpdi", apic, 2, 0.1, [1e-4])[1] is None        # CPDI's state is its domain, not lp
     with pytest.raises(UnknownPluginError, match=r"unknown shape 'quintic'.*cpdi, cubic, quadratic, ugimp"):
         make_shape("quintic")
     # a tracer (zero volume) gets a small positive lp, not 0 (uGIMP divides by it)

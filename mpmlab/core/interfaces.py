@@ -512,6 +512,11 @@ class AbstractShape(_Pluggable, ABC):
     * The NumPy ``reference.weights_1d(fx, lp)`` (fp64, [N] -> [N, width] twice) is what the tests
       check partition of unity and linear completeness on.
 
+    ``kind = "corners"`` (CPDI, ``mpmlab/shapes/cpdi/reference.py``): w_ip = 2^-D sum_c N_i(x_c) over the
+    corners x_c = x_p + R s_c of the particle's domain R (transfer state ``"domain"`` [N, D, D], declared in
+    ``state``), N_i the linear hat: the kernels run P2G / G2P over 2^D corner pseudo-particles with the
+    ``width`` = 2, ``offset`` = 0 window of ``weights`` (the hat), the gradient as 2^-D N_i(x_c) R^-T s_c.
+
     ``inv_D_cells``: D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T (Jiang et al. 2015, APIC's inertia) is
     dx^2 / inv_D_cells I for B-splines (4 quadratic, 3 cubic); None means it varies per particle and
     the backends compute it from the particle's own weights (GIMP). Schemes read D^-1 as ``Dinv``.
@@ -521,6 +526,8 @@ class AbstractShape(_Pluggable, ABC):
     """
 
     kind: ClassVar[str] = "separable"
+    #: per-particle state the shape function carries beyond x (names; ``"domain"``: CPDI's R [D, D])
+    state: ClassVar[tuple] = ()
     width: ClassVar[int] = 3
     offset: ClassVar[float] = 0.5
     inv_D_cells: ClassVar[float | None] = None
@@ -533,9 +540,12 @@ class AbstractShape(_Pluggable, ABC):
     def check(self) -> None:
         """Refuse declarations the kernels cannot carry out, in one line naming the shape function."""
         where = self.describe()
-        if self.kind != "separable":
-            raise ConfigError(f"{where}: kind '{self.kind}' is declared but mpmlab's kernels carry only "
-                              f"separable windows so far; choose shape quadratic, cubic or ugimp.")
+        if self.kind not in ("separable", "corners"):
+            raise ConfigError(f"{where}: kind '{self.kind}' is not one the kernels carry: 'separable' (a window "
+                              f"of 1-D weights) or 'corners' (CPDI's domain corners with the linear hat).")
+        if self.kind == "corners" and (self.width != 2 or float(self.offset) != 0.0 or tuple(self.state) != ("domain",)):
+            raise ConfigError(f"{where}: kind 'corners' runs the linear hat at each corner of the particle's "
+                              f"domain: declare width = 2, offset = 0 and state = ('domain',).")
         if not (isinstance(self.width, int) and 2 <= self.width <= 4):
             raise ConfigError(f"{where}: width = {self.width!r} must be 2, 3 or 4 nodes per axis.")
 

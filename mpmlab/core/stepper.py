@@ -77,6 +77,19 @@ class BaseStepper(AbstractStepper):
         C = self.particles.C
         return np.zeros((self.particles.count, self.dim, self.dim)) if C is None else C
 
+    def initial_domain(self) -> np.ndarray:
+        """CPDI's particle domains at t = 0 [N, D, D] (``mpmlab.shapes.cpdi.reference.initial_domain``): the
+        cube of each particle's reference volume, deformed by its body's initial F where its law has one."""
+        from ..shapes.cpdi.reference import initial_domain
+
+        P = self.particles
+        F = np.tile(np.eye(self.dim), (P.count, 1, 1))
+        for g in self.groups:
+            st = g.initial_state(self.dim)
+            if "F" in st:
+                F[g.start:g.stop] = np.asarray(st["F"], np.float64).reshape(-1, self.dim, self.dim)
+        return initial_domain(P.volume, self.dim, F)
+
     # ---- dt: auto recomputed during a rollout (issue #5 item 4) ---------------------------------
     def _max_speed(self, state) -> float:
         """Largest particle speed |v| of ``state`` [m/s] (a device reduction where a backend has one)."""

@@ -12,7 +12,7 @@ shape       window  1-D weight N(r), r = x_p - x_i in cells                     
 quadratic    3      quadratic B-spline (Steffen et al. 2008; JAX-MPM Eq. 9)    dx^2/4 I
 cubic        4      cubic B-spline (Steffen et al. 2008)                       dx^2/3 I
 ugimp        3      hat * box of half width lp (Bardenhagen & Kober 2004)      per particle
-cpdi         --     particle-domain corners (Sadeghirad et al. 2011)            not implemented
+cpdi        2^D x 2  linear hat at the domain's corners (Sadeghirad et al. 2011)  per particle
 =========== ====== =========================================================== ================
 
 A new shape function: a folder of your package like these, registered under the ``mpmlab.shapes``
@@ -88,12 +88,13 @@ def resolve(shape, transfer, dim: int, dx: float, volume) -> tuple[AbstractShape
     return s, np.clip(lp, LP_MIN, s.max_particle_size)
 
 
-def inner_bounds(shape, scene, x=None):
+def inner_bounds(shape, scene, x=None, domain=None):
     """(lo, hi): the region a particle may occupy with ``shape``: its window of ``width`` nodes per axis,
     lowest node floor(x/dx - offset), must stay on the grid: offset <= x/dx < cells - (width - 2 - offset)
     (in cells from the origin). For the 3-node shapes (quadratic, uGIMP) this is ``scene.inner_bounds``
-    itself; cubic B-splines lose one cell on each side. With particle positions ``x`` [N, D], refuses
-    (one line) a particle outside it."""
+    itself; cubic B-splines lose one cell on each side; for CPDI (``kind = "corners"``) it is the region of
+    the domain's corners (the whole grid, [origin, origin + cells dx)). With particle positions ``x`` [N, D]
+    (and, for CPDI, their domains ``domain`` [N, D, D]), refuses (one line) a particle (a corner) outside it."""
     import numpy as np
 
     from ..core.errors import ConfigError
@@ -106,12 +107,17 @@ def inner_bounds(shape, scene, x=None):
         hi = scene.origin + (np.asarray(scene.cells) - (int(s.width) - 2 - float(s.offset))) * scene.dx
     if x is not None:
         x = np.asarray(x)
-        out = np.nonzero(np.any((x < lo) | (x >= hi), axis=1))[0]
+        pts = x
+        if s.kind == "corners":
+            from .cpdi.reference import corners
+
+            pts = np.asarray(corners(x.astype(np.float64), np.asarray(domain, np.float64))).reshape(x.shape[0], -1, x.shape[1])
+        out = np.nonzero(np.any((pts < lo) | (pts >= hi), axis=tuple(range(1, pts.ndim))))[0]
         if len(out):
             k = int(out[0])
             raise ConfigError(
                 f"scene '{scene.name}': particle {k} at {np.round(x[k], 6).tolist()} lies outside the region "
                 f"[{np.round(lo, 6).tolist()}, {np.round(hi, 6).tolist()}) where the {s.width}-node window of "
-                f"{s.describe()} stays on the grid; enlarge the domain by a cell on each side or choose shape "
-                f"quadratic.")
+                f"{s.describe()} stays on the grid" + (" (a corner of its domain does)" if s.kind == "corners" else "")
+                + "; enlarge the domain by a cell on each side or choose shape quadratic.")
     return lo, hi

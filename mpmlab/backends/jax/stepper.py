@@ -74,6 +74,9 @@ class JaxStepper(BaseStepper):
         from ...shapes import inner_bounds, resolve
 
         self.shape, lp = resolve(shape, transfer, D, scene.dx, self.particles.volume)
+        if self.shape.kind == "corners":
+            raise ConfigError(f"{self.shape.describe()}: the JAX step does not carry CPDI's corner P2G / G2P "
+                              f"yet (issue 19); choose shape quadratic, cubic or ugimp.")
         self._shape_fns = self.shape.implementation("jax", "shape")(self.shape, D)
         self._lp = None if lp is None else np.asarray(lp, np.float64)
         #: the region a particle may occupy: its width^D window must stay on the grid (the scene's own

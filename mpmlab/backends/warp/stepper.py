@@ -31,6 +31,7 @@ from . import kernels as K
 from .kernels import WALL_CODES
 from .transfers import warp_transfer
 from .types import warp_types
+from ...core.errors import ConfigError
 from ...shapes import inner_bounds as shape_inner_bounds
 from ...shapes import resolve as resolve_shape
 
@@ -110,6 +111,9 @@ class WarpStepper(BaseStepper):
         #: the grid shape function (``mpmlab.shapes``; checked against the transfer) and, for one that uses
         #: the particle size (uGIMP), each particle's half width in cells (scene order; constant)
         self.shape, lp = resolve_shape(shape, tr, D, scene.dx, self.particles.volume)
+        if self.shape.kind == "corners":
+            raise ConfigError(f"{self.shape.describe()}: the Warp kernels do not carry CPDI's corner P2G / G2P "
+                              f"yet (issue 19); run it on backend jax, or choose shape quadratic, cubic or ugimp.")
         #: the scheme's @wp.funcs and declarations (mpmlab/transfers/<name>/warp.py), the kernels' key
         self.warp_transfer = warp_transfer(tr, D, precision)
         self.split_force = self.warp_transfer.split_force
