@@ -198,7 +198,7 @@ def shape_options_from_config(cfg: DictConfig, scene=None, transfer=None) -> dic
     ``{"shape": name}``, or ``{}`` for the default quadratic B-spline (every backend's default).
 
     Checked here, before anything is written: an unknown name (the registry lists the registered
-    ones), a shape the kernels cannot carry (cpdi), one the transfer does not declare and, with the
+    ones), a shape the kernels cannot carry, one the transfer does not declare and, with the
     ``scene``, a particle too large for the shape's window or outside the region its window keeps on
     the grid (``mpmlab.shapes.resolve`` / ``inner_bounds``; ``ConfigError``, one line each)."""
     from .shapes import inner_bounds, make_shape, resolve
@@ -213,7 +213,11 @@ def shape_options_from_config(cfg: DictConfig, scene=None, transfer=None) -> dic
     else:
         P = scene.particles()
         resolve(shape, transfer, scene.dim, scene.dx, P.volume)
-        inner_bounds(shape, scene, P.x)
+        domain = None
+        if shape.kind == "corners":         # CPDI: the corners of the particles' cubes (the stepper adds F)
+            from .shapes.cpdi.reference import initial_domain
+            domain = initial_domain(P.volume, scene.dim)
+        inner_bounds(shape, scene, P.x, domain)
     return {} if shape.name == "quadratic" else {"shape": shape.name}
 
 

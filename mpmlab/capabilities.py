@@ -61,7 +61,7 @@ def _shapes(builtin_only: bool = False) -> list[str]:
 
 def _shape_implemented(shape, backend: str) -> bool:
     """The shape function declares ``backend`` and its module is there (found, not imported), and the
-    kernels carry its kind (``AbstractShape.check``: CPDI is declared, not carried)."""
+    kernels carry its kind (``AbstractShape.check``)."""
     import importlib.util
 
     from .core.errors import ConfigError

@@ -8,8 +8,11 @@ widths lp in (0, 1/2]:
 * uGIMP in closed form: at lp = 1/2 it is the quadratic B-spline (hat * box of width 1 = the quadratic
   B-spline), as lp -> 0 the linear hat, and at any lp the hat averaged over the particle's box (quadrature);
 * the config's ``transfer.shape`` reaches the stepper (not the transfer) and the trajectory records it;
+* CPDI's reference formulas (``cpdi/reference.py``) for random rotated, sheared and stretched domains in
+  2-D and 3-D: partition of unity and linear completeness of S_ip and grad S_ip, D_p against its
+  definition, the Cayley domain update exactly rigid for a rotation and second order against expm;
 * ``resolve`` / ``inner_bounds`` / the registry refuse, in one line: a shape the transfer does not
-  declare, a particle too large for uGIMP's window, CPDI, an unknown name, a particle outside a cubic
+  declare, a particle too large for uGIMP's window, an unknown name, a particle outside a cubic
   window's region.
 
 Seconds in all (one small JAX trace per shape)."""
@@ -115,6 +118,71 @@ def test_ugimp_closed_forms():
         lo, hi = pts[:, :-1], pts[:, 1:]
         integral = ((hi - lo) / 6 * (hat(lo) + 4 * hat(0.5 * (lo + hi)) + hat(hi))).sum(1)
         assert np.abs(w[:, k] - integral / (2 * lp)).max() <= 1e-13
+
+
+# ---- CPDI (reference formulas, mpmlab/shapes/cpdi/reference.py) -------------------------------------------------
+def _domains(D, n=200, seed=4):
+    """Random particles and domains: rotated, sheared and stretched (singular values 0.2 .. 3 half cells)."""
+    rng = np.random.default_rng(seed)
+    x = 2.0 + 3.0 * rng.random((n, D))
+    U, _ = np.linalg.qr(rng.standard_normal((n, D, D)))
+    V, _ = np.linalg.qr(rng.standard_normal((n, D, D)))
+    sv = 0.1 + 1.4 * rng.random((n, D))                            # half widths in cells (dx = 1 below)
+    return x, np.einsum("nij,nj,nkj->nik", U, sv, V)
+
+
+@pytest.mark.parametrize("D", [2, 3])
+def test_cpdi_partition_of_unity_linear_completeness_and_inertia(D):
+    """S_ip = 2^-D sum_c N_i(x_c), grad S_ip = 2^-D sum_c N_i(x_c) R^-T s_c: sum S = 1, sum S x_i = x_p,
+    sum grad S = 0, sum x_i grad S^T = I for any domain, and ``inertia`` is sum S (x_i - x_p)(x_i - x_p)^T."""
+    ref = _reference("cpdi")
+    x, R = _domains(D)
+    dx = 0.5
+    x, R = x * dx, R * dx
+    for k in range(0, len(x), 20):
+        nodes, S, dS = ref.node_weights(x[k:k + 20], R[k:k + 20], dx)
+        X = nodes * dx
+        assert S.min() >= 0.0
+        assert np.abs(S.sum(1) - 1).max() <= 1e-14
+        assert np.abs(S @ X - x[k:k + 20]).max() <= 1e-13
+        assert np.abs(dS.sum(1)).max() <= 1e-12
+        assert np.abs(np.einsum("nki,kj->nij", dS, X) - np.eye(D)).max() <= 1e-12
+        r = X[None] - x[k:k + 20, None]
+        Dp = np.einsum("nk,nki,nkj->nij", S, r, r)
+        assert np.abs(Dp - ref.inertia(x[k:k + 20], R[k:k + 20], dx)).max() <= 1e-14
+
+
+def test_cpdi_domain_update_rotates_rigidly_and_is_second_order():
+    """The Cayley update keeps R^T R for a skew velocity gradient (a rigid rotation) to round-off, and
+    follows R(t) = expm(t L) R0 at second order in dt for any L."""
+    from scipy.linalg import expm
+
+    ref = _reference("cpdi")
+    x, R = _domains(3, n=50)
+    rng = np.random.default_rng(5)
+    W = rng.standard_normal((50, 3, 3))
+    W = W - W.transpose(0, 2, 1)
+    Rn = R
+    for _ in range(100):
+        Rn = ref.update_domain(Rn, W, 0.05)
+    gram = lambda A: np.einsum("nji,njk->nik", A, A)               # noqa: E731
+    assert np.abs(gram(Rn) - gram(R)).max() <= 1e-12 * np.abs(gram(R)).max()
+    L = rng.standard_normal((50, 3, 3))
+    errs = []
+    for n in (10, 20):
+        Rn = R
+        for _ in range(n):
+            Rn = ref.update_domain(Rn, L, 0.5 / n)
+        errs.append(np.abs(Rn - np.stack([expm(0.5 * l) @ r for l, r in zip(L, R)])).max())
+    assert 3.6 < errs[0] / errs[1] < 4.4, errs
+
+
+def test_cpdi_initial_domain():
+    ref = _reference("cpdi")
+    R = ref.initial_domain([1e-6, 8e-6], 3)                     # cubes of side 0.01 and 0.02
+    assert np.allclose(R, [0.005 * np.eye(3), 0.01 * np.eye(3)])
+    F = np.array([[[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 2.0]]] * 2)
+    assert np.allclose(ref.initial_domain([1e-6, 8e-6], 3, F), F @ R)
 
 
 def _scene(ppc=4, lo=0.4, hi=0.6, dx=0.05, **body):

@@ -135,7 +135,7 @@ class BaseStepper(AbstractStepper):
             bad = ~np.all(np.isfinite(a), axis=1)
             if bad.any():
                 p = int(np.argmax(bad)); return p, name, a[p].tolist()
-        for name in (*self.state_field_names, "C"):
+        for name in (*self.state_field_names, "C", "domain"):
             if name not in npstate:
                 continue
             a = npstate[name].reshape(len(npstate[name]), -1)
@@ -157,6 +157,14 @@ class BaseStepper(AbstractStepper):
         out = np.any((x < lo) | (x >= hi), axis=1)
         if out.any():
             p = int(np.argmax(out)); return p, "x (outside the domain)", x[p].tolist()
+        if "domain" in npstate:             # CPDI: a corner of the particle's domain left the grid
+            from ..shapes.cpdi.reference import corners
+
+            xc = corners(x.astype(np.float64), npstate["domain"].astype(np.float64))
+            out = np.any((xc < lo) | (xc >= hi), axis=(1, 2))
+            if out.any():
+                p = int(np.argmax(out)); c = int(np.argmax(np.any((xc[p] < lo) | (xc[p] >= hi), axis=1)))
+                return p, "domain (a CPDI corner outside the domain)", xc[p, c].tolist()
         return None
 
     def cfl_number(self, npstate) -> float:

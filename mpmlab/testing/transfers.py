@@ -41,14 +41,19 @@ def conservation_scene(dim: int, *, law: str = LAW):
                         gravity=[0.0] * dim, dt=1e-3, name=f"conservation_{dim}d")
 
 
-def inertia(shape, x, origin, dx: float, lp=None) -> np.ndarray:
-    """D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T [N, D, D] of particles at ``x`` for a separable shape
-    function (``mpmlab.shapes``; NumPy reference weights, fp64): diagonal, dx^2 sum_k w_ka (k - fx_a)^2."""
+def inertia(shape, x, origin, dx: float, lp=None, domain=None) -> np.ndarray:
+    """D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T [N, D, D] of particles at ``x`` (``mpmlab.shapes``; NumPy
+    reference weights, fp64): for a separable shape function diagonal, dx^2 sum_k w_ka (k - fx_a)^2; for
+    CPDI (``domain``: the particles' domains [N, D, D]) ``cpdi.reference.inertia``."""
     import importlib
 
     from ..shapes import make_shape
 
     s = make_shape(shape)
+    if s.kind == "corners":
+        from ..shapes.cpdi.reference import inertia as corner_inertia
+
+        return corner_inertia(np.asarray(x, float), np.asarray(domain, float), dx, np.asarray(origin, float))
     ref = importlib.import_module(f"{type(s).__module__}.reference")
     X = (np.asarray(x, float) - np.asarray(origin, float)) / dx
     fx = X - np.floor(X - s.offset)
@@ -91,13 +96,16 @@ def check_conservation(transfer, dim: int, backend: str, *, steps: int = 40, tol
     scene = conservation_scene(dim)
     st = mpmlab.build_stepper(scene, backend, name, "fp64", **({} if shape == "quadratic" else {"shape": shape}))
     lp = getattr(st, "_lp", None)
-    Dp = (lambda x: None) if shape == "quadratic" else (lambda x: inertia(shape, x, scene.origin, scene.dx, lp))
-    fields = ("C",) if inst.needs_affine else ()
+    corners = st.shape.kind == "corners"            # CPDI: D_p from the particles' domains
+    fields = (("C",) if inst.needs_affine else ()) + (("domain",) if corners else ())
     traj = st.rollout(steps=steps, every=1, fields=fields)
+    dom = traj.fields.get("domain")
+    Dp = ((lambda k: None) if shape == "quadratic" else
+          (lambda k: inertia(shape, traj.x[k], scene.origin, scene.dx, lp, None if dom is None else dom[k])))
     mass = traj.mass
     C = traj.fields.get("C")
     frame = lambda k: (traj.x[k], traj.v[k], None if C is None else C[k])      # noqa: E731
-    P0, L0 = momenta(*frame(0), mass, scene.dx, dim, Dp(traj.x[0]))
+    P0, L0 = momenta(*frame(0), mass, scene.dx, dim, Dp(0))
     # scales: total mass x the block's speeds (drift and spin) so a conserved zero component is tested too
     M = float(np.sum(mass))
     r = 0.1 * np.sqrt(dim)
@@ -105,7 +113,7 @@ def check_conservation(transfer, dim: int, backend: str, *, steps: int = 40, tol
     l_scale = float(M * r * r * 4.0 + np.linalg.norm(L0))
     drift = {"linear_momentum": 0.0, "angular_momentum": 0.0}
     for k in range(1, traj.frame_count):
-        P, L = momenta(*frame(k), mass, scene.dx, dim, Dp(traj.x[k]))
+        P, L = momenta(*frame(k), mass, scene.dx, dim, Dp(k))
         drift["linear_momentum"] = max(drift["linear_momentum"], float(np.abs(P - P0).max()) / p_scale)
         drift["angular_momentum"] = max(drift["angular_momentum"], float(np.abs(L - L0).max()) / l_scale)
     where = f"transfer '{name}' {dim}D {backend} fp64, {steps} steps" + ("" if shape == "quadratic" else f", shape {shape}")

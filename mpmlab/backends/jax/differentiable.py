@@ -67,6 +67,8 @@ def split_controls(stepper, c: dict[str, Any]) -> tuple[dict, dict]:
     if stepper.transfer.needs_affine:
         state["C"] = (jnp.asarray(c["C"], dt) if "C" in c
                       else jnp.asarray(stepper.initial_C(), dt))
+    if getattr(stepper, "corners", False):       # CPDI's domains: the scene's, a constant of the run
+        state["domain"] = jnp.asarray(stepper.initial_domain(), dt)
     if len(c["boundary"]) != len(stepper._bc_order):
         raise ConfigError(f"controls have {len(c['boundary'])} boundary entries; the scene has {len(stepper._bc_order)}.")
     weights = tuple(c["law_weights"]) if "law_weights" in c else stepper.default_params()["law_weights"]
@@ -149,6 +151,9 @@ def _invalid(stepper, state):
     path raises there; a JAX gather would silently clip)."""
     lo, hi = stepper.inner_bounds          # the scene's, narrower for a wider shape window (cubic)
     x, v = state["x"], state["v"]
+    if "domain" in state:                  # CPDI: the corners of the particles' domains
+        from ...shapes.cpdi.reference import corners
+        x = corners(x, state["domain"], jnp)
     return (~jnp.all(jnp.isfinite(x)) | ~jnp.all(jnp.isfinite(v)) | jnp.any((x < jnp.asarray(lo, x.dtype))
             | (x >= jnp.asarray(hi, x.dtype))))
 
@@ -302,7 +307,7 @@ def tracking_value_and_grad(stepper, controls_fn, observations, weights, segment
 # ---- NaN gradients: find where they arose -----------------------------------------------------------
 def _first_bad(tree, stepper) -> tuple[int, str] | None:
     """(particle in scene order, field) of the first non-finite entry of a state cotangent."""
-    for name in ("x", "v", "C"):
+    for name in ("x", "v", "C", "domain"):
         a = tree.get(name)
         if a is None:
             continue

@@ -141,7 +141,7 @@ class ShardedJaxStepper(JaxStepper):
                                           for i, arr in zip(self._group_src, arrays))
         if state is not None:
             state = dict(state)
-            for k in ("x", "v", "C"):
+            for k in ("x", "v", "C", "domain"):     # (CPDI's domain: per particle, like C)
                 if k in state:
                     state[k] = rows(state[k])
             state["law"] = group_rows(state["law"])
@@ -156,7 +156,7 @@ class ShardedJaxStepper(JaxStepper):
 
     def to_scene_order(self, state):
         out = dict(state)
-        for k in ("x", "v", "C"):
+        for k in ("x", "v", "C", "domain"):
             if k in out:
                 out[k] = out[k][self._slot]
         out["law"] = tuple(jax.tree.map(lambda a, c=g.count: a[:c], st) for g, st in zip(self.groups, state["law"]))

@@ -74,19 +74,24 @@ class JaxStepper(BaseStepper):
         from ...shapes import inner_bounds, resolve
 
         self.shape, lp = resolve(shape, transfer, D, scene.dx, self.particles.volume)
-        if self.shape.kind == "corners":
-            raise ConfigError(f"{self.shape.describe()}: the JAX step does not carry CPDI's corner P2G / G2P "
-                              f"yet (issue 19); choose shape quadratic, cubic or ugimp.")
+        #: CPDI (``kind = "corners"``): P2G / G2P over the 2^D corners of each particle's domain, carried as
+        #: ``state["domain"]`` (mpmlab/shapes/cpdi/reference.py)
+        self.corners = self.shape.kind == "corners"
         self._shape_fns = self.shape.implementation("jax", "shape")(self.shape, D)
         self._lp = None if lp is None else np.asarray(lp, np.float64)
         #: the region a particle may occupy: its width^D window must stay on the grid (the scene's own
         #: ``inner_bounds`` for the 3-node shapes; one cell less on each side for cubic B-splines)
         self.inner_bounds = inner_bounds(self.shape, scene)
-        inner_bounds(self.shape, scene, self.particles.x)          # refuses particles outside it, one line
+        # refuses particles (CPDI: domain corners) outside it, one line
+        inner_bounds(self.shape, scene, self.particles.x, self.initial_domain() if self.corners else None)
         W = int(self.shape.width)
         self._offsets = np.array(list(itertools.product(range(W), repeat=D)), dtype=np.int32)  # [S, D]
         # the scheme's p2g / g2p (mpmlab/transfers/<name>/jax.py), checked with the Dinv it will see
         self._tf = transfer_functions(transfer, D, dtype, per_particle_Dinv=self.shape.inv_D_cells is None)
+        if self.corners:
+            S = self._shape_fns.signs                                           # [2^D, D]
+            self._corner_signs = S
+            self._offsets = np.array(list(itertools.product(range(2), repeat=D)), dtype=np.int32)
         self._laws = []
         for g in self.groups:
             self._laws.append(law_functions(g.law, D, dtype))
@@ -119,6 +124,8 @@ class JaxStepper(BaseStepper):
                  "t": jnp.asarray(0.0, dt)}
         if self.transfer.needs_affine:
             state["C"] = jnp.asarray(self.initial_C(), dt)
+        if self.corners:
+            state["domain"] = jnp.asarray(self.initial_domain(), dt)
         return state
 
     def default_params(self):
@@ -214,13 +221,17 @@ class JaxStepper(BaseStepper):
 
         # stencil: the shape function's window and weights ------------------------------------------------
         shape = self.shape
-        Xp = (x - self._node_x[0]) * inv_dx
-        base = jnp.floor(Xp - shape.offset).astype(jnp.int32)
-        fx = Xp - base
         lp = jax.lax.stop_gradient(params["lp"]) if "lp" in params else None
-        w1, dw1 = self._shape_fns.weights(fx, lp)                            # [N, W, D]
-        Dinv = self._Dinv(w1, fx, inv_dx)                                    # APIC's D_p^-1 (Jiang et al. 2015)
-        dw1 = dw1 * inv_dx                                                  # d w / d x (not cell units)
+        if self.corners:                          # CPDI: the stencil of the domain's corners (``_corners``)
+            cp = self._corners(x, state["domain"])
+            base, fx, w1, dw1, Dinv = cp.base, cp.fx, cp.w1, cp.dw1, cp.Dinv
+        else:
+            Xp = (x - self._node_x[0]) * inv_dx
+            base = jnp.floor(Xp - shape.offset).astype(jnp.int32)
+            fx = Xp - base
+            w1, dw1 = self._shape_fns.weights(fx, lp)                        # [N, W, D]
+            Dinv = self._Dinv(w1, fx, inv_dx)                                # APIC's D_p^-1 (Jiang et al. 2015)
+            dw1 = dw1 * inv_dx                                              # d w / d x (not cell units)
 
         # stress (Kirchhoff) from each law present ----------------------------------------------------
         tau = jnp.concatenate([jax.vmap(law.kirchhoff, in_axes=(0, 0, None))(st, prm, w) for law, st, prm, w in
@@ -245,11 +256,13 @@ class JaxStepper(BaseStepper):
         if ext is not None and not split:
             q = q + dt * ext
         m1 = mass[:, None]
-        lin = [q - mv(A, fx) * dx if A is not None else q, m1]
+        # the columns at the particle (CPDI: fx = 0 here, each corner's own offsets added in _corner_terms)
+        fx_lin = zero if self.corners else fx
+        lin = [q - mv(A, fx_lin) * dx if A is not None else q, m1]
         acol = [[A[:, :, d] * dx if A is not None else zero, jnp.zeros_like(m1)] for d in range(D)]
         gcol = [[G[:, :, e] if G is not None else zero, jnp.zeros_like(m1)] for e in range(D)]
         if split:
-            f0 = zero if Fm is None else -mv(Fm, fx) * dx
+            f0 = zero if Fm is None else -mv(Fm, fx_lin) * dx
             lin.append(f0 if ext is None else f0 + ext)
             for d in range(D):
                 acol[d].append(Fm[:, :, d] * dx if Fm is not None else zero)
@@ -258,6 +271,8 @@ class JaxStepper(BaseStepper):
         lin = cat(lin)
         acol = [cat(c) for c in acol] if (A is not None or Fm is not None) else None
         gcol = [cat(c) for c in gcol] if (G is not None or Fg is not None) else None
+        if self.corners:
+            lin, acol, gcol = self._corner_terms(cp, lin, acol, (A, G), (Fm, Fg) if split else None)
         pred = state["t"] >= 0
         w1, dw1, lin, acol, gcol = _materialize((w1, dw1, lin, acol, gcol), pred)
         K = lin.shape[-1]
@@ -285,17 +300,23 @@ class JaxStepper(BaseStepper):
         specs = {"v": ("w",) * D}
         if "first" in T.moments:
             specs.update({f"o{d}": tuple("o" if e == d else "w" for e in range(D)) for d in range(D)})
-        if "gradient" in T.moments:
+        if "gradient" in T.moments and not self.corners:
             specs.update({f"d{d}": tuple("d" if e == d else "w" for e in range(D)) for d in range(D)})
         out = adjoints.g2p(gfield.reshape(gshape + (Kg,)), base, w1, dw1, pred, specs, self.adjoints)  # [N, Kg] each
 
-        v_pic = out["v"][:, :D]
         new = {"t": state["t"] + dt}
-        first = jnp.stack([out[f"o{d}"][:, :D] for d in range(D)], axis=-1) if "first" in T.moments else None
-        grad = jnp.stack([out[f"d{e}"][:, :D] for e in range(D)], axis=-1) if "gradient" in T.moments else None  # Eq. 18
-        res = tf.g2p(SimpleNamespace(v=v, v_pic=v_pic, v_old=out["v"][:, D:] if split else None, first=first,
-                                     grad=grad, fx=fx, inv_dx=inv_dx, dx=dx,
-                                     Dinv=self._Dinv_moved(x + dt * v_pic, lp, Dinv)))
+        if self.corners:                # the corners' sums -> the particle's (v_pic, B / dx, grad v, domain)
+            v_pic, v_old, first, grad, new["domain"] = self._corner_moments(cp, out, state["domain"], dt)
+            fx = jnp.zeros_like(x)
+            Dinv_moved = jnp.linalg.inv(self._shape_fns.inertia(x + dt * v_pic, new["domain"], dx, self._node_x[0]))
+        else:
+            v_pic = out["v"][:, :D]
+            v_old = out["v"][:, D:] if split else None
+            first = jnp.stack([out[f"o{d}"][:, :D] for d in range(D)], axis=-1) if "first" in T.moments else None
+            grad = jnp.stack([out[f"d{e}"][:, :D] for e in range(D)], axis=-1) if "gradient" in T.moments else None  # Eq. 18
+            Dinv_moved = self._Dinv_moved(x + dt * v_pic, lp, Dinv)
+        res = tf.g2p(SimpleNamespace(v=v, v_pic=v_pic, v_old=v_old, first=first, grad=grad, fx=fx, inv_dx=inv_dx,
+                                     dx=dx, Dinv=Dinv_moved))
         v_p, grad_v = res.v, res.grad_v
         if T.carries_C:
             new["C"] = res.C
@@ -317,6 +338,68 @@ class JaxStepper(BaseStepper):
             laws.append({k: a.astype(dtype) for k, a in upd.items()})
         new["law"] = tuple(laws)
         return new
+
+    # ---- CPDI: the corners of each particle's domain as pseudo-particles (mpmlab/shapes/cpdi/reference.py) --
+    def _corners(self, x, R):
+        """The corner stencil of particles x [N, D] with domains R [N, D, D]: 2^D pseudo-particles each, at
+        x_c = x_p + R s_c with the linear hat's window (2 nodes per axis from floor(x_c / dx)), rows
+        ordered particle-major ([N * 2^D]); ``r`` = R s_c and ``g`` = R^-T s_c [N, 2^D, D] (each corner's share
+        of grad S_ip = 2^-D sum_c N_i(x_c) R^-T s_c, Sadeghirad et al. 2011); ``Dinv`` = D_p^-1 [N, D, D]."""
+        N, D = x.shape
+        inv_dx, dx = 1.0 / self.scene.dx, self.scene.dx
+        s = jnp.asarray(self._corner_signs, x.dtype)                            # [NC, D]
+        r = jnp.einsum("nij,cj->nci", R, s)                                      # R s_c
+        g = jnp.einsum("nji,cj->nci", jnp.linalg.inv(R), s)                      # R^-T s_c
+        Xc = ((x[:, None, :] + r) - self._node_x[0]) * inv_dx                    # corners in cells
+        base = jnp.floor(Xc).astype(jnp.int32)
+        fxc = Xc - base                                                          # [N, NC, D]
+        w1, dw1 = self._shape_fns.weights(fxc.reshape(-1, D))                   # [N * NC, 2, D]
+        Dinv = jnp.linalg.inv(self._shape_fns.inertia(x, R, dx, self._node_x[0]))
+        return SimpleNamespace(base=base.reshape(-1, D), fx=fxc.reshape(-1, D), fxc=fxc, w1=w1, dw1=dw1 * inv_dx,
+                               r=r, g=g, Dinv=Dinv, NC=s.shape[0])
+
+    def _corner_terms(self, cp, lin, acol, mom, force):
+        """The particle's P2G columns, formed at fx = 0 (``lin`` [N, K] = q | m [| f]; ``acol`` per axis), ->
+        its corners' [N * NC, K], each with its 2^-D share. x_i - x_p = (x_i - x_c) + r_c, so a corner adds
+        A (r_c - fx_c dx) to the momentum lanes (its own window offsets come from ``acol`` as usual), and
+        the gradient terms G grad S_ip = sum_c 2^-D N_i(x_c) G R^-T s_c become G g_c times the corner's
+        weight: folded into ``lin``, no weight-gradient column remains (``gcol`` None). The same for the
+        force lanes of a ``split_force`` scheme with (F, H)."""
+        N, K = lin.shape
+        NC, D, dx = cp.NC, self.dim, self.scene.dx
+        off = cp.r - cp.fxc * dx                                                 # r_c - fx_c dx  [N, NC, D]
+
+        def lanes(M, Gm):
+            e = 0.0
+            if M is not None:
+                e = e + jnp.einsum("nij,ncj->nci", M, off)
+            if Gm is not None:
+                e = e + jnp.einsum("nij,ncj->nci", Gm, cp.g)
+            return e if M is not None or Gm is not None else jnp.zeros((N, NC, D), lin.dtype)
+
+        extra = [lanes(*mom), jnp.zeros((N, NC, 1), lin.dtype)]
+        if force is not None:
+            extra.append(lanes(*force))
+        lin_c = ((lin[:, None, :] + jnp.concatenate(extra, axis=-1)) / NC).reshape(N * NC, K)
+        acol_c = None if acol is None else [jnp.repeat(a / NC, NC, axis=0) for a in acol]
+        return lin_c, acol_c, None
+
+    def _corner_moments(self, cp, out, R, dt):
+        """The corners' G2P sums [N * NC, Kg] -> the particle's v_pic, v_old, B / dx (``first``, read with
+        fx = 0), grad v = sum_i v_i grad S_ip^T = 2^-D sum_c v_c (R^-T s_c)^T (always: the domain update
+        needs it) and the updated domain (Cayley, ``reference.update_domain``)."""
+        D, NC, dx = self.dim, cp.NC, self.scene.dx
+        N = R.shape[0]
+        vc = out["v"].reshape(N, NC, -1)
+        v_pic = jnp.mean(vc[..., :D], axis=1)
+        v_old = jnp.mean(vc[..., D:], axis=1) if self.transfer.split_force else None
+        grad = jnp.einsum("nci,ncj->nij", vc[..., :D], cp.g) / NC
+        first = None
+        if "first" in self.transfer.moments:
+            Bc = jnp.stack([out[f"o{d}"][:, :D] for d in range(D)], axis=-1).reshape(N, NC, D, D)
+            # B / dx = 2^-D sum_c [(B_c - v_c fx_c^T) + v_c (r_c / dx)^T]  (B_c: the corner's own first moment)
+            first = jnp.mean(Bc + jnp.einsum("nci,ncj->ncij", vc[..., :D], cp.r / dx - cp.fxc), axis=1)
+        return v_pic, v_old, first, grad, self._shape_fns.update_domain(R, grad, dt)
 
     def _Dinv(self, w1, fx, inv_dx):
         """D_p^-1 in 1/length^2, as the schemes read it (``p.Dinv``, ``g.Dinv``; AbstractTransfer):
@@ -382,7 +465,12 @@ class JaxStepper(BaseStepper):
     def _bad_impl(self, state):
         lo, hi = self.inner_bounds
         bad = ~jnp.all(jnp.isfinite(state["x"])) | ~jnp.all(jnp.isfinite(state["v"]))
-        bad = bad | jnp.any((state["x"] < lo) | (state["x"] >= hi))
+        pts = state["x"]
+        if self.corners:                   # CPDI: every corner of the domain must stay on the grid
+            from ...shapes.cpdi.reference import corners
+            pts = corners(pts, state["domain"], jnp)
+            bad = bad | ~jnp.all(jnp.isfinite(state["domain"]))
+        bad = bad | jnp.any((pts < lo) | (pts >= hi))
         for g, st in zip(self.groups, state["law"]):
             for k, a in st.items():
                 bad = bad | ~jnp.all(jnp.isfinite(a))
@@ -402,6 +490,8 @@ class JaxStepper(BaseStepper):
         out = {"x": np.asarray(state["x"], dt), "v": np.asarray(state["v"], dt), "t": float(state["t"])}
         if "C" in state:
             out["C"] = np.asarray(state["C"], dt)
+        if "domain" in state:
+            out["domain"] = np.asarray(state["domain"], dt)
         for name in self.state_field_names:
             parts = [(g, st[name]) for g, st in zip(self.groups, state["law"]) if name in st]
             if parts:

@@ -38,7 +38,10 @@ def weights_1d(fx, lp=None, xp=np, axis=-1):
     """The linear hat of each corner's window: (w, dw) of shape [..., 2], N(fx - k) = 1 - |fx - k| and dN/dx_p
     (cells) for k = 0, 1; fx = x_c/dx - floor(x_c/dx) in [0, 1)."""
     w = xp.stack([1.0 - fx, fx], axis=axis)
-    dw = xp.stack([-xp.ones_like(fx), xp.ones_like(fx)], axis=axis)
+    # -1, +1 written as functions of fx (0 fx): JAX's hand-written P2G / G2P adjoints transpose a linear call
+    # whose every operand must carry a tangent; a constant dw would not (its derivative is zero either way)
+    zero = 0.0 * fx
+    dw = xp.stack([zero - 1.0, zero + 1.0], axis=axis)
     return w, dw
 
 
