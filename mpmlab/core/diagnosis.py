@@ -42,7 +42,8 @@ Causes, checked in this order (the first that the numbers support):
 ``compression``   J of the failing particle (or the smallest J) collapsed (<= 0.1) or inverted, or a
                   recent kept frame had J_min <= 0.1 with no J above 1.2 at a fine CFL: large
                   compression/shear; another shape function/transfer, more particles per cell, finer grid.
-``domain``        a particle reached the domain edge at a modest speed: enlarge the domain or add walls.
+``domain``        a particle reached the domain edge at a modest speed (or, with CPDI, a corner of its domain
+                  did: the message gives the domain's stretch): enlarge the domain or add walls.
 ``unknown``       none of the above: the numbers are still reported.
 """
 from __future__ import annotations
@@ -368,6 +369,18 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
                                   f"{rip['ripple']:.3g}) and the {nums}: large compression or shear, not the time "
                                   f"step; try another shape function or transfer, more particles per cell or a finer "
                                   f"grid, or a law that resists it; a smaller dt does not help")
+    if fname.startswith("domain (a CPDI corner") and "domain" in prev:
+        # CPDI: the particle's domain reached the grid edge before the particle did; how far had it stretched?
+        Rp = np.asarray(prev["domain"][p], float)
+        R0 = np.asarray(start["domain"][p], float)
+        grow = float(np.linalg.svd(Rp, compute_uv=False)[0] / max(np.linalg.svd(R0, compute_uv=False)[0], 1e-300))
+        m["domain_growth"] = grow
+        m["domain_half_length"] = float(np.linalg.svd(Rp, compute_uv=False)[0])
+        return out("domain", f"cause: domain -- a corner of the CPDI domain of {where} left the grid at "
+                             f"{_fmt(value)} (its longest half axis {m['domain_half_length']:.3g} m, x{grow:.3g} since "
+                             f"the chunk start; the particle moved at {speed_p:.3g} m/s, {nums}); enlarge the domain "
+                             f"or add walls; a domain stretched far beyond a cell is CPDI's known limit (CPDI2 or "
+                             f"particle splitting, not in mpmlab) -- another shape function avoids it")
     if fname.startswith("x (outside"):
         return out("domain", f"cause: domain -- {where} reached the domain edge at {speed_p:.3g} m/s "
                              f"({move_prev_max:.3g} cells per step at most, {nums}); enlarge the domain or add walls")

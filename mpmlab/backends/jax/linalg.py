@@ -236,3 +236,23 @@ def safe_norm(x):
     sq = jnp.sum(x * x)
     pos = sq > 0.0
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def inv_small(M):
+    """M^-1 for batches of 2 x 2 or 3 x 3 matrices [..., D, D] by the adjugate over the determinant, in
+    elementwise ``jnp``: no LAPACK custom call (with batched ``jnp.linalg.inv`` / ``solve`` the CPDI step of an
+    80k-particle MLS run hung in XLA CPU's thread pool, twice in a row at the same point, and ran with this),
+    and cheaper for tiny matrices; differentiable."""
+    D = M.shape[-1]
+    m = lambda i, j: M[..., i, j]                                    # noqa: E731
+    if D == 2:
+        det = m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0)
+        adj = _mat([[m(1, 1), -m(0, 1)], [-m(1, 0), m(0, 0)]])
+    elif D == 3:
+        c = lambda i, j: (m((i + 1) % 3, (j + 1) % 3) * m((i + 2) % 3, (j + 2) % 3)          # noqa: E731
+                          - m((i + 1) % 3, (j + 2) % 3) * m((i + 2) % 3, (j + 1) % 3))        # cofactor C_ij
+        adj = _mat([[c(j, i) for j in range(3)] for i in range(3)])                          # adj = C^T
+        det = m(0, 0) * c(0, 0) + m(0, 1) * c(0, 1) + m(0, 2) * c(0, 2)
+    else:
+        raise ValueError(f"inv_small: {D} x {D} matrices; 2 x 2 or 3 x 3 only")
+    return adj / det[..., None, None]

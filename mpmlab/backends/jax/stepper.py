@@ -308,7 +308,7 @@ class JaxStepper(BaseStepper):
         if self.corners:                # the corners' sums -> the particle's (v_pic, B / dx, grad v, domain)
             v_pic, v_old, first, grad, new["domain"] = self._corner_moments(cp, out, state["domain"], dt)
             fx = jnp.zeros_like(x)
-            Dinv_moved = jnp.linalg.inv(self._shape_fns.inertia(x + dt * v_pic, new["domain"], dx, self._node_x[0]))
+            Dinv_moved = self._shape_fns.inv(self._shape_fns.inertia(x + dt * v_pic, new["domain"], dx, self._node_x[0]))
         else:
             v_pic = out["v"][:, :D]
             v_old = out["v"][:, D:] if split else None
@@ -349,12 +349,12 @@ class JaxStepper(BaseStepper):
         inv_dx, dx = 1.0 / self.scene.dx, self.scene.dx
         s = jnp.asarray(self._corner_signs, x.dtype)                            # [NC, D]
         r = jnp.einsum("nij,cj->nci", R, s)                                      # R s_c
-        g = jnp.einsum("nji,cj->nci", jnp.linalg.inv(R), s)                      # R^-T s_c
+        g = jnp.einsum("nji,cj->nci", self._shape_fns.inv(R), s)                      # R^-T s_c
         Xc = ((x[:, None, :] + r) - self._node_x[0]) * inv_dx                    # corners in cells
         base = jnp.floor(Xc).astype(jnp.int32)
         fxc = Xc - base                                                          # [N, NC, D]
         w1, dw1 = self._shape_fns.weights(fxc.reshape(-1, D))                   # [N * NC, 2, D]
-        Dinv = jnp.linalg.inv(self._shape_fns.inertia(x, R, dx, self._node_x[0]))
+        Dinv = self._shape_fns.inv(self._shape_fns.inertia(x, R, dx, self._node_x[0]))
         return SimpleNamespace(base=base.reshape(-1, D), fx=fxc.reshape(-1, D), fxc=fxc, w1=w1, dw1=dw1 * inv_dx,
                                r=r, g=g, Dinv=Dinv, NC=s.shape[0])
 
