@@ -228,7 +228,7 @@ def test_p2g_adjoint_launch(shape, transfer, dim):
     args = list(ins.values()) + [lp, origin, dx_s, dt_s, tp, strides]
     tape = wp.Tape()
     with tape:
-        wp.launch(fwd, dim=N, inputs=args + [0, 0, grid_mm, grid_f, bbox, 0])
+        wp.launch(fwd, dim=N, inputs=args + [0, 0, grid_mm, grid_f, bbox, 0, wp.zeros(1, dtype=T.mat)])  # domain: CPDI only
     grid_mm.grad.assign(wp.array(rng.standard_normal((Gn, dim + 1)), dtype=gvec))
     grid_f.grad.assign(wp.array(rng.standard_normal((grid_f.shape[0], dim)), dtype=T.vec))
     tape.backward()
