@@ -16,7 +16,12 @@ the tape they are recorded with hand-written adjoints (``adjoints.py``, ``Tape.r
 a per-particle gather of the node adjoints (no atomics, no replay of the scatter), G2P's stencil part
 a scatter written by hand while the scheme's ``g2p`` and the law keep Warp's generated adjoint.
 ``GradPath.adjoints = "generated"`` (module default ``ADJOINTS``) records Warp's generated adjoints
-instead; the two agree to rounding (``tests/test_warp_adjoints.py``). The grid update keeps its
+instead; the two agree to rounding (``tests/test_warp_adjoints.py``). CPDI (shape ``cpdi``): the
+hand-written adjoints are written for one separable window per particle and do not cover the corner loops
+(each corner's own window and fx, R^-1, the inertia's inverse, the Cayley update), so a CPDI stepper's path
+uses ``"generated"`` (Warp's generated adjoints of the same forward kernels; checked against central
+differences, ``tests/test_shapes_warp.py``) and refuses ``"hand"`` in one line. The domain flows through
+the per-step state like x, v, C; its initial value is a constant (``initial_domain()``), not a control. The grid update keeps its
 generated adjoint (measured: ~10 % of the backward, ``benchmarks/_adjoint_split_warp.py``).
 
 Memory (JAX-MPM Sec. 3.3.2, Remarks 4-5): the forward pass keeps only the states at segment starts

@@ -163,6 +163,14 @@ def _p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool, shape
     (``stencil_funcs``: width^D nodes from ``floor(x/dx - offset)``); ``lp`` [N] is the particles' half
     width in cells, read only by shape functions that use it (``uses_particle_size``; else a dummy).
 
+    CPDI (``kind == "corners"``, compiled in with ``wp.static``): the particle's domain R = ``domain[p]``
+    gives 2^D corner pseudo-particles x_c = x_p + R s_c, each of weight 2^-D with the linear hat's window;
+    the same window loop (``window``) runs once per corner (separable shapes: once, as before, the results
+    bit-identical), the weight gradient folded into each corner's linear term (no gradient lanes):
+    w_o (q + A (r_c - fx_c dx) + G dx R^-T s_c + sum_d o_d A[:, d] dx) / 2^D, mass m / 2^D, the force
+    lanes likewise with (F, H) and the load. D_p^-1 is the inverse of ``cpdi.reference.inertia``. A
+    particle with any corner off the grid contributes nothing; the bounding box covers every corner's base.
+
     Launched on a chunk of particles (``start``) into one private grid copy (``goff``), so chunks can run
     on different CPU threads (Warp's CPU atomics are plain adds); the copies are summed by the grid
     update. The loops over the width^D nodes are unrolled. Also records the chunk's bounding box of base
@@ -572,6 +580,13 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
     writes x (moved with v_pic, JAX-MPM Eq. 17), v, C, then feeds the velocity gradient straight into
     the law's ``update`` and stores the new law state and its Kirchhoff stress, so the velocity gradient
     never goes through memory. Launched on a chunk ``start`` of the group that begins at particle ``goff``.
+
+    CPDI (``kind == "corners"``): the same gather (``gather``) per corner of the domain ``domain[p]``; v_pic
+    = mean_c v_c, B = mean_c [(B_c - v_c fx_c^T) + v_c (r_c / dx)^T] (the first moment about x_p, so the
+    scheme reads it with fx = 0), grad v = mean_c v_c (R^-T s_c)^T (always: it is the scheme's ``Gv`` and
+    the domain's Cayley update ``domain_out = (I - dt/2 L)^-1 (I + dt/2 L) R``), D_p^-1 of the moved
+    position and domain. Off the grid (any corner): ballistic, the domain kept. Other shapes get one-entry
+    dummies for ``domain`` / ``domain_out``.
     """
     T = warp_types(dim, precision)
     S = _stencil_funcs(dim, precision, shape)

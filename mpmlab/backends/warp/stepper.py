@@ -1,9 +1,12 @@
 """Warp stepper: P2G -> grid update (+ walls) -> grid boundaries -> G2P fused with each material's law.
 
-The grid shape function (``shape=``: ``quadratic`` by default, ``cubic``, ``ugimp``; ``mpmlab.shapes``)
-is part of every kernel's key: its window (width^D nodes from ``floor(x/dx - offset)``) and weights are
-compiled in, uGIMP's particle half widths ``lp`` are a per-particle array (sorted with the particles), and
-the guard's domain interior is the window's (``mpmlab.shapes.inner_bounds``).
+The grid shape function (``shape=``: ``quadratic`` by default, ``cubic``, ``ugimp``, ``cpdi``;
+``mpmlab.shapes``) is part of every kernel's key: its window (width^D nodes from ``floor(x/dx - offset)``)
+and weights are compiled in, uGIMP's particle half widths ``lp`` are a per-particle array (sorted with the
+particles), and the guard's domain interior is the window's (``mpmlab.shapes.inner_bounds``). CPDI runs
+P2G / G2P over the 2^D corners of each particle's domain (the same kernels, ``kernels.py``); the domain
+R [D, D] is state (``WarpState.domain``: double-buffered, sorted with the particles, ``to_numpy``'s
+"domain"), and the guard checks every corner (``kernels.corner_guard_kernel``).
 
 What the scene does not need is not compiled and not launched: no ``C`` array or affine terms for
 PIC/FLIP, no old grid velocity except for FLIP, one G2P+law kernel per law present (built from a
