@@ -21,7 +21,7 @@ that take their window from the shape function.
   2026-12-06, 2D 30 steps: dP <= 8.9e-16, dL 2.9e-16 relative); a held rigid rotation turns the domains
   without stretching them; the guard on the corners; FD gradients (APIC, FLIP) on Warp's generated
   adjoints, the path's default for CPDI ("hand" is refused); JAX = Warp to 1e-9 after 50 steps (cpdi x
-  {apic, mls, pic, flip} 2D, apic 3D; domains included).
+  {apic, mls, pic, flip, tpic} 2D, apic 3D; domains included).
 
 The kernels compile once per (shape, transfer, dim); the scenes are the conservation kit's and the
 gradient tests' tiny ones. With an empty Warp kernel cache, ``-m "not slow"`` takes ~3.5 min on 2 busy
@@ -340,7 +340,7 @@ def test_guard_interior_follows_the_window():
 @pytest.mark.parametrize("shape,transfer,dim", [("cubic", "apic", 2), ("cubic", "mls", 2), ("ugimp", "apic", 2),
                                                ("ugimp", "mls", 2), ("ugimp", "rpic", 2), ("cpdi", "apic", 2),
                                                ("cpdi", "mls", 2), ("cpdi", "pic", 2), ("cpdi", "flip", 2),
-                                               ("cpdi", "apic", 3)])
+                                               ("cpdi", "tpic", 2), ("cpdi", "apic", 3)])
 def test_jax_warp_agree_with_shape(shape, transfer, dim):
     """The conformance suite's scene (``mpmlab.testing.law_scene``, fixed-corotated), fp64, 50 steps:
     positions, velocities, C and F within 1e-9 relative on both backends (issue 19's tolerance)."""
