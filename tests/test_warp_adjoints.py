@@ -79,7 +79,7 @@ def test_p2g_adjoint_launch(transfer, dim, ext):
             tp, strides]
     tape = wp.Tape()
     with tape:
-        wp.launch(fwd, dim=N, inputs=args + [0, 0, grid_mm, grid_f, bbox, 0])
+        wp.launch(fwd, dim=N, inputs=args + [0, 0, grid_mm, grid_f, bbox, 0, wp.zeros(1, dtype=T.mat)])  # domain: CPDI only
     a_mm = rng.standard_normal((Gn, dim + 1))
     a_f = rng.standard_normal((grid_f.shape[0], dim))
     grid_mm.grad.assign(wp.array(a_mm, dtype=gvec))

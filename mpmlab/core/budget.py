@@ -432,7 +432,8 @@ def estimate_memory(scene, backend: str = "jax", precision: str = "fp32", transf
         device: Warp device; off the CPU the backend's arrays live on the device and are left out.
         threads: Warp CPU threads (None: as the stepper chooses them).
         shape: the transfer's shape function (``mpmlab.shapes``): its window of ``width``^D nodes sizes
-            the JAX stencil blocks (the fitted constants are those of the 3-node quadratic B-spline).
+            the JAX stencil blocks (the fitted constants are those of the 3-node quadratic B-spline); CPDI
+            adds its domain R [D, D] per particle to the Warp state.
 
     Returns:
         ``{"sampling", "particles", "grid", "scratch", "frames", "runtime", "total"}`` in bytes.
@@ -451,7 +452,10 @@ def estimate_memory(scene, backend: str = "jax", precision: str = "fp32", transf
 
     particles = _scene_particle_bytes(scene, N)
     if backend == "warp":
-        state = N * (2 * D + D * D + (D * D if affine else 0)) + law_state          # x, v, tau, C, law
+        from ..shapes import make_shape
+
+        corners = make_shape(shape).kind == "corners"                              # CPDI: the domain R [D, D]
+        state = N * (2 * D + D * D + (D * D if affine else 0) + (D * D if corners else 0)) + law_state  # x, v, tau, C, R, law
         static = 2 * (2 * N + law_params)                                          # + cell-sorted copies
         backend_particles = s * (3 * state + static) + N * 8 * (D + 1)             # + sort keys/cells
         copies = _warp_threads(N, device, threads)

@@ -473,6 +473,7 @@ def _g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape):
             state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights,
             x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
             state_out: L.StateArrays, tau: wp.array(dtype=mat),
+            domain: wp.array(dtype=mat), domain_out: wp.array(dtype=mat),     # CPDI's (no hand adjoint: unused)
             adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec)):
         q = wp.tid() + start
         p = goff + q

@@ -16,7 +16,12 @@ the tape they are recorded with hand-written adjoints (``adjoints.py``, ``Tape.r
 a per-particle gather of the node adjoints (no atomics, no replay of the scatter), G2P's stencil part
 a scatter written by hand while the scheme's ``g2p`` and the law keep Warp's generated adjoint.
 ``GradPath.adjoints = "generated"`` (module default ``ADJOINTS``) records Warp's generated adjoints
-instead; the two agree to rounding (``tests/test_warp_adjoints.py``). The grid update keeps its
+instead; the two agree to rounding (``tests/test_warp_adjoints.py``). CPDI (shape ``cpdi``): the
+hand-written adjoints are written for one separable window per particle and do not cover the corner loops
+(each corner's own window and fx, R^-1, the inertia's inverse, the Cayley update), so a CPDI stepper's path
+uses ``"generated"`` (Warp's generated adjoints of the same forward kernels; checked against central
+differences, ``tests/test_shapes_warp.py``) and refuses ``"hand"`` in one line. The domain flows through
+the per-step state like x, v, C; its initial value is a constant (``initial_domain()``), not a control. The grid update keeps its
 generated adjoint (measured: ~10 % of the backward, ``benchmarks/_adjoint_split_warp.py``).
 
 Memory (JAX-MPM Sec. 3.3.2, Remarks 4-5): the forward pass keeps only the states at segment starts
@@ -123,6 +128,10 @@ class GradPath:
         self.N, self.G = st.particles.count, st.node_count
         self.split = st.split_force
         self.affine = tr.needs_affine
+        #: CPDI: the particles' domains flow through the per-step state like x, v, C (not a control: the
+        #: initial domain is a constant, ``initial_domain()``); the hand-written adjoints do not cover the
+        #: corner loops, so the tape records Warp's generated adjoints of the same kernels
+        self.corners = bool(getattr(st, "corners", False))
         # boundaries, in scene order: each one's tape-safe Warp implementation (``tape()`` of its factory,
         # backends/warp/boundaries.py documents the protocol) and its differentiable data
         self.bcs = []
@@ -149,6 +158,8 @@ class GradPath:
         self.k_laws = st.k_laws
         self.k_finite = finite_kernels(D, prec)
         self.k_guard = K.guard_kernel(D, prec)
+        self.k_corner_guard = K.corner_guard_kernel(D, prec) if self.corners else None
+        self.empty_domain = wp.zeros(1, dtype=T.mat, device=dev)
         self.flag = wp.zeros(1, dtype=int, device=dev)
         self.gvec = K.grid_vec_type(D, prec)
         self.empty_vec = wp.zeros(1, dtype=T.vec, device=dev)
@@ -156,7 +167,7 @@ class GradPath:
         #: per group: the law's generated types (state fields and their Warp dtypes, weight shapes)
         self.law_types = [k.types for k in st.k_laws]
         self._obs_cache = {}
-        self.adjoints = ADJOINTS
+        self.adjoints = "generated" if self.corners else ADJOINTS
         #: steps run by :meth:`step` since construction (forward, recomputed and recorded alike): the tests
         #: use it to check that ``segment="auto"`` skips the recomputation
         self.steps_run = 0
@@ -171,6 +182,9 @@ class GradPath:
     def adjoints(self, kind):
         if kind not in ADJOINT_KINDS:
             raise ConfigError(f"adjoints = {kind!r}: use one of {ADJOINT_KINDS}.")
+        if kind == "hand" and self.corners:
+            raise ConfigError("adjoints = 'hand': the hand-written Warp adjoints do not cover CPDI's corner P2G / "
+                              "G2P; use 'generated' (Warp's generated adjoints, the default for shape cpdi).")
         self._adjoints = kind
 
     @property
@@ -324,18 +338,21 @@ class GradPath:
         T, dev = self.T, self.dev
         C = ctl.C if self.affine else self.empty_C
         tau = wp.zeros(self.N, dtype=T.mat, device=dev, requires_grad=grad)
+        domain = self.empty_domain
+        if self.corners:                # a constant (not a control); its adjoint is computed and dropped
+            domain = wp.array(self.st.initial_domain(), dtype=T.mat, device=dev, requires_grad=grad)
         law = [dict(a) for a in ctl.law_state]
         for i, (g, st, k) in enumerate(zip(self.st.groups, law, self.k_laws)):
             wp.launch(k.stress, dim=g.count, inputs=[*self.st._law_args(i, st, ctl.law[i], ctl.weights_struct[i]),
                                                      g.start, tau], device=dev)
-        return SimpleNamespace(x=ctl.x, v=ctl.v, C=C, law=law, tau=tau)
+        return SimpleNamespace(x=ctl.x, v=ctl.v, C=C, law=law, tau=tau, domain=domain)
 
     def alloc_state(self, grad: bool):
         T, dev, N = self.T, self.dev, self.N
         z = lambda n, dtype: wp.zeros(n, dtype=dtype, device=dev, requires_grad=grad)
         law = [{n: z(g.count, d) for n, d, _ in L.fields} for g, L in zip(self.st.groups, self.law_types)]
         return SimpleNamespace(x=z(N, T.vec), v=z(N, T.vec), C=z(N, T.mat) if self.affine else self.empty_C,
-                               law=law, tau=z(N, T.mat))
+                               law=law, tau=z(N, T.mat), domain=z(N, T.mat) if self.corners else self.empty_domain)
 
     def alloc_buffers(self, grad: bool):
         """Every array one step writes (its output state, grids, boundary outputs), allocated once and
@@ -393,7 +410,7 @@ class GradPath:
         self.steps_run += 1
         grid_mm, grid_f = buf.grid_mm, buf.grid_f
         p2g_in = [s.x, s.v, s.C, s.tau, ctl.mass, ctl.volume, ext, st.lp, st.origin, st.dx_s, st.dt_s,
-                  st.transfer_scalars, st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0]
+                  st.transfer_scalars, st.strides, 0, 0, grid_mm, grid_f, self.bbox, 0, s.domain]
         tape = _active_tape() if (grad and self._adjoints == "hand") else None
         if tape is not None and grid_mm.requires_grad:
             # the forward off the tape, its hand-written adjoint (a gather, adjoints.py) on it
@@ -418,7 +435,7 @@ class GradPath:
         for i, (g, k, ls, lo) in enumerate(zip(st.groups, self.k_g2p, s.law, o.law)):
             g2p_in = [s.x, s.v, grid_v, grid_v_old, st.origin, st.dx_s, st.dt_s, st.strides, st.transfer_scalars,
                       st.lp, g.start, 0, *st._law_args(i, ls, ctl.law[i], ctl.weights_struct[i]),
-                      o.x, o.v, o.C, self.law_types[i].state_arrays(lo), o.tau]
+                      o.x, o.v, o.C, self.law_types[i].state_arrays(lo), o.tau, s.domain, o.domain]
             if tape is not None and grid_v.requires_grad:
                 # the forward off the tape, the adjoint with the hand-written stencil part on it
                 wp.launch(k, dim=g.count, inputs=g2p_in, device=dev, record_tape=False)
@@ -441,6 +458,8 @@ class GradPath:
         out = [("x", s.x, 0), ("v", s.v, 0)]
         if self.affine:
             out.append(("C", s.C, 0))
+        if self.corners:
+            out.append(("domain", s.domain, 0))
         for g, d in zip(self.st.groups, s.law):
             for k, a in d.items():
                 out.append((k, a, g.start))
@@ -450,7 +469,8 @@ class GradPath:
     def clone(self, s, grad: bool = False):
         c = lambda a: wp.clone(a, requires_grad=grad)
         return SimpleNamespace(x=c(s.x), v=c(s.v), C=c(s.C) if self.affine else self.empty_C,
-                               law=[{k: c(a) for k, a in d.items()} for d in s.law], tau=c(s.tau))
+                               law=[{k: c(a) for k, a in d.items()} for d in s.law], tau=c(s.tau),
+                               domain=c(s.domain) if self.corners else self.empty_domain)
 
     # ---- observations -------------------------------------------------------------------------------
     def observer(self, observation):
@@ -657,9 +677,14 @@ class GradPath:
         st = self.st
         self.flag.zero_()
         wp.launch(self.k_guard, dim=self.N, inputs=[s.x, s.v, st.lo, st.hi, self.flag], device=self.dev)
+        if self.corners:                # CPDI: the domains' corners too
+            wp.launch(self.k_corner_guard, dim=self.N, inputs=[s.x, s.domain, st.lo, st.hi, self.flag], device=self.dev)
         if not self.flag.numpy()[0]:
             return
-        bad = st.locate_failure({"x": s.x.numpy().astype(np.float64), "v": s.v.numpy().astype(np.float64)})
+        npstate = {"x": s.x.numpy().astype(np.float64), "v": s.v.numpy().astype(np.float64)}
+        if self.corners:
+            npstate["domain"] = s.domain.numpy().astype(np.float64)
+        bad = st.locate_failure(npstate)
         p, field, value = bad if bad is not None else (-1, "x", "?")
         raise SimulationDiverged(step, p, field, value, "in the forward pass of observe(); check the controls "
                                                         "(a non-finite or extreme value) and the time step")

@@ -122,9 +122,23 @@ def _stencil_funcs(dim: int, precision: str, shape):
         else:
             return dinv(wmat(), vec(), inv_dx)
 
+    corners = shape.kind == "corners"
+    NC = int(SF.NC) if corners else 1
+
+    @wp.func
+    def on_grid(x: vec, R: mat, origin: vec, inv_dx: scalar, strides: ivec, G: int):
+        """CPDI: 1 when the window of every corner x + R s_c of the particle's domain lies on the grid."""
+        ok = int(1)
+        if wp.static(corners):
+            for c in range(NC):
+                if in_grid(x + R @ SF.corner_sign(c), origin, inv_dx, strides, G) == 0:
+                    ok = 0
+        return ok
+
     return SimpleNamespace(locate=locate, weights=SF.weights, hessian=SF.hessian, wmat=wmat, in_grid=in_grid,
                            dinv=dinv, dinv_at=dinv_at, dinv_moved=dinv_moved, width=width, offset=offset, OFFS=OFFS,
-                           uses_lp=bool(shape.uses_particle_size), shape=shape)
+                           uses_lp=bool(shape.uses_particle_size), shape=shape, corners=corners, NC=NC,
+                           CP=SF if corners else None, on_grid=on_grid)
 
 
 def grid_vec_type(dim: int, precision: str):
@@ -149,6 +163,14 @@ def _p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool, shape
     (``stencil_funcs``: width^D nodes from ``floor(x/dx - offset)``); ``lp`` [N] is the particles' half
     width in cells, read only by shape functions that use it (``uses_particle_size``; else a dummy).
 
+    CPDI (``kind == "corners"``, compiled in with ``wp.static``): the particle's domain R = ``domain[p]``
+    gives 2^D corner pseudo-particles x_c = x_p + R s_c, each of weight 2^-D with the linear hat's window;
+    the same window loop (``window``) runs once per corner (separable shapes: once, as before, the results
+    bit-identical), the weight gradient folded into each corner's linear term (no gradient lanes):
+    w_o (q + A (r_c - fx_c dx) + G dx R^-T s_c + sum_d o_d A[:, d] dx) / 2^D, mass m / 2^D, the force
+    lanes likewise with (F, H) and the load. D_p^-1 is the inverse of ``cpdi.reference.inertia``. A
+    particle with any corner off the grid contributes nothing; the bounding box covers every corner's base.
+
     Launched on a chunk of particles (``start``) into one private grid copy (``goff``), so chunks can run
     on different CPU threads (Warp's CPU atomics are plain adds); the copies are summed by the grid
     update. The loops over the width^D nodes are unrolled. Also records the chunk's bounding box of base
@@ -172,6 +194,8 @@ def _p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool, shape
     f_grad = split and "gradient" in tr.force_terms
     any_grad = m_grad or f_grad                         # weight gradients needed at all
     ext_alone = has_ext and split and not (f_affine or f_grad)
+    corners, NC, CP = S.corners, S.NC, S.CP             # CPDI: 2^D corner pseudo-particles (else one "corner")
+    INV_NC = 1.0 / NC                                   # (a float constant: Warp 1.19's scalar(NC) retypes NC)
 
     @wp.func
     def ext4(a: vec, last: scalar):
@@ -189,60 +213,21 @@ def _p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool, shape
         else:
             a[i] = a[i] + val
 
-    @wp.kernel(module="unique")
-    def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
-            mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
-            lp: wp.array(dtype=scalar), origin: vec, dx: scalar, dt: scalar, tp: wp.array(dtype=scalar), strides: ivec,
-            start: int, goff: int, grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec),
-            bbox: wp.array(dtype=ivec), slot: int):
-        p = wp.tid() + start
-        inv_dx = scalar(1.0) / dx
-        if S.in_grid(x[p], origin, inv_dx, strides, grid_mm.shape[0] // (bbox.shape[0] // 2)) == 0:
-            return                     # off the grid: contributes nothing (G2P keeps it off; the guard names it)
-        base, fx = S.locate(x[p], origin, inv_dx)
-        lpv = scalar(0.0)
-        if wp.static(uses_lp):
-            lpv = lp[p]
-        W, DW = S.weights(fx, lpv)
-        Dinv = S.dinv(W, fx, inv_dx)
-        if wp.static(not atomic):
-            bbox[2 * slot] = wp.min(bbox[2 * slot], base)
-            bbox[2 * slot + 1] = wp.max(bbox[2 * slot + 1], base)
-        m = mass[p]
-        V = vol[p]
-        Cp = mat()
-        if wp.static(tr.carries_C):
-            Cp = C[p]
-        q, A, Tg = F.p2g_momentum(m, V, v[p], Cp, tau[p], dt, inv_dx, Dinv, tp)
-        Fm = mat()
-        Fg = mat()
-        if wp.static(split):
-            Fm, Fg = F.p2g_force(m, V, v[p], Cp, tau[p], dt, inv_dx, Dinv, tp)
-        fext = vec()
-        if wp.static(has_ext):
-            fext = ext[p]
-            if wp.static(not split):
-                q = q + dt * fext
-        # per node o, as (dim+1)-vectors: w_o (q4 + sum_d o_d a4[d]) [+ sum_e (dx grad w_o)_e t4[e]], where
-        # q4 = (q - A fx dx, m), a4[d] = (A[:, d] dx, 0), t4[e] = (G[:, e], 0)
-        q4 = ext4(q, m)
-        if wp.static(m_affine):
-            q4 = ext4(q - A @ (fx * dx), m)
-        Ad = wp.transpose(A * dx)      # rows = columns of A dx
-        Tt = wp.transpose(Tg)
-        a40 = ext4(Ad[0], scalar(0.0))
-        a41 = ext4(Ad[1], scalar(0.0))
-        a42 = ext4(Ad[dim - 1], scalar(0.0))
-        t40 = ext4(Tt[0], scalar(0.0))
-        t41 = ext4(Tt[1], scalar(0.0))
-        t42 = ext4(Tt[dim - 1], scalar(0.0))
-        Fd = wp.transpose(Fm * dx)
-        f0 = -(Fm @ (fx * dx))
-        if wp.static(f_affine and has_ext):
-            f0 = f0 + fext
-        nb = goff
-        for d in range(dim):
-            nb = nb + base[d] * strides[d]
+    # the window loop's flags: a separable shape as before; CPDI's corners fold the weight-gradient terms
+    # (and the external force) into their linear term, so no gradient lanes and the force always in the
+    # f0 (+ offsets) form
+    w_m_grad = m_grad and not corners
+    w_f_grad = f_grad and not corners
+    w_any_grad = w_m_grad or w_f_grad
+    w_f_lin = split if corners else f_affine
+    w_ext_alone = ext_alone and not corners
+
+    @wp.func
+    def window(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), nb: int, strides: ivec, W: S.wmat,
+               DW: S.wmat, q4: gvec, a40: gvec, a41: gvec, a42: gvec, t40: gvec, t41: gvec, t42: gvec, f0: vec,
+               Fd: mat, Fg: mat, fext: vec):
+        """The width^D window from node ``nb``: per node o, w_o (q4 + sum_d o_d a4[d]) [+ sum_e (dx grad w_o)_e
+        t4[e]] into ``grid_mm`` and the force terms into ``grid_f`` (one particle, or one CPDI corner)."""
         if wp.static(dim == 3):
             for i in range(NW):
                 qi = q4
@@ -260,20 +245,20 @@ def _p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool, shape
                         val = wgt * qij
                         if wp.static(m_affine):
                             val = wgt * (qij + OFFS[k] * a42)
-                        if wp.static(any_grad):
+                        if wp.static(w_any_grad):
                             g0 = DW[i, 0] * W[j, 1] * W[k, 2]
                             g1 = W[i, 0] * DW[j, 1] * W[k, 2]
                             g2 = wxy * DW[k, 2]
-                            if wp.static(f_grad):
+                            if wp.static(w_f_grad):
                                 f = Fg @ vec(g0, g1, g2)
                                 if wp.static(has_ext and not f_affine):
                                     f = f + wgt * fext
                                 add(grid_f, nij + k, f)
-                            if wp.static(m_grad):
+                            if wp.static(w_m_grad):
                                 val = val + g0 * t40 + g1 * t41 + g2 * t42
-                        if wp.static(f_affine):
+                        if wp.static(w_f_lin):
                             add(grid_f, nij + k, wgt * (fij + OFFS[k] * Fd[2]))
-                        if wp.static(ext_alone):
+                        if wp.static(w_ext_alone):
                             add(grid_f, nij + k, wgt * fext)
                         add(grid_mm, nij + k, val)
         else:
@@ -288,21 +273,132 @@ def _p2g_kernel(dim: int, precision: str, tr, has_ext: bool, atomic: bool, shape
                     val = wgt * qi
                     if wp.static(m_affine):
                         val = wgt * (qi + OFFS[j] * a41)
-                    if wp.static(any_grad):
+                    if wp.static(w_any_grad):
                         g0 = DW[i, 0] * W[j, 1]
                         g1 = W[i, 0] * DW[j, 1]
-                        if wp.static(f_grad):
+                        if wp.static(w_f_grad):
                             f = Fg @ vec(g0, g1)
                             if wp.static(has_ext and not f_affine):
                                 f = f + wgt * fext
                             add(grid_f, ni + j, f)
-                        if wp.static(m_grad):
+                        if wp.static(w_m_grad):
                             val = val + g0 * t40 + g1 * t41
-                    if wp.static(f_affine):
+                    if wp.static(w_f_lin):
                         add(grid_f, ni + j, wgt * (fi + OFFS[j] * Fd[1]))
-                    if wp.static(ext_alone):
+                    if wp.static(w_ext_alone):
                         add(grid_f, ni + j, wgt * fext)
                     add(grid_mm, ni + j, val)
+
+    @wp.kernel(module="unique")
+    def p2g(x: wp.array(dtype=vec), v: wp.array(dtype=vec), C: wp.array(dtype=mat), tau: wp.array(dtype=mat),
+            mass: wp.array(dtype=scalar), vol: wp.array(dtype=scalar), ext: wp.array(dtype=vec),
+            lp: wp.array(dtype=scalar), origin: vec, dx: scalar, dt: scalar, tp: wp.array(dtype=scalar), strides: ivec,
+            start: int, goff: int, grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec),
+            bbox: wp.array(dtype=ivec), slot: int, domain: wp.array(dtype=mat)):
+        p = wp.tid() + start
+        inv_dx = scalar(1.0) / dx
+        base = ivec()
+        fx = vec()
+        W = S.wmat()
+        DW = S.wmat()
+        Dinv = mat()
+        Rp = mat()
+        lpv = scalar(0.0)
+        if wp.static(corners):
+            # CPDI: the particle's domain; off the grid if any corner's window is
+            Rp = domain[p]
+            if S.on_grid(x[p], Rp, origin, inv_dx, strides, grid_mm.shape[0] // (bbox.shape[0] // 2)) == 0:
+                return
+            Dinv = CP.dinv(x[p], Rp, origin, inv_dx, dx)
+            if wp.static(not atomic):
+                for c in range(NC):
+                    bc, fc = S.locate(x[p] + Rp @ CP.corner_sign(c), origin, inv_dx)
+                    bbox[2 * slot] = wp.min(bbox[2 * slot], bc)
+                    bbox[2 * slot + 1] = wp.max(bbox[2 * slot + 1], bc)
+        else:
+            if S.in_grid(x[p], origin, inv_dx, strides, grid_mm.shape[0] // (bbox.shape[0] // 2)) == 0:
+                return                 # off the grid: contributes nothing (G2P keeps it off; the guard names it)
+            base, fx = S.locate(x[p], origin, inv_dx)
+            if wp.static(uses_lp):
+                lpv = lp[p]
+            W, DW = S.weights(fx, lpv)
+            Dinv = S.dinv(W, fx, inv_dx)
+            if wp.static(not atomic):
+                bbox[2 * slot] = wp.min(bbox[2 * slot], base)
+                bbox[2 * slot + 1] = wp.max(bbox[2 * slot + 1], base)
+        m = mass[p]
+        V = vol[p]
+        Cp = mat()
+        if wp.static(tr.carries_C):
+            Cp = C[p]
+        q, A, Tg = F.p2g_momentum(m, V, v[p], Cp, tau[p], dt, inv_dx, Dinv, tp)
+        Fm = mat()
+        Fg = mat()
+        if wp.static(split):
+            Fm, Fg = F.p2g_force(m, V, v[p], Cp, tau[p], dt, inv_dx, Dinv, tp)
+        fext = vec()
+        if wp.static(has_ext):
+            fext = ext[p]
+            if wp.static(not split):
+                q = q + dt * fext
+        if wp.static(corners):
+            # CPDI: each corner c is a pseudo-particle of weight 1/NC at x_c = x_p + r_c, r_c = R s_c, with
+            # the linear hat's window: x_i - x_p = (x_i - x_c) + r_c adds A (r_c - fx_c dx) to its linear
+            # term, and the gradient terms G (dx grad S_ip) = sum_c N_i(x_c) G (dx R^-T s_c) / NC fold in as
+            # G g_c (cell units, g_c = dx R^-T s_c); the force lanes likewise with (F, H) and the load
+            Rit = wp.transpose(wp.inverse(Rp))
+            inv_nc = scalar(INV_NC)
+            Ad = wp.transpose(A * dx) * inv_nc
+            a40 = ext4(Ad[0], scalar(0.0))
+            a41 = ext4(Ad[1], scalar(0.0))
+            a42 = ext4(Ad[dim - 1], scalar(0.0))
+            Fd = wp.transpose(Fm * dx) * inv_nc
+            zero4 = ext4(vec(), scalar(0.0))
+            for c in range(NC):
+                sc = CP.corner_sign(c)
+                rc = Rp @ sc
+                bc, fc = S.locate(x[p] + rc, origin, inv_dx)
+                Wc, DWc = S.weights(fc, scalar(0.0))
+                gc = dx * (Rit @ sc)
+                lin = q
+                if wp.static(m_affine):
+                    lin = lin + A @ (rc - fc * dx)
+                if wp.static(m_grad):
+                    lin = lin + Tg @ gc
+                f0 = vec()
+                if wp.static(split):
+                    f0 = fext
+                    if wp.static(f_affine):
+                        f0 = f0 + Fm @ (rc - fc * dx)
+                    if wp.static(f_grad):
+                        f0 = f0 + Fg @ gc
+                nbc = goff
+                for d in range(dim):
+                    nbc = nbc + bc[d] * strides[d]
+                window(grid_mm, grid_f, nbc, strides, Wc, DWc, ext4(lin, m) * inv_nc, a40, a41, a42, zero4, zero4,
+                       zero4, f0 * inv_nc, Fd, Fg, fext)
+        else:
+            # per node o, as (dim+1)-vectors: w_o (q4 + sum_d o_d a4[d]) [+ sum_e (dx grad w_o)_e t4[e]], where
+            # q4 = (q - A fx dx, m), a4[d] = (A[:, d] dx, 0), t4[e] = (G[:, e], 0)
+            q4 = ext4(q, m)
+            if wp.static(m_affine):
+                q4 = ext4(q - A @ (fx * dx), m)
+            Ad = wp.transpose(A * dx)      # rows = columns of A dx
+            Tt = wp.transpose(Tg)
+            a40 = ext4(Ad[0], scalar(0.0))
+            a41 = ext4(Ad[1], scalar(0.0))
+            a42 = ext4(Ad[dim - 1], scalar(0.0))
+            t40 = ext4(Tt[0], scalar(0.0))
+            t41 = ext4(Tt[1], scalar(0.0))
+            t42 = ext4(Tt[dim - 1], scalar(0.0))
+            Fd = wp.transpose(Fm * dx)
+            f0 = -(Fm @ (fx * dx))
+            if wp.static(f_affine and has_ext):
+                f0 = f0 + fext
+            nb = goff
+            for d in range(dim):
+                nb = nb + base[d] * strides[d]
+            window(grid_mm, grid_f, nb, strides, W, DW, q4, a40, a41, a42, t40, t41, t42, f0, Fd, Fg, fext)
 
     return p2g
 
@@ -484,6 +580,13 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
     writes x (moved with v_pic, JAX-MPM Eq. 17), v, C, then feeds the velocity gradient straight into
     the law's ``update`` and stores the new law state and its Kirchhoff stress, so the velocity gradient
     never goes through memory. Launched on a chunk ``start`` of the group that begins at particle ``goff``.
+
+    CPDI (``kind == "corners"``): the same gather (``gather``) per corner of the domain ``domain[p]``; v_pic
+    = mean_c v_c, B = mean_c [(B_c - v_c fx_c^T) + v_c (r_c / dx)^T] (the first moment about x_p, so the
+    scheme reads it with fx = 0), grad v = mean_c v_c (R^-T s_c)^T (always: it is the scheme's ``Gv`` and
+    the domain's Cayley update ``domain_out = (I - dt/2 L)^-1 (I + dt/2 L) R``), D_p^-1 of the moved
+    position and domain. Off the grid (any corner): ballistic, the domain kept. Other shapes get one-entry
+    dummies for ``domain`` / ``domain_out``.
     """
     T = warp_types(dim, precision)
     S = _stencil_funcs(dim, precision, shape)
@@ -504,36 +607,15 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
         else:
             return wp.matrix_from_cols(a, b)
 
-    @wp.kernel(module="unique", module_options=law_module_options(impl))
-    def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
-            grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
-            tp: wp.array(dtype=scalar), lp: wp.array(dtype=scalar), goff: int, start: int,
-            state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights,
-            x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
-            state_out: L.StateArrays, tau: wp.array(dtype=mat)):
-        q = wp.tid() + start
-        p = goff + q
-        inv_dx = scalar(1.0) / dx
-        xp = x[p]
-        if S.in_grid(xp, origin, inv_dx, strides, grid_v.shape[0]) == 0:
-            # off the grid: moves on ballistically, outside the domain, so the guard reports it; its law
-            # state is carried over unchanged (the output buffers are uninitialised memory: leaving them
-            # unwritten made the guard report garbage F, or a NaN, instead of the particle leaving)
-            x_out[p] = xp + dt * v[p]
-            v_out[p] = v[p]
-            P0 = L.load_params(prm, q)
-            s0 = L.load_state(state, q)
-            L.store_state(state_out, q, s0)
-            tau[p] = impl.kirchhoff(s0, P0, w)
-            return
-        base, fx = S.locate(xp, origin, inv_dx)
-        lpv = scalar(0.0)
-        if wp.static(uses_lp):
-            lpv = lp[p]
-        W, DW = S.weights(fx, lpv)
-        nb = int(0)
-        for d in range(dim):
-            nb = nb + base[d] * strides[d]
+    corners, NC, CP = S.corners, S.NC, S.CP             # CPDI: 2^D corner pseudo-particles (else one "corner")
+    INV_NC = 1.0 / NC                                   # (a float constant: Warp 1.19's scalar(NC) retypes NC)
+    g_need_grad = need_grad and not corners             # CPDI: grad v from the corners' sums, not the weights'
+
+    @wp.func
+    def gather(grid_v: wp.array(dtype=vec), grid_v_old: wp.array(dtype=vec), nb: int, strides: ivec, W: S.wmat,
+               DW: S.wmat):
+        """The width^D window from node ``nb`` (one particle, or one CPDI corner): (sum w v_i, sum w v_old_i,
+        sum v_i (grad w)_d for d = 0, 1, 2 (cells), sum w v_i o_d for d = 0, 1, 2), the declared ones only."""
         vp = vec()
         vo = vec()
         G0 = vec(); G1 = vec(); G2 = vec()     # sum_i v_i (grad w_i)_d, d = 0, 1, 2
@@ -547,7 +629,7 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
                     for k in range(NW):
                         g = grid_v[nij + k]
                         s = s + W[k, 2] * g
-                        if wp.static(need_grad):
+                        if wp.static(g_need_grad):
                             sd = sd + DW[k, 2] * g
                         if wp.static(apic):
                             st = st + (OFFS[k] * W[k, 2]) * g
@@ -555,7 +637,7 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
                             so = so + W[k, 2] * grid_v_old[nij + k]
                     wy = W[j, 1]
                     sy = sy + wy * s
-                    if wp.static(need_grad):
+                    if wp.static(g_need_grad):
                         sdy = sdy + DW[j, 1] * s
                         syd = syd + wy * sd
                     if wp.static(apic):
@@ -565,7 +647,7 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
                         oy = oy + wy * so
                 wx = W[i, 0]
                 vp = vp + wx * sy
-                if wp.static(need_grad):
+                if wp.static(g_need_grad):
                     G0 = G0 + DW[i, 0] * sy
                     G1 = G1 + wx * sdy
                     G2 = G2 + wx * syd
@@ -582,7 +664,7 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
                 for j in range(NW):
                     g = grid_v[ni + j]
                     s = s + W[j, 1] * g
-                    if wp.static(need_grad):
+                    if wp.static(g_need_grad):
                         sd = sd + DW[j, 1] * g
                     if wp.static(apic):
                         st = st + (OFFS[j] * W[j, 1]) * g
@@ -590,7 +672,7 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
                         so = so + W[j, 1] * grid_v_old[ni + j]
                 wx = W[i, 0]
                 vp = vp + wx * s
-                if wp.static(need_grad):
+                if wp.static(g_need_grad):
                     G0 = G0 + DW[i, 0] * s
                     G1 = G1 + wx * sd
                 if wp.static(apic):
@@ -598,14 +680,96 @@ def _g2p_law_kernel(law, dim: int, precision: str, tr, shape):
                     B1 = B1 + wx * st
                 if wp.static(flip):
                     vo = vo + wx * so
+        return vp, vo, G0, G1, G2, B0, B1, B2
+
+    @wp.kernel(module="unique", module_options=law_module_options(impl))
+    def g2p(x: wp.array(dtype=vec), v: wp.array(dtype=vec), grid_v: wp.array(dtype=vec),
+            grid_v_old: wp.array(dtype=vec), origin: vec, dx: scalar, dt: scalar, strides: ivec,
+            tp: wp.array(dtype=scalar), lp: wp.array(dtype=scalar), goff: int, start: int,
+            state: L.StateArrays, prm: wp.array2d(dtype=scalar), w: L.Weights,
+            x_out: wp.array(dtype=vec), v_out: wp.array(dtype=vec), C_out: wp.array(dtype=mat),
+            state_out: L.StateArrays, tau: wp.array(dtype=mat),
+            domain: wp.array(dtype=mat), domain_out: wp.array(dtype=mat)):
+        q = wp.tid() + start
+        p = goff + q
+        inv_dx = scalar(1.0) / dx
+        xp = x[p]
+        Rp = mat()
+        ok = int(0)
+        if wp.static(corners):
+            Rp = domain[p]
+            ok = S.on_grid(xp, Rp, origin, inv_dx, strides, grid_v.shape[0])
+        else:
+            ok = S.in_grid(xp, origin, inv_dx, strides, grid_v.shape[0])
+        if ok == 0:
+            # off the grid: moves on ballistically, outside the domain, so the guard reports it; its law
+            # state is carried over unchanged (the output buffers are uninitialised memory: leaving them
+            # unwritten made the guard report garbage F, or a NaN, instead of the particle leaving); a
+            # CPDI particle keeps its domain
+            x_out[p] = xp + dt * v[p]
+            v_out[p] = v[p]
+            if wp.static(corners):
+                domain_out[p] = Rp
+            P0 = L.load_params(prm, q)
+            s0 = L.load_state(state, q)
+            L.store_state(state_out, q, s0)
+            tau[p] = impl.kirchhoff(s0, P0, w)
+            return
+        fx = vec()
+        vp = vec()
+        vo = vec()
         Gv = mat()
-        if wp.static(need_grad):
-            Gv = inv_dx * cols(G0, G1, G2)                                          # JAX-MPM Eq. 18
         B = mat()
-        if wp.static(apic):
-            B = cols(B0, B1, B2)
+        Dinv = mat()
+        lpv = scalar(0.0)
+        if wp.static(corners):
+            # CPDI: each corner's window gathered as a pseudo-particle of weight 1/NC; B about the particle
+            # (x_i - x_p = (x_i - x_c) + r_c) read with fx = 0, grad v = sum_c v_c (R^-T s_c)^T / NC (physical
+            # units; always: the domain's Cayley update needs it)
+            Rit = wp.transpose(wp.inverse(Rp))
+            for c in range(NC):
+                sc = CP.corner_sign(c)
+                rc = Rp @ sc
+                bc, fc = S.locate(xp + rc, origin, inv_dx)
+                Wc, DWc = S.weights(fc, scalar(0.0))
+                nbc = int(0)
+                for d in range(dim):
+                    nbc = nbc + bc[d] * strides[d]
+                vc, voc, H0, H1, H2, C0, C1, C2 = gather(grid_v, grid_v_old, nbc, strides, Wc, DWc)
+                vp = vp + vc
+                Gv = Gv + wp.outer(vc, Rit @ sc)
+                if wp.static(apic):
+                    B = B + cols(C0, C1, C2) + wp.outer(vc, rc * inv_dx - fc)
+                if wp.static(flip):
+                    vo = vo + voc
+            inv_nc = scalar(INV_NC)
+            vp = vp * inv_nc
+            vo = vo * inv_nc
+            Gv = Gv * inv_nc
+            B = B * inv_nc
+        else:
+            base, fxp = S.locate(xp, origin, inv_dx)
+            fx = fxp
+            if wp.static(uses_lp):
+                lpv = lp[p]
+            W, DW = S.weights(fx, lpv)
+            nb = int(0)
+            for d in range(dim):
+                nb = nb + base[d] * strides[d]
+            vp0, vo0, G0, G1, G2, B0, B1, B2 = gather(grid_v, grid_v_old, nb, strides, W, DW)
+            vp = vp0
+            vo = vo0
+            if wp.static(need_grad):
+                Gv = inv_dx * cols(G0, G1, G2)                                      # JAX-MPM Eq. 18
+            if wp.static(apic):
+                B = cols(B0, B1, B2)
         xn = xp + dt * vp                                                            # JAX-MPM Eq. 17
-        Dinv = S.dinv_moved(xn, origin, inv_dx, lpv)                                 # D_p^-1 of xn (the next P2G's)
+        if wp.static(corners):
+            Rn = CP.update_domain(Rp, Gv, dt)                                        # Cayley (reference.py)
+            domain_out[p] = Rn
+            Dinv = CP.dinv(xn, Rn, origin, inv_dx, dx)                               # D_p^-1 at (xn, Rn)
+        else:
+            Dinv = S.dinv_moved(xn, origin, inv_dx, lpv)                             # D_p^-1 of xn (the next P2G's)
         vnew, Cn, grad_v = F.g2p(v[p], vp, vo, B, Gv, fx, inv_dx, Dinv, tp)
         v_out[p] = vnew
         x_out[p] = xn
@@ -663,6 +827,36 @@ def guard_kernel(dim: int, precision: str):
                 bad = True
             if a < lo[d] or a >= hi[d]:
                 bad = True
+        if bad:
+            flag[0] = 1
+
+    return guard
+
+
+@lru_cache(maxsize=None)
+def corner_guard_kernel(dim: int, precision: str):
+    """CPDI: sets flag[0] = 1 if a particle's domain is non-finite or one of its corners x + R s_c lies
+    outside [lo, hi) (``shapes.inner_bounds``: the corners' windows stay on the grid)."""
+    from ...shapes import make_shape
+
+    T = warp_types(dim, precision)
+    vec, mat = T.vec, T.mat
+    CP = make_shape("cpdi").implementation("warp", "shape")(make_shape("cpdi"), dim, precision)
+
+    @wp.kernel(module="unique")
+    def guard(x: wp.array(dtype=vec), domain: wp.array(dtype=mat), lo: vec, hi: vec, flag: wp.array(dtype=int)):
+        p = wp.tid()
+        bad = False
+        R = domain[p]
+        for i in range(dim):
+            for j in range(dim):
+                if not wp.isfinite(R[i, j]):
+                    bad = True
+        for c in range(CP.NC):
+            xc = x[p] + R @ CP.corner_sign(c)
+            for d in range(dim):
+                if xc[d] < lo[d] or xc[d] >= hi[d]:
+                    bad = True
         if bad:
             flag[0] = 1
 

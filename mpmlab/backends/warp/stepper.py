@@ -1,9 +1,12 @@
 """Warp stepper: P2G -> grid update (+ walls) -> grid boundaries -> G2P fused with each material's law.
 
-The grid shape function (``shape=``: ``quadratic`` by default, ``cubic``, ``ugimp``; ``mpmlab.shapes``)
-is part of every kernel's key: its window (width^D nodes from ``floor(x/dx - offset)``) and weights are
-compiled in, uGIMP's particle half widths ``lp`` are a per-particle array (sorted with the particles), and
-the guard's domain interior is the window's (``mpmlab.shapes.inner_bounds``).
+The grid shape function (``shape=``: ``quadratic`` by default, ``cubic``, ``ugimp``, ``cpdi``;
+``mpmlab.shapes``) is part of every kernel's key: its window (width^D nodes from ``floor(x/dx - offset)``)
+and weights are compiled in, uGIMP's particle half widths ``lp`` are a per-particle array (sorted with the
+particles), and the guard's domain interior is the window's (``mpmlab.shapes.inner_bounds``). CPDI runs
+P2G / G2P over the 2^D corners of each particle's domain (the same kernels, ``kernels.py``); the domain
+R [D, D] is state (``WarpState.domain``: double-buffered, sorted with the particles, ``to_numpy``'s
+"domain"), and the guard checks every corner (``kernels.corner_guard_kernel``).
 
 What the scene does not need is not compiled and not launched: no ``C`` array or affine terms for
 PIC/FLIP, no old grid velocity except for FLIP, one G2P+law kernel per law present (built from a
@@ -31,13 +34,13 @@ from . import kernels as K
 from .kernels import WALL_CODES
 from .transfers import warp_transfer
 from .types import warp_types
-from ...core.errors import ConfigError
 from ...shapes import inner_bounds as shape_inner_bounds
 from ...shapes import resolve as resolve_shape
 
 
 class WarpState(SimpleNamespace):
-    """x, v [N] vec; C [N] mat (affine transfers only); law: per group dict of state arrays; tau [N] mat
+    """x, v [N] vec; C [N] mat (affine transfers only); domain [N] mat (CPDI only: the columns are the
+    particle domain's half vectors; a one-entry dummy otherwise); law: per group dict of state arrays; tau [N] mat
     (stress of the current law state, computed when the state is produced); t: float seconds.
 
     On the CPU the particles are kept sorted by grid cell for cache locality (re-sorted every
@@ -111,9 +114,9 @@ class WarpStepper(BaseStepper):
         #: the grid shape function (``mpmlab.shapes``; checked against the transfer) and, for one that uses
         #: the particle size (uGIMP), each particle's half width in cells (scene order; constant)
         self.shape, lp = resolve_shape(shape, tr, D, scene.dx, self.particles.volume)
-        if self.shape.kind == "corners":
-            raise ConfigError(f"{self.shape.describe()}: the Warp kernels do not carry CPDI's corner P2G / G2P "
-                              f"yet (issue 19); run it on backend jax, or choose shape quadratic, cubic or ugimp.")
+        #: CPDI (``kind = "corners"``): P2G / G2P over the 2^D corners of each particle's domain, carried as
+        #: ``state.domain`` [N] mat (mpmlab/shapes/cpdi/reference.py; kernels.py's corner loops)
+        self.corners = self.shape.kind == "corners"
         #: the scheme's @wp.funcs and declarations (mpmlab/transfers/<name>/warp.py), the kernels' key
         self.warp_transfer = warp_transfer(tr, D, precision)
         self.split_force = self.warp_transfer.split_force
@@ -175,6 +178,7 @@ class WarpStepper(BaseStepper):
         self.k_laws = [K.law_kernels(g.law, D, precision) for g in self.groups]
         _compile_step_kernels(self)
         self.k_guard = K.guard_kernel(D, precision)
+        self.k_corner_guard = K.corner_guard_kernel(D, precision) if self.corners else None
         # static per-particle data and scratch
         self.mass = wp.array(P.mass, dtype=T.scalar, device=dev)
         self.vol = wp.array(P.volume, dtype=T.scalar, device=dev)
@@ -201,7 +205,8 @@ class WarpStepper(BaseStepper):
         self._gravity_unused = wp.zeros(1, dtype=T.vec, device=dev)   # the tape form's gravity argument
         #: the region the shape's window stays on the grid (one cell less per side for cubic B-splines)
         self.inner_bounds = lo, hi = shape_inner_bounds(self.shape, scene)
-        shape_inner_bounds(self.shape, scene, self.particles.x)        # refuses particles outside it, one line
+        # refuses particles (CPDI: the corners of their initial domains) outside it, one line
+        shape_inner_bounds(self.shape, scene, self.particles.x, self.initial_domain() if self.corners else None)
         self.lo, self.hi = T.vec(*lo), T.vec(*hi)
         #: the scheme's runtime numbers (``scalars()``, e.g. the FLIP ratio), read by its Warp functions
         self.transfer_scalars = wp.array(np.asarray(tuple(tr.scalars()) or (0.0,), dtype=self.np_dtype),
@@ -224,6 +229,7 @@ class WarpStepper(BaseStepper):
             law.append({n: wp.empty(g.count, dtype=d, device=dev) for n, d, _ in k.types.fields})
         return WarpState(x=wp.empty(N, dtype=T.vec, device=dev), v=wp.empty(N, dtype=T.vec, device=dev),
                          C=wp.zeros(N if self.transfer.needs_affine else 1, dtype=T.mat, device=dev),
+                         domain=wp.zeros(N if self.corners else 1, dtype=T.mat, device=dev),
                          law=law, tau=wp.zeros(N, dtype=T.mat, device=dev), t=0.0)
 
     def _law_args(self, g: int, st: dict, prm=None, weights=None):
@@ -240,6 +246,8 @@ class WarpStepper(BaseStepper):
         s.v.assign(wp.array(P.v, dtype=T.vec, device=dev))
         if self.transfer.needs_affine:
             s.C.assign(wp.array(self.initial_C(), dtype=T.mat, device=dev))
+        if self.corners:
+            s.domain.assign(wp.array(self.initial_domain(), dtype=T.mat, device=dev))
         for i, (g, st, k) in enumerate(zip(self.groups, s.law, self.k_laws)):
             for name, a in g.initial_state(self.dim).items():
                 st[name].assign(wp.array(a, dtype=st[name].dtype, device=dev))
@@ -263,6 +271,8 @@ class WarpStepper(BaseStepper):
         take(s.tau, d.tau, p)
         if self.transfer.needs_affine:
             take(s.C, d.C, p)
+        if self.corners:
+            take(s.domain, d.domain, p)
         for g, st, dt_ in zip(self.groups, s.law, d.law):
             for name, a in st.items():
                 take(a, dt_[name], p[g.start:g.stop] - g.start)
@@ -324,7 +334,7 @@ class WarpStepper(BaseStepper):
         rec = lambda kernel, n, inputs: wp.launch(kernel, dim=n, inputs=inputs, device=dev, record_cmd=True)
         lp = getattr(s.order, "lp", self.lp)
         p2g = [rec(self.k_p2g, cnt, [s.x, s.v, s.C, s.tau, s.order.mass, s.order.vol, self.ext, lp, self.origin, self.dx_s,
-                                     self.dt_s, self.transfer_scalars, self.strides, start, c * G, self.grid_mm, self.grid_f, self.bbox, c])
+                                     self.dt_s, self.transfer_scalars, self.strides, start, c * G, self.grid_mm, self.grid_f, self.bbox, c, s.domain])
                for c, (start, cnt) in enumerate(self._chunks(N, self.threads))]
         zero = self.T.ivec()
         grid = [rec(self.k_grid, 1, [self.grid_mm, self.grid_f, len(p2g), G, 0, zero, zero, self.dt_s, self.gravity,
@@ -338,7 +348,7 @@ class WarpStepper(BaseStepper):
             for start, cnt in self._chunks(g.count, self._dyn_chunks):
                 g2p.append(rec(k, cnt, [s.x, s.v, self.grid_v, self.grid_v_old, self.origin, self.dx_s, self.dt_s,
                                         self.strides, self.transfer_scalars, lp, g.start, start, *law_in, o.x, o.v,
-                                        o.C, law_out, o.tau]))
+                                        o.C, law_out, o.tau, s.domain, o.domain]))
         return SimpleNamespace(p2g=p2g, grid=grid, g2p=g2p)
 
     def _step_into(self, s: WarpState, o: WarpState) -> None:
@@ -434,6 +444,9 @@ class WarpStepper(BaseStepper):
         self.flag.zero_()
         wp.launch(self.k_guard, dim=self.particles.count, inputs=[state.x, state.v, self.lo, self.hi, self.flag],
                   device=self.device)
+        if self.corners:                # CPDI: a corner of a domain outside the region, or a non-finite domain
+            wp.launch(self.k_corner_guard, dim=self.particles.count,
+                      inputs=[state.x, state.domain, self.lo, self.hi, self.flag], device=self.device)
         for g, st in zip(self.groups, state.law):
             for f in g.law.state:
                 k = K.law_guard_kernel(self.dim, self.precision, f.resolved_shape(self.dim), f.check)
@@ -473,6 +486,8 @@ class WarpStepper(BaseStepper):
         out = {"x": scene_order(state.x), "v": scene_order(state.v), "t": state.t}
         if self.transfer.needs_affine:
             out["C"] = scene_order(state.C)
+        if self.corners:
+            out["domain"] = scene_order(state.domain)
         for name in self.state_field_names:
             parts = [(g, st[name]) for g, st in zip(self.groups, state.law) if name in st]
             if parts:
