@@ -335,10 +335,11 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
                                     f"{speed_p:.3g} m/s = "
                                     f"{speed_p / max(med, 1e-300):.3g} x the median) failed; {nums}: grid-aligned "
                                     f"modes from particles crossing cells (the ringing instability of B-spline MPM "
-                                    f"under large deformation); try another shape function, the cubic B-spline "
-                                    f"(transfer.shape=cubic), with more "
-                                    f"particles per cell (4 per axis: the twisted disc of benchmarks/large_shear.md "
-                                    f"then survives its peak shear 6), or another transfer; a smaller dt does not help")
+                                    f"under large deformation); try another shape function: CPDI with APIC "
+                                    f"(transfer.shape=cpdi: the twisted disc of benchmarks/large_shear.md then "
+                                    f"survives its peak shear 6 on every grid at 2 particles per axis), or the "
+                                    f"cubic B-spline (transfer.shape=cubic) with 4 particles per axis, or another "
+                                    f"transfer; a smaller dt does not help")
     # (c) a runaway particle
     gradual = have_J and np.isfinite(Jp_prev) and Jp_prev <= J_COLLAPSE
     if (move_prev_max > MOVE_CELLS or move_fail_max > MOVE_CELLS) and not gradual:
