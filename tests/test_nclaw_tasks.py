@@ -9,12 +9,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import subprocess
-import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from mpmlab.cli import main
 from mpmlab.core.errors import ConfigError, TimeStepError
 from mpmlab.inverse.teacher import TeacherForcedFit
 from mpmlab.laws.nclaw import Law, save_weights
@@ -73,24 +73,33 @@ def test_a_resume_on_other_data_or_options_is_refused(truth, tmp_path):
 
 
 # ---- the task, from the command line -------------------------------------------------------------------------
-def mpmlab_cli(args, cwd, expect=0):
-    proc = subprocess.run([sys.executable, "-m", "mpmlab", *args], cwd=cwd, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == expect, proc.stdout[-3000:] + proc.stderr[-3000:]
-    return proc
+def mpmlab_cli(args, capsys=None, expect=0):
+    """`mpmlab ARGS` run in this process: ``mpmlab.cli.main``, the function the console script calls, with
+    the exit code it returns and (given ``capsys``) the stdout and stderr it wrote. In-process, the runs
+    share this process's imports and compiled programs instead of paying a Python start, the imports and
+    every compile again per run; the console script as a real subprocess (exit codes, one-line errors,
+    outputs) is tests/test_cli.py's (test_run_writes_outputs_and_one_line_summary and others)."""
+    if capsys is not None:
+        capsys.readouterr()
+    code = main(list(args))
+    out = capsys.readouterr() if capsys is not None else None
+    got = SimpleNamespace(returncode=code, stdout=out.out if out else "", stderr=out.err if out else "")
+    assert got.returncode == expect, got.stdout[-3000:] + got.stderr[-3000:]
+    return got
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     d = tmp_path_factory.mktemp("nclaw_data")
     mpmlab_cli(["scene=nclaw_square_2d", "transfer=mls", "precision=fp64", "output.fields=[F,C]",
-                "output.recording=false", "output.plots=false", f"hydra.run.dir={d}"], d)
+                "output.recording=false", "output.plots=false", f"hydra.run.dir={d}"])
     return d / "trajectory.h5"
 
 
 TRAIN = ["task=nclaw_train", "scene=nclaw_square_2d", "material=nclaw", "transfer=mls", "precision=fp64"]
 
 
-def test_train_task_on_warp_and_reuse_on_jax(dataset, tmp_path):
+def test_train_task_on_warp_and_reuse_on_jax(dataset, tmp_path, capsys):
     """task=nclaw_train on Warp: the loss falls >= 10x in 30 epochs; summary, recording, weight file;
     the weights drive the law on JAX and Warp to the same 100-step rollout (<= 1e-9 m)."""
     from mpmlab.io.h5 import read_trajectory
@@ -98,7 +107,7 @@ def test_train_task_on_warp_and_reuse_on_jax(dataset, tmp_path):
 
     run = tmp_path / "train"
     mpmlab_cli(TRAIN + ["backend=warp", f"task.dataset={dataset}", "task.epochs=30", "task.teacher.start=50",
-                        "task.teacher.end=50", f"hydra.run.dir={run}"], tmp_path)
+                        "task.teacher.end=50", f"hydra.run.dir={run}"], capsys)
     s = json.loads((run / "summary.json").read_text())
     losses = [h["loss"] for h in s["history"]]
     assert s["status"] == "ok" and s["epochs"] == 30 and min(losses[-5:]) <= 0.1 * losses[0], losses
@@ -114,28 +123,28 @@ def test_train_task_on_warp_and_reuse_on_jax(dataset, tmp_path):
         out = tmp_path / f"reuse_{backend}"
         mpmlab_cli(["scene=nclaw_square_2d", "material=nclaw", f"+material.options.weights_file={weights}",
                     f"backend={backend}", "transfer=mls", "precision=fp64", "scene.steps=100", "output.recording=false",
-                    "output.plots=false", f"hydra.run.dir={out}"], tmp_path)
+                    "output.plots=false", f"hydra.run.dir={out}"], capsys)
         xs[backend] = read_trajectory(str(out / "trajectory.h5")).x
     assert float(np.abs(xs["jax"] - xs["warp"]).max()) <= 1e-9
 
 
-def test_train_task_refuses_bad_datasets(dataset, truth, tmp_path):
+def test_train_task_refuses_bad_datasets(dataset, truth, tmp_path, capsys):
     """One line, exit code 2: no dataset; a dataset kept every 2nd step; one of another scene (CLI). A
     dataset without C and F (API: the same check)."""
     from mpmlab.io.h5 import read_trajectory, write_trajectory
     from mpmlab.tasks.nclaw_train import load_truth
 
     common = TRAIN + ["task.epochs=1", "output.recording=false", "output.plots=false"]
-    p = mpmlab_cli(common + [f"hydra.run.dir={tmp_path / 'a'}"], tmp_path, expect=2)
+    p = mpmlab_cli(common + [f"hydra.run.dir={tmp_path / 'a'}"], capsys, expect=2)
     assert "task.dataset" in p.stderr.strip().splitlines()[-1]
     traj = read_trajectory(str(dataset))
     sparse = tmp_path / "sparse.h5"
     write_trajectory(sparse, dataclasses.replace(traj, x=traj.x[::2], v=traj.v[::2], time=traj.time[::2],
                                                  step=traj.step[::2], fields={k: a[::2] for k, a in traj.fields.items()}))
-    p = mpmlab_cli(common + [f"task.dataset={sparse}", f"hydra.run.dir={tmp_path / 'c'}"], tmp_path, expect=2)
+    p = mpmlab_cli(common + [f"task.dataset={sparse}", f"hydra.run.dir={tmp_path / 'c'}"], capsys, expect=2)
     assert "keeps only every 2-th step" in p.stderr.strip().splitlines()[-1]
     p = mpmlab_cli(common + [f"task.dataset={dataset}", "scene.bodies.square.particles_per_cell=4",
-                             f"hydra.run.dir={tmp_path / 'd'}"], tmp_path, expect=2)
+                             f"hydra.run.dir={tmp_path / 'd'}"], capsys, expect=2)
     assert "256" in p.stderr and "64 particles" in p.stderr.strip().splitlines()[-1]
     # without C and F: the fit names what is missing
     fit = fit20("jax", truth)
@@ -148,28 +157,28 @@ def test_train_task_refuses_bad_datasets(dataset, truth, tmp_path):
         load_truth(str(plain), fit.stepper, 20)
 
 
-def test_train_task_refuses_to_resume_with_other_options(dataset, tmp_path):
+def test_train_task_refuses_to_resume_with_other_options(dataset, tmp_path, capsys):
     """Stopped after one epoch, the same command with another learning rate is refused (exit code 2, one
     line naming task.nets), before a rollout runs; the checkpoint is left as it was."""
     run = tmp_path / "r"
     common = TRAIN + [f"task.dataset={dataset}", "task.epochs=2", "scene.steps=20", "task.teacher.start=20",
                       "task.teacher.end=20", "output.recording=false", "output.plots=false", f"hydra.run.dir={run}"]
-    mpmlab_cli(common + ["task.stop_after_epochs=1"], tmp_path)
+    mpmlab_cli(common + ["task.stop_after_epochs=1"], capsys)
     assert json.loads((run / "summary.json").read_text())["status"] == "partial"
     before = (run / "train_checkpoint.pkl").read_bytes()
-    p = mpmlab_cli(common + ["task.nets.elastic.lr=0.5"], tmp_path, expect=2)
+    p = mpmlab_cli(common + ["task.nets.elastic.lr=0.5"], capsys, expect=2)
     line = p.stderr.strip().splitlines()[-1]
     assert "was made with nets = " in line and "resume with the same nets" in line, line
     assert (run / "train_checkpoint.pkl").read_bytes() == before
 
 
-def test_train_diverging_gives_fit_diverged(dataset, tmp_path):
+def test_train_diverging_gives_fit_diverged(dataset, tmp_path, capsys):
     """A learning rate that blows the law up: FitDiverged, exit code 3, one line (on_divergence=stop; the
     default backoff's step back is tested in tests/test_inverse.py)."""
     p = mpmlab_cli(TRAIN + ["backend=warp", f"task.dataset={dataset}", "task.epochs=3", "task.nets.elastic.lr=1.0e4",
                             "task.on_divergence=stop",
                             "scene.steps=20", "task.teacher.start=20", "task.teacher.end=20", "output.recording=false",
-                            "output.plots=false", f"hydra.run.dir={tmp_path / 'x'}"], tmp_path, expect=3)
+                            "output.plots=false", f"hydra.run.dir={tmp_path / 'x'}"], capsys, expect=3)
     assert "diverged" in p.stderr.strip().splitlines()[-1]
 
 
@@ -185,7 +194,7 @@ def test_dt_auto_needs_a_wave_speed(tmp_path):
 
 
 
-def test_labeled_baseline_and_eval_task(dataset, tmp_path):
+def test_labeled_baseline_and_eval_task(dataset, tmp_path, capsys):
     """task.method=labeled fits the nets to the dataset's (F, tau) and (F_n, C_n+1 -> F_n+1) pairs; its
     law reproduces the 2D JELL-O trajectory to <= 1e-6 m^2 (NCLaw's target for labeled), and
     task=nclaw_eval's metric is position_mse of the two runs a plain simulate gives."""
@@ -193,14 +202,14 @@ def test_labeled_baseline_and_eval_task(dataset, tmp_path):
     from mpmlab.nclaw.scenes import position_mse
 
     run = tmp_path / "labeled"
-    mpmlab_cli(TRAIN + ["task.method=labeled", f"task.dataset={dataset}", f"hydra.run.dir={run}"], tmp_path)
+    mpmlab_cli(TRAIN + ["task.method=labeled", f"task.dataset={dataset}", f"hydra.run.dir={run}"], capsys)
     s = json.loads((run / "summary.json").read_text())
     assert s["method"] == "labeled" and s["true_law"] == "fixed_corotated"
     assert s["labeled"]["e"]["loss_final"] < 1e-2 * s["labeled"]["e"]["loss_initial"]
     weights = run / "nclaw_weights.safetensors"
     ev = tmp_path / "eval"
     mpmlab_cli(["task=nclaw_eval", "task.material=jelly", f"task.weights={weights}", "precision=fp64",
-                "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], tmp_path)
+                "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], capsys)
     e = json.loads((ev / "summary.json").read_text())
     mse = e["cases"]["recon"]["mse"]
     assert e["cases"]["recon"]["status"] == "ok" and mse <= 1e-6, mse
@@ -208,25 +217,25 @@ def test_labeled_baseline_and_eval_task(dataset, tmp_path):
     xs = {}
     for name, extra in (("truth", ["material=jelly"]), ("learned", ["material=nclaw", f"+material.options.weights_file={weights}"])):
         mpmlab_cli(["scene=nclaw_square_2d", *extra, "precision=fp64", "scene.frame_every=5", "output.recording=false",
-                    "output.plots=false", f"hydra.run.dir={tmp_path / name}"], tmp_path)
+                    "output.plots=false", f"hydra.run.dir={tmp_path / name}"], capsys)
         xs[name] = read_trajectory(str(tmp_path / name / "trajectory.h5")).x
     assert math.isclose(position_mse(xs["learned"], xs["truth"], every=1), mse, rel_tol=1e-9)
 
 
-def test_sysid_baseline(dataset, tmp_path):
+def test_sysid_baseline(dataset, tmp_path, capsys):
     """task.method=sysid: the true family (fixed corotated) from E^0.8 = 1e4 Pa, fitted by the same
     teacher forcing, recovers E within 5 % in 30 epochs; its reconstruction error <= 1e-6 m^2."""
     run = tmp_path / "sysid"
     mpmlab_cli(["task=nclaw_train", "task.method=sysid", "scene=nclaw_square_2d", "material=jelly", "precision=fp64",
                 f"task.dataset={dataset}", "task.epochs=30", "task.teacher.start=50", "task.teacher.end=50",
-                "task.sysid.lr=0.5", "output.recording=false", f"hydra.run.dir={run}"], tmp_path)
+                "task.sysid.lr=0.5", "output.recording=false", f"hydra.run.dir={run}"], capsys)
     s = json.loads((run / "summary.json").read_text())
     E = s["parameters"]["E"]
     assert s["history"][0]["values"]["E"] == pytest.approx(1e4, rel=1e-9)        # NCLaw's start: E^0.8
     assert E["relative_error"] < 0.05, E
     ev = tmp_path / "eval"
     mpmlab_cli(["task=nclaw_eval", "task.material=jelly", f"+task.law_params.E={E['recovered']}", "precision=fp64",
-                "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], tmp_path)
+                "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], capsys)
     e = json.loads((ev / "summary.json").read_text())
     assert e["label"] == "sys-id" and e["cases"]["recon"]["mse"] <= 1e-6, e["cases"]
 
