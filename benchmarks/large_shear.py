@@ -72,6 +72,13 @@ def configs(full: bool):
     for dx in dxs:                                    # CPDI's surviving pair (2 x 2 per cell) on the other backend
         yield {"solution": "vortex", "A": LS.SOLUTIONS["vortex"].A, "transfer": "apic", "shape_function": "cpdi",
                "dx": dx, "dt_scale": 1.0, "backend": "warp"}
+    for extra in ({"dt_scale": 0.5}, {"ppa": 4}):      # CPDI's pair on the finest grid: time step or particles?
+        for dx in dxs:
+            yield {"solution": "vortex", "A": LS.SOLUTIONS["vortex"].A, "transfer": "apic", "shape_function": "cpdi",
+                   "dx": dx, "dt_scale": 1.0, "backend": "warp", **extra}
+    for dx in dxs[2:]:                                # ... and dt/4 on the two finest: is the time error the floor?
+        yield {"solution": "vortex", "A": LS.SOLUTIONS["vortex"].A, "transfer": "apic", "shape_function": "cpdi",
+               "dx": dx, "dt_scale": 0.25, "backend": "warp"}
     for dx in dxs[:2]:                                # halving dt (the old message's advice)
         yield {"solution": "annulus", "A": 1.0, "transfer": "apic", "shape_function": "quadratic", "dx": dx,
                "dt_scale": 0.5}

@@ -12,7 +12,6 @@ import os
 import re
 import subprocess
 import sys
-import time
 import tracemalloc
 
 import pytest
@@ -93,18 +92,18 @@ def test_sampling_peak_is_the_lattice():
 
 
 # ---- memory ------------------------------------------------------------------------------------
-def test_memory_refuses_dx_1e5_within_a_second_without_allocating():
+def test_memory_refuses_dx_1e5_without_sampling_or_allocating():
+    """Refused from the counts alone: the particles are never sampled and the Python heap's peak stays
+    small (no wall-clock bound: a timed assertion fails on a loaded machine, and these two are what make
+    the refusal immediate)."""
     scene = _scene(*CELL, "scene.dx=1e-5")         # build_scene(validate=False) does not sample
     available = int(21.3 * GiB)
     tracemalloc.start()
-    t0 = time.perf_counter()
     with pytest.raises(ConfigError) as err:
         budget.check_memory(scene, "jax", "fp32", "mls", available=available)
-    elapsed = time.perf_counter() - t0
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     msg = str(err.value)
-    assert elapsed < 1.0, elapsed
     assert peak < 20 * MiB, peak
     assert "_particles" not in vars(scene)
     assert "\n" not in msg
@@ -124,11 +123,9 @@ def test_memory_refusal_on_a_directly_built_scene():
     body = Body(shape={"kind": "box", "lo": [0.25] * 3, "hi": [0.75] * 3}, material="fixed_corotated")
     scene = Scene(dim=3, dx=1e-5, domain=([0.0] * 3, [1.0] * 3), bodies=[body], name="direct")
     for backend, precision in (("warp", "fp32"), ("jax", "fp64")):
-        t0 = time.perf_counter()
         with pytest.raises(ConfigError, match=r"^scene 'direct': dx = 1e-05 m needs about .* set scene\.dx >= "):
             budget.check_memory(scene, backend, precision, "apic", available=16 * GiB)
-        assert time.perf_counter() - t0 < 1.0
-    assert "_particles" not in vars(scene)
+    assert "_particles" not in vars(scene)            # refused from the counts: nothing was sampled
 
 
 def test_memory_estimate_parts_scale_with_dx():
