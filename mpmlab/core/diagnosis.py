@@ -371,17 +371,20 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
                                   f"step; try another shape function or transfer, more particles per cell or a finer "
                                   f"grid, or a law that resists it; a smaller dt does not help")
     if fname.startswith("domain (a CPDI corner") and "domain" in prev:
-        # CPDI: the particle's domain reached the grid edge before the particle did; how far had it stretched?
-        Rp = np.asarray(prev["domain"][p], float)
-        R0 = np.asarray(start["domain"][p], float)
-        grow = float(np.linalg.svd(Rp, compute_uv=False)[0] / max(np.linalg.svd(R0, compute_uv=False)[0], 1e-300))
-        m["domain_growth"] = grow
-        m["domain_half_length"] = float(np.linalg.svd(Rp, compute_uv=False)[0])
+        # CPDI: a corner of the particle's domain reached the grid edge; was it the domain's stretch?
+        half = float(np.linalg.svd(np.asarray(prev["domain"][p], float), compute_uv=False)[0])
+        try:
+            half0 = float(np.linalg.svd(stepper.initial_domain()[p], compute_uv=False)[0])
+        except Exception:              # a stepper without the initial domain: the chunk start's
+            half0 = float(np.linalg.svd(np.asarray(start["domain"][p], float), compute_uv=False)[0])
+        grow = half / max(half0, 1e-300)
+        m["domain_half_length"], m["domain_growth"] = half, grow
+        why = ("a domain stretched beyond a cell is CPDI's known limit (CPDI2 or particle splitting, not in "
+               "mpmlab): another shape function avoids it, or enlarge the domain" if half > dx else
+               "the particle itself reached the edge: enlarge the domain or add walls")
         return out("domain", f"cause: domain -- a corner of the CPDI domain of {where} left the grid at "
-                             f"{_fmt(value)} (its longest half axis {m['domain_half_length']:.3g} m, x{grow:.3g} since "
-                             f"the chunk start; the particle moved at {speed_p:.3g} m/s, {nums}); enlarge the domain "
-                             f"or add walls; a domain stretched far beyond a cell is CPDI's known limit (CPDI2 or "
-                             f"particle splitting, not in mpmlab) -- another shape function avoids it")
+                             f"{_fmt(value)} (its longest half axis {half:.3g} m = {half / dx:.2g} cells, x{grow:.3g} "
+                             f"its initial size; the particle moved at {speed_p:.3g} m/s, {nums}); {why}")
     if fname.startswith("x (outside"):
         return out("domain", f"cause: domain -- {where} reached the domain edge at {speed_p:.3g} m/s "
                              f"({move_prev_max:.3g} cells per step at most, {nums}); enlarge the domain or add walls")
