@@ -89,6 +89,9 @@ def configs(part: str, full: bool, aspect_dx: float):
         if full:
             for a in (0.5, 1.0, 2.0, 3.0):
                 yield cfg(setup="column3d", dim=3, a=a, dx=0.01, ppc=8)
+    elif part == "boundary":                            # sensitivity: the no-slip base one node layer thick
+        for dx in (0.01, 0.005, 0.0025):
+            yield cfg(setup="bui", dx=dx, walls=1)
     elif part == "bars":
         return                                          # uses the convergence part's Bui runs
     else:
@@ -131,6 +134,8 @@ def overrides(c) -> list[str]:
         ov = ["scene=granular_collapse_2d", f"scene.vars.L0={g['L0']}", f"scene.vars.H0={g['H0']}",
               f"scene.domain.hi=[{g['hi'][0]},{g['hi'][1]}]"]
     body = "column"
+    if c.get("walls") is not None:
+        ov.append(f"scene.boundaries.walls.thickness={c['walls']}")
     ov += [f"scene.dx={c['dx']}", f"scene.dt={dt}", f"scene.frame_every={every}",
            f"scene.steps={int(round(t_max(c) / dt))}", f"scene.bodies.{body}.particles_per_cell={c['ppc']}",
            f"material.params.friction_angle={c['phi']}"]
@@ -345,9 +350,23 @@ def _rows(res, **match):
     out = []
     for r in res.values():
         c = r["config"]
-        if all(c.get(k) == v for k, v in match.items()):
+        if all(c.get(k) == v for k, v in match.items()) and c.get("walls") == match.get("walls"):
             out.append(r)
     return out
+
+
+def t_paper(c) -> float:
+    """The paper's simulated time: 0.65 s (Sec. 4.1.2), 2 s (Sec. 4.2.2)."""
+    return 0.65 if c["setup"] == "bui" else 2.0
+
+
+def at_time(r, t: float, what: str = "front"):
+    """A per-frame series (front, height) at the last frame at or before time t (None past the run's end)."""
+    s = r.get("series") or {}
+    ts = np.asarray(s.get("t", []))
+    if not ts.size or ts[-1] < t - 1e-9:
+        return float(s[what][-1]) if ts.size and r.get("settled") else None   # settled earlier: its final value
+    return float(np.asarray(s[what])[np.nonzero(ts <= t + 1e-9)[0][-1]])
 
 
 def _run_cols(r) -> str:
@@ -361,11 +380,11 @@ def _run_cols(r) -> str:
     if r.get("particles_left_out"):
         flags.append(f"{r['particles_left_out']} particles left out")
     return (f"{c['dx'] * 1e3:g} | {c['ppc']} | {c['precision']} | {r['particles']} | {fmt(r['L_f'])} | "
-            f"{fmt(r['d_n'], '{:.3f}')} | {fmt(r['H_wall'])} | {fmt(r['H_wall_over_H0'], '{:.3f}')} | "
+            f"{fmt(r['d_n'], '{:.3f}')} | {fmt(at_time(r, t_paper(c)))} | {fmt(r['H_wall'])} | {fmt(r['H_wall_over_H0'], '{:.3f}')} | "
             f"{settled} | {r['t_end']:.2f} | {r['wall_s'] / 60:.1f} | {'; '.join(flags) or '--'}")
 
 
-_HEAD = ("dx [mm] | ppc | precision | particles | L_f [m] | d_n | H_wall [m] | H_wall/H0 | settled | "
+_HEAD = ("dx [mm] | ppc | precision | particles | L_f [m] | d_n | L_f at the paper's t_end [m] | H_wall [m] | H_wall/H0 | settled | "
          "t_end [s] | wall [min] | notes")
 
 
@@ -382,8 +401,13 @@ def table_convergence(res) -> str:
         lines.append("")
         dxr = sorted([r for r in rows if r["config"]["ppc"] == 4 and r["config"]["precision"] == "fp32"],
                      key=lambda r: -r["config"]["dx"])
-        for q, name in (("L_f", "run-out L_f"), ("H_wall", "height at the wall")):
-            rr = richardson([r["config"]["dx"] for r in dxr], [r[q] for r in dxr])
+        tp = 0.65 if setup == "bui" else 2.0
+        for q, name in (("L_f", "run-out L_f (settled)"), ("H_wall", "height at the wall (settled)"),
+                        ("L_tp", f"run-out at t = {tp:g} s (the paper's end time)")):
+            vals = [at_time(r, tp) if q == "L_tp" else r[q] for r in dxr]
+            if any(v is None for v in vals):
+                continue
+            rr = richardson([r["config"]["dx"] for r in dxr], vals)
             dxs = ", ".join(f"{r['config']['dx'] * 1e3:g}" for r in dxr)
             lines.append(f"- {name} in dx ({dxs} mm, 4 ppc): observed order {fmt(rr['order'], '{:.2f}')}, "
                          f"Richardson value {fmt(rr['extrapolated'])} m, finest grid off it by "
@@ -406,14 +430,26 @@ def table_convergence(res) -> str:
     return "\n".join(lines)
 
 
+def table_boundary(res) -> str:
+    lines = ["| dx [mm] | L_f, walls 2 cells (scene) [m] | L_f, walls 1 cell [m] | L_f at 0.65 s, 2 cells / 1 cell [m] | "
+             "H_wall 2 / 1 [m] |", "|---|---|---|---|---|"]
+    for r1 in sorted(_rows(res, setup="bui", ppc=4, precision="fp32", walls=1), key=lambda r: -r["config"]["dx"]):
+        dx = r1["config"]["dx"]
+        r2 = [r for r in _rows(res, setup="bui", ppc=4, precision="fp32", dx=dx, phi=19.8)]
+        r2 = r2[0] if r2 else None
+        lines.append(f"| {dx * 1e3:g} | {fmt(r2 and r2['L_f'])} | {fmt(r1['L_f'])} | {fmt(r2 and at_time(r2, 0.65))} / "
+                     f"{fmt(at_time(r1, 0.65))} | {fmt(r2 and r2['H_wall'])} / {fmt(r1['H_wall'])} |")
+    return "\n".join(lines)
+
+
 def table_aspect(res) -> str:
     rows = sorted([r for r in _rows(res, setup="column", dim=2, phi=19.8, ppc=4, precision="fp32")],
                   key=lambda r: (r["config"]["dx"], r["config"]["a"]))
     by_dx: dict = {}
     for r in rows:
         by_dx.setdefault(r["config"]["dx"], []).append(r)
-    lines = ["| a | dx [mm] | cells across L0 | L_f [m] | d_n (mpmlab) | d_n (paper) | mpmlab / paper | H_wall/H0 | "
-             "settled | wall [min] | notes |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| a | dx [mm] | cells across L0 | L_f [m] | d_n (mpmlab, settled) | d_n at t = 2 s | d_n (paper) | "
+             "mpmlab / paper | H_wall/H0 | settled | wall [min] | notes |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     fits = []
     for dx, rs in sorted(by_dx.items(), reverse=True):
         for r in sorted(rs, key=lambda r: r["config"]["a"]):
@@ -422,6 +458,7 @@ def table_aspect(res) -> str:
             flags = "front at domain end" if r.get("front_at_domain_end") else "--"
             st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else "NO"
             lines.append(f"| {a:g} | {dx * 1e3:g} | {L0_COLUMN / dx:.0f} | {fmt(r['L_f'])} | {fmt(r['d_n'], '{:.3f}')} | "
+                         f"{fmt(None if at_time(r, 2.0) is None else (at_time(r, 2.0) - r['L0']) / r['L0'], '{:.3f}')} | "
                          f"{fmt(p, '{:.2f}')} | {fmt(None if p is None else r['d_n'] / p, '{:.2f}')} | "
                          f"{fmt(r['H_wall_over_H0'], '{:.3f}')} | {st} | {r['wall_s'] / 60:.1f} | {flags} |")
         d = {r["config"]["a"]: r["d_n"] for r in rs}
@@ -588,7 +625,7 @@ def write_md(res: dict) -> None:
         return
     text = MD.read_text()
     for name, fn in (("convergence", table_convergence), ("aspect", table_aspect), ("friction", table_friction),
-                     ("aspect3d", table_aspect3d)):
+                     ("aspect3d", table_aspect3d), ("boundary", table_boundary)):
         a, b = f"<!-- {name} -->", f"<!-- /{name} -->"
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + "\n" + fn(res) + "\n" + text[text.index(b):]
@@ -597,7 +634,7 @@ def write_md(res: dict) -> None:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d (repeatable; default all)")
+    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|boundary (repeatable; default all)")
     ap.add_argument("--full", action="store_true", help="add the finest grids")
     ap.add_argument("--report", action="store_true", help="tables and plots from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")
