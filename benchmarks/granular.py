@@ -92,6 +92,8 @@ def configs(part: str, full: bool, aspect_dx: float):
     elif part == "boundary":                            # sensitivity: the no-slip base one node layer thick
         for dx in (0.01, 0.005, 0.0025):
             yield cfg(setup="bui", dx=dx, walls=1)
+    elif part == "scale":                               # Sec. 4.1.2's column at 32 cells across L0 (as a = 0.5 at
+        yield cfg(setup="bui", dx=0.00625)              # L0 0.08, dx 2.5 mm): d_n should not depend on L0
     elif part == "bars":
         return                                          # uses the convergence part's Bui runs
     else:
@@ -399,7 +401,8 @@ def table_convergence(res) -> str:
         for r in sorted(rows, key=lambda r: (r["config"]["precision"], -r["config"]["dx"], r["config"]["ppc"])):
             lines.append("| " + _run_cols(r) + " |")
         lines.append("")
-        dxr = sorted([r for r in rows if r["config"]["ppc"] == 4 and r["config"]["precision"] == "fp32"],
+        dxr = sorted([r for r in rows if r["config"]["ppc"] == 4 and r["config"]["precision"] == "fp32"
+                      and r["config"]["dx"] in (0.01, 0.005, 0.0025, 0.00125)],
                      key=lambda r: -r["config"]["dx"])
         tp = 0.65 if setup == "bui" else 2.0
         for q, name in (("L_f", "run-out L_f (settled)"), ("H_wall", "height at the wall (settled)"),
@@ -578,6 +581,40 @@ def plot(res: dict) -> None:
     plot_bars(res)
 
 
+def failure_angle(x0: np.ndarray, eps_p: np.ndarray, threshold: float = 0.03) -> float:
+    """Angle from the horizontal [deg] of the failure line in the initial configuration: per row of
+    initial positions (10 % to 90 % of the column height), the largest x of a particle that stays below
+    ``threshold``; a least-squares line through those points."""
+    y = np.round(x0[:, 1], 9)
+    rows = np.unique(y)
+    h = rows.max()
+    px, py = [], []
+    for yy in rows[(rows > 0.1 * h) & (rows < 0.9 * h)]:
+        m = (y == yy) & (eps_p <= threshold)
+        if m.any():
+            px.append(x0[m, 0].max())
+            py.append(yy)
+    if len(px) < 3:
+        return float("nan")
+    return float(math.degrees(math.atan(abs(np.polyfit(px, py, 1)[0]))))
+
+
+def bars_summary(res) -> str:
+    """Sec. 4.1.2: run-out, height at the wall and failure-line angle of every saved Bui run."""
+    lines = ["| dx [mm] | ppc | L_f [m] | L_f at 0.65 s [m] | H_wall [m] | failure line [deg] | settled |",
+             "|---|---|---|---|---|---|---|"]
+    for r in sorted(_rows(res, setup="bui", dim=2, phi=19.8, precision="fp32"), key=lambda r: (-r["config"]["dx"], r["config"]["ppc"])):
+        f = FINAL / (hashlib.sha1(key(r["config"]).encode()).hexdigest()[:16] + ".npz")
+        ang = None
+        if f.exists():
+            z = np.load(f)
+            ang = failure_angle(z["x0"], z["eps_p"])
+        st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else "NO"
+        lines.append(f"| {r['config']['dx'] * 1e3:g} | {r['config']['ppc']} | {fmt(r['L_f'])} | {fmt(at_time(r, 0.65))} | "
+                     f"{fmt(r['H_wall'])} | {fmt(ang, '{:.1f}')} | {st} |")
+    return "\n".join(lines)
+
+
 def plot_bars(res) -> None:
     """Sec. 4.1.2: the finest Bui run's final deposit coloured by eps_p, the failure surface (eps_p > 0.03
     in the initial configuration, and its boundary in the final one), the initial column."""
@@ -612,7 +649,9 @@ def plot_bars(res) -> None:
     axes[0].set_aspect("equal")
     axes[0].legend(fontsize=7, loc="upper right")
     axes[1].scatter(x0[:, 0], x0[:, 1], c=np.where(fail, 1.0, 0.0), s=1.5, cmap="coolwarm")
-    axes[1].set(xlabel="x [m]", ylabel="y [m]", title="initial positions: red = eps_p > 0.03 at the end (the sliding wedge)")
+    ang = failure_angle(x0, e)
+    axes[1].set(xlabel="x [m]", ylabel="y [m]", title="initial positions: red = eps_p > 0.03 at the end (the sliding "
+                f"wedge); the failure line fits {ang:.1f} deg from the horizontal")
     axes[1].set_aspect("equal")
     axes[1].set_xlim(axes[0].get_xlim())
     fig.tight_layout()
@@ -625,7 +664,7 @@ def write_md(res: dict) -> None:
         return
     text = MD.read_text()
     for name, fn in (("convergence", table_convergence), ("aspect", table_aspect), ("friction", table_friction),
-                     ("aspect3d", table_aspect3d), ("boundary", table_boundary)):
+                     ("aspect3d", table_aspect3d), ("boundary", table_boundary), ("bars", bars_summary)):
         a, b = f"<!-- {name} -->", f"<!-- /{name} -->"
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + "\n" + fn(res) + "\n" + text[text.index(b):]
