@@ -506,7 +506,8 @@ def plot(res: dict) -> None:
     except ImportError:
         return
     # convergence in dx
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    axes = axes.ravel()
     for setup, a, lab in (("bui", None, "Sec. 4.1.2 (a = 0.5, L0 0.2)"), ("column", 2.0, "a = 2, L0 0.08")):
         rows = [r for r in _rows(res, setup=setup, dim=2, phi=19.8, ppc=4, precision="fp32")
                 if setup == "bui" or r["config"]["a"] == a]
@@ -522,6 +523,15 @@ def plot(res: dict) -> None:
     axes[0].set(xlabel="dx [mm] (4 particles per cell)", ylabel="L_f / L0", title="run-out vs dx")
     axes[1].set(xlabel="dx [mm] (4 particles per cell)", ylabel="H_wall / H0", title="height at the wall vs dx")
     axes[2].set(xlabel="particles per cell (dx 5 mm)", ylabel="L_f / L0", title="run-out vs particles per cell")
+    for setup, a, ls in (("bui", None, "-"), ("column", 2.0, "--")):
+        rows = [r for r in _rows(res, setup=setup, dim=2, phi=19.8, ppc=4, precision="fp32")
+                if (setup == "bui" or r["config"]["a"] == a) and r["config"]["dx"] in (0.01, 0.005, 0.0025, 0.00125)]
+        for i, r in enumerate(sorted(rows, key=lambda r: -r["config"]["dx"])):
+            p = r["profile"]
+            axes[3].plot(p["distance"], p["height"], ls, color=f"C{i}",
+                         label=f"{'Sec. 4.1.2' if setup == 'bui' else 'a = 2'}, dx {r['config']['dx'] * 1e3:g} mm")
+    axes[3].set(xlabel="distance from the wall [m]", ylabel="deposit height [m]", title="final deposit profiles")
+    axes[3].set_aspect("equal", adjustable="datalim")
     for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
