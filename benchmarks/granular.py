@@ -440,8 +440,9 @@ def table_boundary(res) -> str:
         dx = r1["config"]["dx"]
         r2 = [r for r in _rows(res, setup="bui", ppc=4, precision="fp32", dx=dx, phi=19.8)]
         r2 = r2[0] if r2 else None
-        lines.append(f"| {dx * 1e3:g} | {fmt(r2 and r2['L_f'])} | {fmt(r1['L_f'])} | {fmt(r2 and at_time(r2, 0.65))} / "
-                     f"{fmt(at_time(r1, 0.65))} | {fmt(r2 and r2['H_wall'])} / {fmt(r1['H_wall'])} |")
+        l1 = fmt(r1["L_f"]) if r1["status"] == "ok" else f"{r1['status']} at t = {r1['t_end']:.2f} s (guard)"
+        lines.append(f"| {dx * 1e3:g} | {fmt(r2 and r2['L_f'])} | {l1} | {fmt(r2 and at_time(r2, 0.65))} / "
+                     f"{fmt(at_time(r1, 0.65))} | {fmt(r2 and r2['H_wall'])} / {fmt(r1['H_wall'] if r1['status'] == 'ok' else None)} |")
     return "\n".join(lines)
 
 
