@@ -89,6 +89,9 @@ def configs(part: str, full: bool, aspect_dx: float):
         if full:
             for a in (0.5, 1.0, 2.0, 3.0):
                 yield cfg(setup="column3d", dim=3, a=a, dx=0.01, ppc=8)
+    elif part == "aspect3d_fine":                       # granular_column_3d's 'fine' size: 16 cells across L0
+        for a in (0.5, 1.0, 2.0, 3.0):
+            yield cfg(setup="column3d", dim=3, a=a, dx=0.005, ppc=8)
     elif part == "boundary":                            # sensitivity: the no-slip base one node layer thick
         for dx in (0.01, 0.005, 0.0025):
             yield cfg(setup="bui", dx=dx, walls=1)
@@ -684,7 +687,7 @@ def write_md(res: dict) -> None:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|boundary (repeatable; default all)")
+    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary (repeatable; default all)")
     ap.add_argument("--full", action="store_true", help="add the finest grids")
     ap.add_argument("--report", action="store_true", help="tables and plots from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")
