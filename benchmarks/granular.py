@@ -186,7 +186,7 @@ def save_checkpoint(path: Path, npstate: dict, step: int, monitor, wall_s: float
     arrays["step"] = np.asarray(step)
     arrays["wall_s"] = np.asarray(wall_s)
     tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez(tmp, **arrays)
+    np.savez_compressed(tmp, **arrays)
     os.replace(tmp, path)
 
 
