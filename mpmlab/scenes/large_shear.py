@@ -67,7 +67,7 @@ __all__ = ["Twist", "SOLUTIONS", "Annulus", "solution", "exact", "body_force", "
 
 #: the mpmlab law each closed form's stress belongs to
 LAWS = {"fixed_corotated": "fixed_corotated", "hencky": "hencky_von_mises"}
-#: shape functions a run may ask for (mpmlab.shapes; CPDI is declared but not carried by the kernels)
+#: shape functions a run may ask for (mpmlab.shapes)
 SHAPE_FUNCTIONS = ("quadratic", "cubic", "ugimp", "cpdi")
 
 
