@@ -138,14 +138,19 @@ def test_quadratic_is_the_default_and_unchanged():
         assert np.array_equal(np.asarray(sa[k]), np.asarray(sb[k]))
 
 
+def thrown_block():
+    """A block thrown at 5 m/s towards the lower x edge of a wall-less domain (the guard tests, both backends)."""
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.4], "hi": [0.2, 0.5]}, material="fixed_corotated",
+                       params={"E": 1e4, "nu": 0.3}, density=1000.0, velocity=[-5.0, 0.0], particles_per_cell=4)
+    return mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], dt=1e-3)
+
+
 def test_cubic_guard_stops_a_particle_leaving_its_window_region():
     """The stability guard uses the cubic window's region (a cell from the edge), not the scene's half cell:
     a block thrown at the lower x edge (no walls) is stopped when its first particle passes x = dx."""
     from mpmlab.core.errors import SimulationDiverged
 
-    body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.4], "hi": [0.2, 0.5]}, material="fixed_corotated",
-                       params={"E": 1e4, "nu": 0.3}, density=1000.0, velocity=[-5.0, 0.0], particles_per_cell=4)
-    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], dt=1e-3)
+    scene = thrown_block()
     st = mpmlab.build_stepper(scene, "jax", "apic", "fp64", shape="cubic", check_every=1)
     with pytest.raises(SimulationDiverged) as info:
         st.rollout(steps=40, every=10)
@@ -185,7 +190,12 @@ def test_cpdi_rigid_rotation_keeps_the_domains_rotated():
         a = omega * dt * k
         x = c + (s0["x"] - c) @ jnp.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).T
         s = step(dict(s, x=x, v=(x - c) @ W.T, C=jnp.broadcast_to(W, s0["C"].shape), law=s0["law"]))
-    R0, R = np.asarray(s0["domain"]), np.asarray(s["domain"])
+    assert_turned_rigidly(np.asarray(s0["domain"]), np.asarray(s["domain"]), omega, dt, n)
+
+
+def assert_turned_rigidly(R0, R, omega, dt, n):
+    """R^T R unchanged to round-off and every domain turned by the Cayley angle 2 n atan(dt omega / 2), which is
+    omega n dt to 1e-6 rad (the rigid-rotation tests, both backends)."""
     gram = lambda A: np.einsum("nji,njk->nik", A, A)               # noqa: E731
     assert np.abs(gram(R) - gram(R0)).max() <= 1e-12 * np.abs(gram(R0)).max()
     Q = np.einsum("nij,njk->nik", R, np.linalg.inv(R0))            # the rotation each domain went through
@@ -212,9 +222,7 @@ def test_cpdi_guard_names_a_corner_leaving_the_grid():
     is stopped when a corner (half a particle spacing ahead of its particle) leaves the grid."""
     from mpmlab.core.errors import SimulationDiverged
 
-    body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.4], "hi": [0.2, 0.5]}, material="fixed_corotated",
-                       params={"E": 1e4, "nu": 0.3}, density=1000.0, velocity=[-5.0, 0.0], particles_per_cell=4)
-    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], dt=1e-3)
+    scene = thrown_block()
     st = mpmlab.build_stepper(scene, "jax", "apic", "fp64", shape="cpdi", check_every=1)
     with pytest.raises(SimulationDiverged) as info:
         st.rollout(steps=40, every=10)

@@ -53,7 +53,7 @@ from mpmlab.shapes.ugimp import reference as ugimp_ref
 from mpmlab.testing.gradients import warp_fd_errors
 from mpmlab.testing.transfers import conservation_scene
 
-from .test_shapes_jax import _rpic          # the example plugin's RPIC, registered once
+from .test_shapes_jax import _rpic, _spinning_disc, assert_turned_rigidly, thrown_block   # shared with the JAX tests
 
 REFERENCE = {"quadratic": quadratic_ref, "cubic": cubic_ref, "ugimp": ugimp_ref}
 TRANSFERS = registry.transfers.names()
@@ -427,15 +427,6 @@ def test_cpdi_apic_3d_conserves():
     assert dP <= 1e-13 and dL <= 1e-13, (dP, dL)
 
 
-def _spinning_disc(omega, dt):
-    """As ``tests/test_shapes_jax.py``: a disc spinning rigidly (APIC's C = the spin), no gravity, no walls."""
-    W = [[0.0, -omega], [omega, 0.0]]
-    body = mpmlab.Body(shape={"kind": "sphere", "center": [0.5, 0.5], "radius": 0.15}, material="fixed_corotated",
-                       params={"E": 1.0, "nu": 0.3}, density=1000.0, angular_velocity=omega, C=W,
-                       particles_per_cell=4)
-    return mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, 0.0], dt=dt)
-
-
 def test_cpdi_rigid_rotation_keeps_the_domains_rotated():
     """A rigid rotation turns every domain without stretching it (as the JAX test): the body is held to the
     exact rigid motion (x turned by omega t about the centre, v = W (x - c), C = W, the initial law state,
@@ -464,12 +455,7 @@ def test_cpdi_rigid_rotation_keeps_the_domains_rotated():
         s.C.assign(wp.array(np.broadcast_to(W, (len(x), 2, 2)).copy(), dtype=T.mat))
         s.domain.assign(wp.array(R, dtype=T.mat))
         R = st.to_numpy(st._advance(s, 1))["domain"]
-    gram = lambda A: np.einsum("nji,njk->nik", A, A)               # noqa: E731
-    assert np.abs(gram(R) - gram(R0)).max() <= 1e-12 * np.abs(gram(R0)).max()
-    Q = np.einsum("nij,njk->nik", R, np.linalg.inv(R0))            # the rotation each domain went through
-    angle = np.arctan2(Q[:, 1, 0], Q[:, 0, 0])
-    assert np.abs(angle - n * 2 * np.arctan(dt * omega / 2)).max() <= 1e-12
-    assert np.abs(angle - omega * n * dt).max() <= 1e-6
+    assert_turned_rigidly(R0, R, omega, dt, n)
 
 
 def test_cpdi_guard_names_a_corner_leaving_the_grid():
@@ -477,9 +463,7 @@ def test_cpdi_guard_names_a_corner_leaving_the_grid():
     at the lower x edge is stopped when a corner, half a particle spacing ahead of its particle, leaves."""
     from mpmlab.core.errors import SimulationDiverged
 
-    body = mpmlab.Body(shape={"kind": "box", "lo": [0.1, 0.4], "hi": [0.2, 0.5]}, material="fixed_corotated",
-                       params={"E": 1e4, "nu": 0.3}, density=1000.0, velocity=[-5.0, 0.0], particles_per_cell=4)
-    scene = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], dt=1e-3)
+    scene = thrown_block()
     st = mpmlab.build_stepper(scene, "warp", "apic", "fp64", shape="cpdi", check_every=1)
     with pytest.raises(SimulationDiverged) as info:
         st.rollout(steps=40, every=10)
