@@ -148,7 +148,7 @@ def table(res: dict) -> str:
             lines.append(
                 f"| {r['solution']} | {r['A']:g} ({r['peak_shear']:.2f}) | {r.get('law', 'fixed_corotated')} | "
                 f"{r.get('ppa', 2) ** 2} | {r['shape_function']} | {r['transfer']} | {r.get('backend', 'jax')} | "
-                f"{'dt/2' if r.get('dt_scale', 1.0) != 1.0 else 'dt'} | {r['dx']:g} | {r['particles']} | "
+                f"{'dt' if r.get('dt_scale', 1.0) == 1.0 else 'dt/%g' % (1.0 / r['dt_scale'])} | {r['dx']:g} | {r['particles']} | "
                 f"{'no' if r['diverged'] else 'yes'} | {fmt(r.get('t_diverged'), '{:.3f}')} | "
                 f"{r.get('cause') or '--'} | {cols} |")
     return "\n".join(lines)
