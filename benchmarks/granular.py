@@ -95,6 +95,12 @@ def configs(part: str, full: bool, aspect_dx: float):
     elif part == "boundary":                            # sensitivity: the no-slip base one node layer thick
         for dx in (0.01, 0.005, 0.0025):
             yield cfg(setup="bui", dx=dx, walls=1)
+    elif part == "flow_rule":                           # associated flow (psi = phi): is the dx dependence the
+        for dx in (0.01, 0.005, 0.0025) + ((0.00125,) if full else ()):   # non-associated law's ill-posedness?
+            yield cfg(setup="bui", dx=dx, psi=19.8)
+    elif part == "transfer":                            # APIC instead of the paper's FLIP: the transfer's share
+        for dx in (0.01, 0.005, 0.0025):                # of the dx dependence
+            yield cfg(setup="bui", dx=dx, transfer="apic")
     elif part == "scale":                               # Sec. 4.1.2's column at 32 cells across L0 (as a = 0.5 at
         yield cfg(setup="bui", dx=0.00625)              # L0 0.08, dx 2.5 mm): d_n should not depend on L0
     elif part == "bars":
@@ -141,6 +147,8 @@ def overrides(c) -> list[str]:
     body = "column"
     if c.get("walls") is not None:
         ov.append(f"scene.boundaries.walls.thickness={c['walls']}")
+    if c.get("psi") is not None:
+        ov.append(f"material.params.dilation_angle={c['psi']}")
     ov += [f"scene.dx={c['dx']}", f"scene.dt={dt}", f"scene.frame_every={every}",
            f"scene.steps={int(round(t_max(c) / dt))}", f"scene.bodies.{body}.particles_per_cell={c['ppc']}",
            f"material.params.friction_angle={c['phi']}"]
@@ -213,7 +221,7 @@ def build(c):
 
     conf = compose(overrides(c))
     scene = build_scene(conf)
-    stepper = build_stepper(scene, "warp", "flip", c["precision"])
+    stepper = build_stepper(scene, "warp", c.get("transfer") or "flip", c["precision"])
     dim = scene.dim
     geo = RunoutGeometry(dim=dim, up=dim - 1, axis=0, wall=0.0, direction=1, base=0.0)
     P = scene.particles()
@@ -351,11 +359,15 @@ def fmt(x, f="{:.4g}"):
     return "--" if x is None else f.format(x)
 
 
+#: optional configuration keys (absent from the default runs' keys): a row matches only if they agree
+VARIANTS = ("walls", "psi", "transfer")
+
+
 def _rows(res, **match):
     out = []
     for r in res.values():
         c = r["config"]
-        if all(c.get(k) == v for k, v in match.items()) and c.get("walls") == match.get("walls"):
+        if all(c.get(k) == v for k, v in match.items()) and all(c.get(k) == match.get(k) for k in VARIANTS):
             out.append(r)
     return out
 
@@ -487,6 +499,70 @@ def table_friction(res) -> str:
         lines.append(f"| {r['config']['phi']:g} | {fmt(r['L_f'])} | {fmt(r['d_n'], '{:.3f}')} | "
                      f"{fmt(r['H_wall_over_H0'], '{:.3f}')} | {fmt(r.get('deposit_angle_deg'), '{:.1f}')} | {st} | "
                      f"{r['wall_s'] / 60:.1f} |")
+    return "\n".join(lines)
+
+
+def front_at_thickness(profile: dict, h: float) -> float | None:
+    """The farthest distance from the wall where the deposit profile is at least ``h`` thick (linear
+    between the profile's bins): a front that does not count a toe thinner than h."""
+    d, H = np.asarray(profile["distance"], float), np.asarray(profile["height"], float)
+    idx = np.nonzero(H >= h)[0]
+    if not idx.size:
+        return None
+    i = idx[-1]
+    if i + 1 < len(H) and H[i] != H[i + 1]:
+        return float(d[i] + (d[i + 1] - d[i]) * (H[i] - h) / (H[i] - H[i + 1]))
+    return float(d[i])
+
+
+THICKNESS = (0.01, 0.02, 0.03)   # [m] fronts of the deposit at these thicknesses (table_flow_rule)
+
+
+def table_flow_rule(res) -> str:
+    """Run-out against dx for the paper's non-associated flow (psi = 0) and an associated one (psi = phi):
+    L_f, the fronts at deposit thicknesses THICKNESS, the observed order and Richardson value of L_f."""
+    lines = []
+    for setup, a, title in (("bui", None, "Sec. 4.1.2 column (a = 0.5, L0 0.2 m)"), ("column", 2.0, "a = 2 column (L0 0.08 m)")):
+        lines += [f"**{title}**", "", "| psi [deg] | dx [mm] | L_f [m] | d_n | " +
+                  " | ".join(f"front at {h * 100:g} cm thick [m]" for h in THICKNESS) + " | H_wall [m] | settled |",
+                  "|---|---|---|---|" + "---|" * len(THICKNESS) + "---|---|"]
+        for psi in (None, 19.8):
+            match = dict(setup=setup, dim=2, phi=19.8, ppc=4, precision="fp32", psi=psi)
+            rows = [r for r in _rows(res, **match) if r["config"]["dx"] in (0.01, 0.005, 0.0025, 0.00125)
+                    and (a is None or r["config"]["a"] == a)]
+            rows.sort(key=lambda r: -r["config"]["dx"])
+            for r in rows:
+                st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else "NO"
+                fr = [front_at_thickness(r["profile"], h) for h in THICKNESS]
+                lines.append(f"| {psi or 0:g} | {r['config']['dx'] * 1e3:g} | {fmt(r['L_f'])} | {fmt(r['d_n'], '{:.3f}')} | " +
+                             " | ".join(fmt(v) for v in fr) + f" | {fmt(r['H_wall'])} | {st} |")
+            if len(rows) >= 3:
+                dxs = [r["config"]["dx"] for r in rows]
+                for q, vals in [("L_f", [r["L_f"] for r in rows])] + [
+                        (f"front at {h * 100:g} cm", [front_at_thickness(r["profile"], h) for r in rows]) for h in THICKNESS]:
+                    if any(v is None for v in vals):
+                        continue
+                    rr = richardson(dxs, vals)
+                    lines.append(f"| {psi or 0:g} | {q}: order {fmt(rr['order'], '{:.2f}')}, Richardson "
+                                 f"{fmt(rr['extrapolated'])} m, last change {fmt(rr.get('change_last'), '{:+.4f}')} m |" +
+                                 " |" * (len(THICKNESS) + 4))
+        lines.append("")
+    asp = sorted([r for r in _rows(res, setup="column", dim=2, phi=19.8, ppc=4, precision="fp32", psi=19.8, dx=0.005)],
+                 key=lambda r: r["config"]["a"])
+    if asp:
+        lines += ["**Aspect ratios with psi = phi (dx 5 mm, 16 cells across L0)**", "",
+                  "| a | L_f [m] | d_n | d_n (paper, psi = 0) | mpmlab / paper | settled |", "|---|---|---|---|---|---|"]
+        for r in asp:
+            p = PAPER_DN.get(r["config"]["a"])
+            st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else "NO"
+            lines.append(f"| {r['config']['a']:g} | {fmt(r['L_f'])} | {fmt(r['d_n'], '{:.3f}')} | {fmt(p, '{:.2f}')} | "
+                         f"{fmt(None if p is None else r['d_n'] / p, '{:.2f}')} | {st} |")
+        aa, dn = [r["config"]["a"] for r in asp], [r["d_n"] for r in asp]
+        lo = [(x, y) for x, y in zip(aa, dn) if x <= 1.0]
+        hi = [(x, y) for x, y in zip(aa, dn) if x >= 2.0]
+        lines.append("")
+        lines.append(f"- exponent of d_n ~ a^n for a = 0.5-1: {fmt(power_fit(*zip(*lo)) if len(lo) > 1 else None, '{:.2f}')}; "
+                     f"for a = 2-3: {fmt(power_fit(*zip(*hi)) if len(hi) > 1 else None, '{:.2f}')} (paper's claim 1 and 0.7)")
     return "\n".join(lines)
 
 
@@ -678,7 +754,8 @@ def write_md(res: dict) -> None:
         return
     text = MD.read_text()
     for name, fn in (("convergence", table_convergence), ("aspect", table_aspect), ("friction", table_friction),
-                     ("aspect3d", table_aspect3d), ("boundary", table_boundary), ("bars", bars_summary)):
+                     ("aspect3d", table_aspect3d), ("boundary", table_boundary), ("bars", bars_summary),
+                     ("flow_rule", table_flow_rule)):
         a, b = f"<!-- {name} -->", f"<!-- /{name} -->"
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + "\n" + fn(res) + "\n" + text[text.index(b):]
@@ -687,7 +764,7 @@ def write_md(res: dict) -> None:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary (repeatable; default all)")
+    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer (repeatable; default all)")
     ap.add_argument("--full", action="store_true", help="add the finest grids")
     ap.add_argument("--report", action="store_true", help="tables and plots from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")

@@ -79,6 +79,11 @@ def configs(full: bool):
     for dx in dxs[2:]:                                # ... and dt/4 on the two finest: is the time error the floor?
         yield {"solution": "vortex", "A": LS.SOLUTIONS["vortex"].A, "transfer": "apic", "shape_function": "cpdi",
                "dx": dx, "dt_scale": 0.25, "backend": "warp"}
+    for dt_scale in (1.0, 0.5):                       # the disc whose shear vanishes smoothly at the free rim:
+        for backend in ("warp", "jax"):               # is vortex's finest-grid floor its rim?
+            for dx in dxs:
+                yield {"solution": "vortex3", "A": LS.SOLUTIONS["vortex3"].A, "transfer": "apic",
+                       "shape_function": "cpdi", "dx": dx, "dt_scale": dt_scale, "backend": backend}
     for dx in dxs[:2]:                                # halving dt (the old message's advice)
         yield {"solution": "annulus", "A": 1.0, "transfer": "apic", "shape_function": "quadratic", "dx": dx,
                "dt_scale": 0.5}

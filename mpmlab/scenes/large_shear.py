@@ -40,6 +40,11 @@ Two solutions (:data:`SOLUTIONS`):
 * ``vortex`` -- a solid disc twisted and untwisted from rest: Rc = 0, w = Ro = 1, h = (1 - cos(2 pi t / T)) / 2,
   T = 1, A = 6: the centre turns by 6 rad (about one turn) at t = T/2 and back at t = T; peak
   |gamma| = A u^2 4 (1 - u^2) max = A at R = Ro / sqrt(2); it starts at rest (v = 0, F = I).
+* ``vortex3`` -- the same disc with g = (1 - u^2)^3 (``power`` 3) and A = 6.75 (peak |gamma| = 6.0 at
+  R = 1/sqrt(3)): the shear vanishes at the free rim with zero slope, where ``vortex``'s falls to zero
+  linearly (gamma ~ -8 A h (1 - R), slope 48 at the peak). MPM's free surface (particle-sampled, no
+  boundary quadrature) integrates that steep stress gradient with a low-order error, which is where
+  ``vortex``'s finest-grid error sits (benchmarks/large_shear.md); ``vortex3`` tests that.
 
 Material: rho0 = 1000, E = 1e4, nu = 0.3 (c_s = 1.96 m/s, c_p = 3.67 m/s): the annulus' material
 speed peaks at A pi R g = pi m/s at R = 1, above the shear wave speed, as in the issue.
@@ -73,8 +78,8 @@ SHAPE_FUNCTIONS = ("quadratic", "cubic", "ugimp", "cpdi")
 
 @dataclass(frozen=True)
 class Twist:
-    """One axisymmetric twist: alpha(R, t) = A (1 - u^2)^2 h(t), u = (R - Rc) / w, on Rc - w <= R <= Rc + w
-    (R >= 0); ``time`` is ``"sin"`` (h = sin(pi t / T)) or ``"pulse"`` (h = (1 - cos(2 pi t / T)) / 2)."""
+    """One axisymmetric twist: alpha(R, t) = A (1 - u^2)^power h(t), u = (R - Rc) / w, on Rc - w <= R <= Rc + w
+    (R >= 0, power >= 2); ``time`` is ``"sin"`` (h = sin(pi t / T)) or ``"pulse"`` (h = (1 - cos(2 pi t / T)) / 2)."""
 
     name: str
     A: float
@@ -86,6 +91,7 @@ class Twist:
     E: float = 1.0e4
     nu: float = 0.3
     density: float = 1000.0
+    power: int = 2
 
     @property
     def mu(self) -> float:
@@ -118,13 +124,12 @@ class Twist:
     def peak_shear(self, n: int = 20001) -> float:
         """max |gamma| over R at h = 1."""
         R = np.linspace(self.r_in, self.r_out, n)
-        u = (R - self.Rc) / self.w
-        return float(np.max(np.abs(self.A * R * (-4.0 * u * (1.0 - u * u) / self.w))))
+        return float(np.max(np.abs(self.A * R * _profile((R - self.Rc) / self.w, self.w, self.power)[1])))
 
     def peak_speed(self, n: int = 20001) -> float:
         """max over R and t of |v| = R |alpha_t|."""
         R = np.linspace(self.r_in, self.r_out, n)
-        g = (1.0 - ((R - self.Rc) / self.w) ** 2) ** 2
+        g = _profile((R - self.Rc) / self.w, self.w, self.power)[0]
         ht = math.pi / self.T
         return float(np.max(R * self.A * g) * ht)
 
@@ -132,6 +137,7 @@ class Twist:
 SOLUTIONS = {
     "annulus": Twist("annulus", A=1.0, Rc=1.0, w=0.25, T=1.0, time="sin"),
     "vortex": Twist("vortex", A=6.0, Rc=0.0, w=1.0, T=1.0, time="pulse"),
+    "vortex3": Twist("vortex3", A=6.75, Rc=0.0, w=1.0, T=1.0, time="pulse", power=3),
 }
 
 
@@ -175,6 +181,18 @@ class _SymOps:
     maximum = staticmethod(lambda a, b: _Sym(f"max({_Sym._w(a).s}, {_Sym._w(b).s})"))
 
 
+def _profile(u, w, power: int):
+    """g = (1 - u^2)^power and its derivatives in R (u = (R - Rc) / w): g, g_R, g_RR."""
+    q = 1.0 - u * u
+    if power == 2:
+        return q * q, -4.0 * u * q / w, (12.0 * u * u - 4.0) / (w * w)
+    if power < 2 or int(power) != power:
+        raise ValueError(f"twist power {power!r}: use an integer >= 2 (the rim must be traction free)")
+    pw = lambda k: q if k == 1 else q ** k  # noqa: E731
+    n = int(power)
+    return pw(n), -2.0 * n * u * pw(n - 1) / w, (-2.0 * n / (w * w)) * (1.0 if n == 2 else pw(n - 2)) * (q - 2.0 * (n - 1) * u * u)
+
+
 def _time_profile(kind: str, t, T, ops):
     """h, dh/dt, d2h/dt2."""
     pi = math.pi
@@ -208,17 +226,14 @@ def _stress(law: str, gam, mu, ops):
     return srr, srt, diff, d_srr, d_srt
 
 
-def fields(X0, X1, t, c: dict, time_kind: str, law: str, ops) -> dict[str, Any]:
+def fields(X0, X1, t, c: dict, time_kind: str, law: str, ops, power: int = 2) -> dict[str, Any]:
     """Every closed-form quantity at reference point (X0, X1), time t (``c``: :meth:`Twist.constants`;
-    ``ops``: ``numpy`` or the string arithmetic). Returns alpha, its derivatives, gamma, the stress,
-    and the body force components ``bx, by``."""
+    ``ops``: ``numpy`` or the string arithmetic; ``power``: :attr:`Twist.power`). Returns alpha, its
+    derivatives, gamma, the stress, and the body force components ``bx, by``."""
     A, Rc, w, T, mu, rho = c["A"], c["Rc"], c["w"], c["T"], c["mu"], c["rho"]
     R = ops.maximum(ops.sqrt(X0 * X0 + X1 * X1), 1e-30)
     u = (R - Rc) / w
-    q = 1.0 - u * u
-    g = q * q
-    g_R = -4.0 * u * q / w
-    g_RR = (12.0 * u * u - 4.0) / (w * w)
+    g, g_R, g_RR = _profile(u, w, power)
     h, h_t, h_tt = _time_profile(time_kind, t, T, ops)
     alpha, alpha_t, alpha_tt = A * g * h, A * g * h_t, A * g * h_tt
     gam = A * h * R * g_R
@@ -237,7 +252,7 @@ def fields(X0, X1, t, c: dict, time_kind: str, law: str, ops) -> dict[str, Any]:
 
 def _np_fields(tw: Twist, X: np.ndarray, t: float) -> dict[str, Any]:
     X = np.asarray(X, float)
-    return fields(X[:, 0], X[:, 1], float(t), tw.constants(), tw.time, tw.law, np)
+    return fields(X[:, 0], X[:, 1], float(t), tw.constants(), tw.time, tw.law, np, tw.power)
 
 
 def exact(tw: Twist, X: np.ndarray, t: float) -> dict[str, np.ndarray]:
@@ -271,7 +286,7 @@ def body_force_expressions(tw: Twist) -> dict[str, Any]:
     constants A, Rc, w, T, mu, rho (their values are the field's parameters, packed in sorted order)."""
     names = sorted(tw.constants())
     c = {k: _Sym(k) for k in names}
-    f = fields(_Sym("X[0]"), _Sym("X[1]"), _Sym("t"), c, tw.time, tw.law, _SymOps)
+    f = fields(_Sym("X[0]"), _Sym("X[1]"), _Sym("t"), c, tw.time, tw.law, _SymOps, tw.power)
     return {"b": [f["bx"].s, f["by"].s], "constants": tw.constants()}
 
 
