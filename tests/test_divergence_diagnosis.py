@@ -115,6 +115,19 @@ def test_cell_crossing_twisted_annulus_is_not_cfl():
     assert runs[1]["t_diverged"] < 1.25 * runs[0]["t_diverged"] < runs[0]["t_end"]
 
 
+def test_cpdi_cell_crossing_advises_a_smaller_dt():
+    """With CPDI the cell-crossing advice is the measured remedy (a smaller dt: benchmarks/large_shear.md,
+    vortex3 on dx 0.0125), not another shape function: the message is built from the failure's numbers,
+    so a CPDI stepper's diagnosis of a rippled J field is enough to check it (the twisted annulus at
+    dx 0.1, which CPDI + PIC fails on cell-crossing noise at t = 0.53)."""
+    from mpmlab.scenes import large_shear as LS
+
+    r = LS.run("annulus", dx=0.1, transfer="pic", shape_function="cpdi", frames=22)
+    assert r["diverged"] and r["cause"] == "cell_crossing", r["message"]
+    assert "smaller dt" in r["message"] and "a smaller dt does not help" not in r["message"]
+    assert "transfer.shape=cpdi" not in r["message"]
+
+
 def test_domain_edge_at_a_modest_speed():
     """A square sliding at 5 m/s (0.2 cells per step, CFL 0.37) off a wall-less domain: 'domain', not 'cfl'."""
     sc = square(dt=2e-3, E=1e4, walls=False, gravity=(0.0, 0.0), velocity=[5.0, 0.0])

@@ -36,7 +36,10 @@ Causes, checked in this order (the first that the numbers support):
                   neighbouring cells) and either dominates J's deviation (share >= 0.5), or J swings both
                   ways (J_min <= 0.8 and J_max >= 1.2), or the velocity field is noisy (share >= 0.05):
                   grid-aligned modes from particles crossing cells (the ringing/cell-crossing instability
-                  of B-spline MPM); another shape function or transfer; dt does not help.
+                  of B-spline MPM); another shape function or transfer; dt does not help. With CPDI
+                  already in use the advice is the measured one: a smaller dt (benchmarks/large_shear.md:
+                  CPDI + APIC's late divergence on the finest grid is gone at 0.75 dt and dt/2, while
+                  halving dt only delays the B-splines' ringing).
 ``velocity``      a particle moved more than 1 cell in one step (left its stencil neighbourhood) while
                   its J was not already collapsed: its velocity blew up locally.
 ``compression``   J of the failing particle (or the smallest J) collapsed (<= 0.1) or inverted, or a
@@ -326,6 +329,21 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
                           f"reduce dt (or use dt: auto, a smaller cfl)")
     # (d) grid-scale noise in J
     if noise:
+        if getattr(getattr(stepper, "shape", None), "kind", None) == "corners":
+            # CPDI already: measured (benchmarks/large_shear.md, vortex3) -- its late divergence under
+            # large shear on fine grids goes away with a smaller dt, unlike the B-splines' ringing
+            advice = (f"grid-scale modes in J under large deformation, with CPDI's domains (the twisted discs of "
+                      f"benchmarks/large_shear.md fail so just past their peak shear on the finest grid at the "
+                      f"CFL-0.3 step); try a smaller dt: 0.75 dt and dt/2 removed that divergence there, the stable "
+                      f"step under shear 6 shrinking faster than dx; with CPDI, APIC is the transfer that survives "
+                      f"there (MLS and PIC fail earlier)")
+        else:
+            advice = (f"grid-aligned modes from particles crossing cells (the ringing instability of B-spline MPM "
+                      f"under large deformation); try another shape function: CPDI with APIC "
+                      f"(transfer.shape=cpdi: the twisted discs of benchmarks/large_shear.md then "
+                      f"survive their peak shear 6 on every grid at 2 particles per axis), or the "
+                      f"cubic B-spline (transfer.shape=cubic) with 4 particles per axis, or another "
+                      f"transfer; a smaller dt does not help")
         at = _fmt(rip["ripple_at"])
         return out("cell_crossing", f"cause: cell-crossing noise -- J ripples from cell to cell by up to "
                                     f"{rip['ripple']:.3g} (at {at}; {100 * rip['ripple_share']:.0f} % of J's "
@@ -333,13 +351,7 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
                                     f"{J_max:.3g}; grid-scale share of the velocity field "
                                     f"{max(vn_start, vn_prev):.2g}) before {where} (J {Jp_prev:.4g}, speed "
                                     f"{speed_p:.3g} m/s = "
-                                    f"{speed_p / max(med, 1e-300):.3g} x the median) failed; {nums}: grid-aligned "
-                                    f"modes from particles crossing cells (the ringing instability of B-spline MPM "
-                                    f"under large deformation); try another shape function: CPDI with APIC "
-                                    f"(transfer.shape=cpdi: the twisted disc of benchmarks/large_shear.md then "
-                                    f"survives its peak shear 6 on every grid at 2 particles per axis), or the "
-                                    f"cubic B-spline (transfer.shape=cubic) with 4 particles per axis, or another "
-                                    f"transfer; a smaller dt does not help")
+                                    f"{speed_p / max(med, 1e-300):.3g} x the median) failed; {nums}: " + advice)
     # (c) a runaway particle
     gradual = have_J and np.isfinite(Jp_prev) and Jp_prev <= J_COLLAPSE
     if (move_prev_max > MOVE_CELLS or move_fail_max > MOVE_CELLS) and not gradual:

@@ -31,7 +31,7 @@ d/dr = (d/d gamma) * dgamma/dR, dgamma/dR = A h (g_R + R g_RR). It is written on
 and as the ``expression`` body force's strings in ``X[0], X[1], t`` and named constants, which
 mpmlab compiles for JAX and Warp (nothing in mpmlab is specific to these solutions).
 
-Two solutions (:data:`SOLUTIONS`):
+Three solutions (:data:`SOLUTIONS`):
 
 * ``annulus`` -- the twisted annulus of issue 19 (Kamojjala's generalized vortex): Rc = 1, w = 0.25
   (0.75 <= R <= 1.25: g = 1 - 32 (R-1)^2 + 256 (R-1)^4), h = sin(pi t / T), T = 1, A = 1: peak
@@ -52,8 +52,8 @@ speed peaks at A pi R g = pi m/s at R = 1, above the shear wave speed, as in the
 Errors: ``displacement_error`` is the particle-RMS of |x - X - U(X, t)| (equal particle volumes),
 in metres, and relative to the RMS of |U| at the same time.
 
-The ``shape_function`` axis: :func:`run` takes ``shape_function``, any of ``mpmlab.shapes``' separable
-shape functions (``quadratic``, ``cubic``, ``ugimp``), handed to the stepper as ``shape``.
+The ``shape_function`` axis: :func:`run` takes ``shape_function``, any of ``mpmlab.shapes``'
+shape functions (``quadratic``, ``cubic``, ``ugimp``, ``cpdi``), handed to the stepper as ``shape``.
 """
 from __future__ import annotations
 
