@@ -103,6 +103,9 @@ def configs(part: str, full: bool, aspect_dx: float):
             yield cfg(setup="bui", dx=dx, transfer="apic")
     elif part == "scale":                               # Sec. 4.1.2's column at 32 cells across L0 (as a = 0.5 at
         yield cfg(setup="bui", dx=0.00625)              # L0 0.08, dx 2.5 mm): d_n should not depend on L0
+    elif part == "cylinder3d":                         # Sec. 4.2.3: the 3D cylinder at its cpu size (16 cells across
+        for phi in (20.0, 25.0, 35.0, 40.0):            # its base, 22k particles), the paper's four friction angles
+            yield cfg(setup="cylinder3d", dim=3, dx=0.0125, ppc=8, phi=phi)
     elif part == "bars":
         return                                          # uses the convergence part's Bui runs
     else:
@@ -117,6 +120,8 @@ def t_max(c) -> float:
     """The longest simulated time a run may take (the stop rule ends it earlier once settled)."""
     if c["setup"] == "bui":
         return 1.5               # the paper runs 0.65 s
+    if c["setup"] == "cylinder3d":
+        return 1.5               # the paper runs 1 s
     return 3.0                   # the paper runs 2 s
 
 
@@ -124,6 +129,8 @@ def geometry(c) -> dict:
     """L0, H0 and the 2D domain of a configuration."""
     if c["setup"] == "bui":
         return {"L0": 0.2, "H0": 0.1, "hi": (0.6, 0.12)}
+    if c["setup"] == "cylinder3d":               # granular_cylinder_3d: radius 0.1 m, height 0.17 m, axis at (0.5, 0.5)
+        return {"L0": 0.1, "H0": 0.17, "hi": (1.0, 1.0, 0.25), "center": (0.5, 0.5), "reach": 0.5}
     L0 = L0_COLUMN
     H0 = c["a"] * L0
     if c["setup"] == "column3d":
@@ -139,12 +146,14 @@ def overrides(c) -> list[str]:
     g = geometry(c)
     dt = DT_PER_DX * c["dx"]
     every = max(1, int(round(FRAME_S / dt)))
+    body = "column"
     if c["setup"] == "column3d":
         ov = ["scene=granular_column_3d", f"scene.vars.aspect_ratio={c['a']}", f"scene.vars.L0={g['L0']}"]
+    elif c["setup"] == "cylinder3d":
+        ov, body = ["scene=granular_cylinder_3d"], "cylinder"
     else:
         ov = ["scene=granular_collapse_2d", f"scene.vars.L0={g['L0']}", f"scene.vars.H0={g['H0']}",
               f"scene.domain.hi=[{g['hi'][0]},{g['hi'][1]}]"]
-    body = "column"
     if c.get("walls") is not None:
         ov.append(f"scene.boundaries.walls.thickness={c['walls']}")
     if c.get("psi") is not None:
@@ -223,7 +232,9 @@ def build(c):
     scene = build_scene(conf)
     stepper = build_stepper(scene, "warp", c.get("transfer") or "flip", c["precision"])
     dim = scene.dim
-    geo = RunoutGeometry(dim=dim, up=dim - 1, axis=0, wall=0.0, direction=1, base=0.0)
+    center = geometry(c).get("center")
+    geo = (RunoutGeometry(dim=dim, up=dim - 1, center=center, base=0.0) if center is not None else
+           RunoutGeometry(dim=dim, up=dim - 1, axis=0, wall=0.0, direction=1, base=0.0))
     P = scene.particles()
     size = np.asarray(P.volume, dtype=np.float64) ** (1.0 / dim)
     mon = RunoutMonitor(geo, float(scene.dx), mass=np.asarray(P.mass, dtype=np.float64), particle_size=size)
@@ -278,7 +289,7 @@ def run_one(c, checkpoint_s: float = 120.0, deadline: float | None = None, log=p
              series={"t": list(mon.times), "front": list(mon.fronts), "height": list(mon.heights),
                      "kinetic": list(mon.kinetic)})
     # the front at the domain's far wall: the run-out is cut there
-    r["front_at_domain_end"] = bool(r["L_f"] > g["hi"][0] - 2.5 * c["dx"])
+    r["front_at_domain_end"] = bool(r["L_f"] > g.get("reach", g["hi"][0]) - 2.5 * c["dx"])
     r["deposit_angle_deg"] = deposit_angle(r)
     if c["setup"] == "bui" or c.get("save_final"):
         FINAL.mkdir(parents=True, exist_ok=True)
@@ -566,6 +577,21 @@ def table_flow_rule(res) -> str:
     return "\n".join(lines)
 
 
+def table_cylinder(res) -> str:
+    """Sec. 4.2.3: the 3D cylinder's radial run-out, height at the axis and deposit slope against phi."""
+    rows = sorted(_rows(res, setup="cylinder3d"), key=lambda r: r["config"]["phi"])
+    lines = ["| phi [deg] | dx [mm] | particles | L_f (radius of the deposit) [m] | d_n = (L_f - R0) / R0 | "
+             "height at the axis / H0 | deposit slope [deg] | settled | wall [min] |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        c = r["config"]
+        st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else f"NO (t_end {r['t_end']:.2f} s)"
+        lines.append(f"| {c['phi']:g} | {c['dx'] * 1e3:g} | {r['particles']} | {fmt(r['L_f'])} | {fmt(r['d_n'], '{:.3f}')} | "
+                     f"{fmt(r['H_wall_over_H0'], '{:.3f}')} | {fmt(r.get('deposit_angle_deg'), '{:.1f}')} | {st} | "
+                     f"{r['wall_s'] / 60:.1f} |")
+    return "\n".join(lines)
+
+
 def table_aspect3d(res) -> str:
     rows = sorted(_rows(res, setup="column3d"), key=lambda r: (-r["config"]["dx"], r["config"]["a"]))
     lines = ["| a | dx [mm] | cells across L0 | particles | L_f [m] | d_n (mpmlab 3D) | d_n (paper) | settled | "
@@ -755,7 +781,7 @@ def write_md(res: dict) -> None:
     text = MD.read_text()
     for name, fn in (("convergence", table_convergence), ("aspect", table_aspect), ("friction", table_friction),
                      ("aspect3d", table_aspect3d), ("boundary", table_boundary), ("bars", bars_summary),
-                     ("flow_rule", table_flow_rule)):
+                     ("flow_rule", table_flow_rule), ("cylinder3d", table_cylinder)):
         a, b = f"<!-- {name} -->", f"<!-- /{name} -->"
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + "\n" + fn(res) + "\n" + text[text.index(b):]
@@ -764,7 +790,7 @@ def write_md(res: dict) -> None:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer (repeatable; default all)")
+    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d (repeatable; default all)")
     ap.add_argument("--full", action="store_true", help="add the finest grids")
     ap.add_argument("--report", action="store_true", help="tables and plots from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")
