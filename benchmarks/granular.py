@@ -101,8 +101,17 @@ def configs(part: str, full: bool, aspect_dx: float):
     elif part == "transfer":                            # APIC instead of the paper's FLIP: the transfer's share
         for dx in (0.01, 0.005, 0.0025):                # of the dx dependence
             yield cfg(setup="bui", dx=dx, transfer="apic")
+        for dx in (0.01, 0.005, 0.0025):                # pure FLIP (JAX-MPM Eq. 15; the scenes blend 1 % PIC)
+            yield cfg(setup="bui", dx=dx, flip_ratio=1.0)
     elif part == "scale":                               # Sec. 4.1.2's column at 32 cells across L0 (as a = 0.5 at
         yield cfg(setup="bui", dx=0.00625)              # L0 0.08, dx 2.5 mm): d_n should not depend on L0
+    elif part == "aspect_pure_flip":                   # Sec. 4.2.2 with the paper's Eq. 15 as written (pure FLIP)
+        for dx in (0.005, 0.0025):
+            for a in (0.5, 1.0, 2.0, 3.0):
+                yield cfg(setup="column", a=a, dx=dx, flip_ratio=1.0)
+        if full:                                        # 64 cells across L0 (a = 3 there: ~1 h here)
+            for a in (0.5, 1.0, 2.0):
+                yield cfg(setup="column", a=a, dx=0.00125, flip_ratio=1.0)
     elif part == "cylinder3d":                         # Sec. 4.2.3: the 3D cylinder at its cpu size (16 cells across
         for phi in (20.0, 25.0, 35.0, 40.0):            # its base, 22k particles), the paper's four friction angles
             yield cfg(setup="cylinder3d", dim=3, dx=0.0125, ppc=8, phi=phi)
@@ -230,7 +239,10 @@ def build(c):
 
     conf = compose(overrides(c))
     scene = build_scene(conf)
-    stepper = build_stepper(scene, "warp", c.get("transfer") or "flip", c["precision"])
+    from mpmlab.transfers import make_transfer
+
+    tr = make_transfer("flip", flip_ratio=c["flip_ratio"]) if c.get("flip_ratio") is not None else (c.get("transfer") or "flip")
+    stepper = build_stepper(scene, "warp", tr, c["precision"])
     dim = scene.dim
     center = geometry(c).get("center")
     geo = (RunoutGeometry(dim=dim, up=dim - 1, center=center, base=0.0) if center is not None else
@@ -371,7 +383,7 @@ def fmt(x, f="{:.4g}"):
 
 
 #: optional configuration keys (absent from the default runs' keys): a row matches only if they agree
-VARIANTS = ("walls", "psi", "transfer")
+VARIANTS = ("walls", "psi", "transfer", "flip_ratio")
 
 
 def _rows(res, **match):
@@ -472,8 +484,10 @@ def table_boundary(res) -> str:
     return "\n".join(lines)
 
 
-def table_aspect(res) -> str:
-    rows = sorted([r for r in _rows(res, setup="column", dim=2, phi=19.8, ppc=4, precision="fp32")],
+def table_aspect(res, **variant) -> str:
+    """Sec. 4.2.2 in 2D: d_n per a and dx beside the paper's, and the scaling exponents (``variant``: e.g.
+    ``flip_ratio=1.0`` for the pure-FLIP runs)."""
+    rows = sorted([r for r in _rows(res, setup="column", dim=2, phi=19.8, ppc=4, precision="fp32", **variant)],
                   key=lambda r: (r["config"]["dx"], r["config"]["a"]))
     by_dx: dict = {}
     for r in rows:
@@ -529,52 +543,37 @@ def front_at_thickness(profile: dict, h: float) -> float | None:
 THICKNESS = (0.01, 0.02, 0.03)   # [m] fronts of the deposit at these thicknesses (table_flow_rule)
 
 
-def table_flow_rule(res) -> str:
-    """Run-out against dx for the paper's non-associated flow (psi = 0) and an associated one (psi = phi):
-    L_f, the fronts at deposit thicknesses THICKNESS, the observed order and Richardson value of L_f."""
-    lines = []
-    for setup, a, title in (("bui", None, "Sec. 4.1.2 column (a = 0.5, L0 0.2 m)"), ("column", 2.0, "a = 2 column (L0 0.08 m)")):
-        lines += [f"**{title}**", "", "| psi [deg] | dx [mm] | L_f [m] | d_n | " +
-                  " | ".join(f"front at {h * 100:g} cm thick [m]" for h in THICKNESS) + " | H_wall [m] | settled |",
-                  "|---|---|---|---|" + "---|" * len(THICKNESS) + "---|---|"]
-        for psi in (None, 19.8):
-            match = dict(setup=setup, dim=2, phi=19.8, ppc=4, precision="fp32", psi=psi)
-            rows = [r for r in _rows(res, **match) if r["config"]["dx"] in (0.01, 0.005, 0.0025, 0.00125)
-                    and (a is None or r["config"]["a"] == a)]
-            rows.sort(key=lambda r: -r["config"]["dx"])
-            for r in rows:
-                st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else "NO"
-                fr = [front_at_thickness(r["profile"], h) for h in THICKNESS]
-                lines.append(f"| {psi or 0:g} | {r['config']['dx'] * 1e3:g} | {fmt(r['L_f'])} | {fmt(r['d_n'], '{:.3f}')} | " +
-                             " | ".join(fmt(v) for v in fr) + f" | {fmt(r['H_wall'])} | {st} |")
-            if len(rows) >= 3:
-                dxs = [r["config"]["dx"] for r in rows]
-                for q, vals in [("L_f", [r["L_f"] for r in rows])] + [
-                        (f"front at {h * 100:g} cm", [front_at_thickness(r["profile"], h) for r in rows]) for h in THICKNESS]:
-                    if any(v is None for v in vals):
-                        continue
-                    rr = richardson(dxs, vals)
-                    lines.append(f"| {psi or 0:g} | {q}: order {fmt(rr['order'], '{:.2f}')}, Richardson "
-                                 f"{fmt(rr['extrapolated'])} m, last change {fmt(rr.get('change_last'), '{:+.4f}')} m |" +
-                                 " |" * (len(THICKNESS) + 4))
-        lines.append("")
-    asp = sorted([r for r in _rows(res, setup="column", dim=2, phi=19.8, ppc=4, precision="fp32", psi=19.8, dx=0.005)],
-                 key=lambda r: r["config"]["a"])
-    if asp:
-        lines += ["**Aspect ratios with psi = phi (dx 5 mm, 16 cells across L0)**", "",
-                  "| a | L_f [m] | d_n | d_n (paper, psi = 0) | mpmlab / paper | settled |", "|---|---|---|---|---|---|"]
-        for r in asp:
-            p = PAPER_DN.get(r["config"]["a"])
+#: the Sec. 4.1.2 column's model variants (parts ``convergence``, ``flow_rule``, ``transfer``)
+SENSITIVITY = (("the scene: psi = 0, FLIP with 1 % PIC", {}), ("psi = phi (associated flow)", {"psi": 19.8}),
+               ("APIC", {"transfer": "apic"}), ("pure FLIP (JAX-MPM Eq. 15 as written)", {"flip_ratio": 1.0}))
+
+
+def table_sensitivity(res) -> str:
+    """The Sec. 4.1.2 column against dx for each model variant of SENSITIVITY: L_f, the fronts where the
+    deposit is THICKNESS thick, H_wall; under the table, the observed order and Richardson value of each."""
+    head = ("| variant | dx [mm] | L_f [m] | d_n | " + " | ".join(f"front at {h * 100:g} cm thick [m]" for h in THICKNESS)
+            + " | H_wall [m] | settled |")
+    lines = [head, "|---|---|---|---|" + "---|" * len(THICKNESS) + "---|---|"]
+    notes = []
+    for name, var in SENSITIVITY:
+        rows = sorted([r for r in _rows(res, setup="bui", dim=2, phi=19.8, ppc=4, precision="fp32", **var)
+                       if r["config"]["dx"] in (0.01, 0.005, 0.0025, 0.00125)], key=lambda r: -r["config"]["dx"])
+        for r in rows:
             st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else "NO"
-            lines.append(f"| {r['config']['a']:g} | {fmt(r['L_f'])} | {fmt(r['d_n'], '{:.3f}')} | {fmt(p, '{:.2f}')} | "
-                         f"{fmt(None if p is None else r['d_n'] / p, '{:.2f}')} | {st} |")
-        aa, dn = [r["config"]["a"] for r in asp], [r["d_n"] for r in asp]
-        lo = [(x, y) for x, y in zip(aa, dn) if x <= 1.0]
-        hi = [(x, y) for x, y in zip(aa, dn) if x >= 2.0]
-        lines.append("")
-        lines.append(f"- exponent of d_n ~ a^n for a = 0.5-1: {fmt(power_fit(*zip(*lo)) if len(lo) > 1 else None, '{:.2f}')}; "
-                     f"for a = 2-3: {fmt(power_fit(*zip(*hi)) if len(hi) > 1 else None, '{:.2f}')} (paper's claim 1 and 0.7)")
-    return "\n".join(lines)
+            fr = [front_at_thickness(r["profile"], h) for h in THICKNESS]
+            lines.append(f"| {name} | {r['config']['dx'] * 1e3:g} | {fmt(r['L_f'])} | {fmt(r['d_n'], '{:.3f}')} | " +
+                         " | ".join(fmt(v) for v in fr) + f" | {fmt(r['H_wall'])} | {st} |")
+        if len(rows) >= 3:
+            dxs = [r["config"]["dx"] for r in rows]
+            parts = []
+            for q, vals in [("L_f", [r["L_f"] for r in rows])] + [
+                    (f"{h * 100:g} cm front", [front_at_thickness(r["profile"], h) for r in rows]) for h in THICKNESS]:
+                if any(v is None for v in vals):
+                    continue
+                rr = richardson(dxs, vals)
+                parts.append(f"{q} order {fmt(rr['order'], '{:.2f}')} (Richardson {fmt(rr['extrapolated'])} m)")
+            notes.append(f"- {name}: " + "; ".join(parts))
+    return "\n".join(lines + [""] + notes)
 
 
 def table_cylinder(res) -> str:
@@ -781,7 +780,8 @@ def write_md(res: dict) -> None:
     text = MD.read_text()
     for name, fn in (("convergence", table_convergence), ("aspect", table_aspect), ("friction", table_friction),
                      ("aspect3d", table_aspect3d), ("boundary", table_boundary), ("bars", bars_summary),
-                     ("flow_rule", table_flow_rule), ("cylinder3d", table_cylinder)):
+                     ("sensitivity", table_sensitivity), ("cylinder3d", table_cylinder),
+                     ("aspect_pure_flip", lambda r: table_aspect(r, flip_ratio=1.0))):
         a, b = f"<!-- {name} -->", f"<!-- /{name} -->"
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + "\n" + fn(res) + "\n" + text[text.index(b):]
@@ -790,7 +790,7 @@ def write_md(res: dict) -> None:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d (repeatable; default all)")
+    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d|aspect_pure_flip (repeatable; default all)")
     ap.add_argument("--full", action="store_true", help="add the finest grids")
     ap.add_argument("--report", action="store_true", help="tables and plots from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")
