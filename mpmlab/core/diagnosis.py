@@ -332,18 +332,18 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
         if getattr(getattr(stepper, "shape", None), "kind", None) == "corners":
             # CPDI already: measured (benchmarks/large_shear.md, vortex3) -- its late divergence under
             # large shear on fine grids goes away with a smaller dt, unlike the B-splines' ringing
-            advice = (f"grid-scale modes in J under large deformation, with CPDI's domains (the twisted discs of "
-                      f"benchmarks/large_shear.md fail so just past their peak shear on the finest grid at the "
-                      f"CFL-0.3 step); try a smaller dt: 0.75 dt and dt/2 removed that divergence there, the stable "
-                      f"step under shear 6 shrinking faster than dx; with CPDI, APIC is the transfer that survives "
-                      f"there (MLS and PIC fail earlier)")
+            advice = ("grid-scale modes in J under large deformation, with CPDI's domains (the twisted discs of "
+                      "benchmarks/large_shear.md fail so just past their peak shear on the finest grid at the "
+                      "CFL-0.3 step); try a smaller dt: 0.75 dt and dt/2 removed that divergence there, the stable "
+                      "step under shear 6 shrinking faster than dx; with CPDI, APIC is the transfer that survives "
+                      "there (MLS and PIC fail earlier)")
         else:
-            advice = (f"grid-aligned modes from particles crossing cells (the ringing instability of B-spline MPM "
-                      f"under large deformation); try another shape function: CPDI with APIC "
-                      f"(transfer.shape=cpdi: the twisted discs of benchmarks/large_shear.md then "
-                      f"survive their peak shear 6 on every grid at 2 particles per axis), or the "
-                      f"cubic B-spline (transfer.shape=cubic) with 4 particles per axis, or another "
-                      f"transfer; a smaller dt does not help")
+            advice = ("grid-aligned modes from particles crossing cells (the ringing instability of B-spline MPM "
+                      "under large deformation); try another shape function: CPDI with APIC "
+                      "(transfer.shape=cpdi: the twisted discs of benchmarks/large_shear.md then "
+                      "survive their peak shear 6 on every grid at 2 particles per axis), or the "
+                      "cubic B-spline (transfer.shape=cubic) with 4 particles per axis, or another "
+                      "transfer; a smaller dt does not help")
         at = _fmt(rip["ripple_at"])
         return out("cell_crossing", f"cause: cell-crossing noise -- J ripples from cell to cell by up to "
                                     f"{rip['ripple']:.3g} (at {at}; {100 * rip['ripple_share']:.0f} % of J's "

@@ -183,14 +183,14 @@ class _SymOps:
 
 def _profile(u, w, power: int):
     """g = (1 - u^2)^power and its derivatives in R (u = (R - Rc) / w): g, g_R, g_RR."""
-    q = 1.0 - u * u
-    if power == 2:
-        return q * q, -4.0 * u * q / w, (12.0 * u * u - 4.0) / (w * w)
     if power < 2 or int(power) != power:
         raise ValueError(f"twist power {power!r}: use an integer >= 2 (the rim must be traction free)")
+    q = 1.0 - u * u
+    if power == 2:                       # the original solutions' expressions, term for term
+        return q * q, -4.0 * u * q / w, (12.0 * u * u - 4.0) / (w * w)
     pw = lambda k: q if k == 1 else q ** k  # noqa: E731
     n = int(power)
-    return pw(n), -2.0 * n * u * pw(n - 1) / w, (-2.0 * n / (w * w)) * (1.0 if n == 2 else pw(n - 2)) * (q - 2.0 * (n - 1) * u * u)
+    return pw(n), -2.0 * n * u * pw(n - 1) / w, (-2.0 * n / (w * w)) * pw(n - 2) * (q - 2.0 * (n - 1) * u * u)
 
 
 def _time_profile(kind: str, t, T, ops):
