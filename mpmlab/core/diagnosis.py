@@ -77,16 +77,18 @@ class Diagnosis:
 
 
 def _det(F: np.ndarray) -> np.ndarray:
-    """det of [N, D, D] by the explicit 2x2 / 3x3 formula (a batched LU is ~20x slower)."""
+    """det of [N, D, D] by the explicit 2x2 / 3x3 formula (a batched LU is ~20x slower). A diverged
+    state's F may overflow it: that is inf / nan for those particles, not a warning on the console."""
     F = np.asarray(F)
-    if F.shape[-1] == 2:
-        return F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
-    if F.shape[-1] == 3:
-        a, b, c = F[:, 0, 0], F[:, 0, 1], F[:, 0, 2]
-        return (a * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1])
-                - b * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
-                + c * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
-    return np.linalg.det(F)
+    with np.errstate(over="ignore", invalid="ignore"):
+        if F.shape[-1] == 2:
+            return F[:, 0, 0] * F[:, 1, 1] - F[:, 0, 1] * F[:, 1, 0]
+        if F.shape[-1] == 3:
+            a, b, c = F[:, 0, 0], F[:, 0, 1], F[:, 0, 2]
+            return (a * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1])
+                    - b * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
+                    + c * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
+        return np.linalg.det(F)
 
 
 def volume_ratio(stepper, npstate: dict[str, np.ndarray]) -> np.ndarray:
