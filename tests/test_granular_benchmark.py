@@ -37,6 +37,17 @@ def test_richardson_oscillating_has_no_order():
     assert r["change_last"] == pytest.approx(-0.05)
 
 
+def test_front_at_thickness_interpolates_and_ignores_a_thin_toe():
+    """A wedge deposit 0.1 m high at the wall falling linearly to 0 at 0.5 m, plus a 5 mm toe to 0.7 m:
+    the 3 cm front is at 0.35 m (linear between bins), the toe only moves fronts thinner than itself."""
+    d = np.arange(0.0025, 0.7, 0.005)
+    h = np.where(d < 0.5, 0.1 * (1 - d / 0.5), 0.005)
+    prof = {"distance": d.tolist(), "height": h.tolist()}
+    assert G.front_at_thickness(prof, 0.03) == pytest.approx(0.35, abs=1e-9)
+    assert G.front_at_thickness(prof, 0.004) == pytest.approx(d[-1], abs=1e-12)   # the toe counts below 5 mm
+    assert G.front_at_thickness(prof, 0.2) is None                                 # thicker than the deposit
+
+
 def test_power_fit():
     a = [0.5, 1.0, 2.0, 3.0]
     assert G.power_fit(a, [2.0 * x ** 0.7 for x in a]) == pytest.approx(0.7)
