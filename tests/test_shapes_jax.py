@@ -217,13 +217,15 @@ def test_cpdi_domains_follow_the_material(transfer):
     assert np.abs(R - np.einsum("nij,njk->nik", F, R0)).max() <= 5e-3 * np.abs(R0).max()
 
 
-def test_cpdi_guard_names_a_corner_leaving_the_grid():
-    """The guard watches the domain's corners, not only the particle: a block thrown at the lower x edge
-    is stopped when a corner (half a particle spacing ahead of its particle) leaves the grid."""
+@pytest.mark.parametrize("backend", ["jax", "warp"])
+def test_cpdi_guard_names_a_corner_leaving_the_grid(backend):
+    """The guard watches the domain's corners, not only the particle (JAX: ``_bad_impl``; Warp:
+    ``corner_guard_kernel``): a block thrown at the lower x edge is stopped when a corner (half a particle
+    spacing ahead of its particle) leaves the grid."""
     from mpmlab.core.errors import SimulationDiverged
 
     scene = thrown_block()
-    st = mpmlab.build_stepper(scene, "jax", "apic", "fp64", shape="cpdi", check_every=1)
+    st = mpmlab.build_stepper(scene, backend, "apic", "fp64", shape="cpdi", check_every=1)
     with pytest.raises(SimulationDiverged) as info:
         st.rollout(steps=40, every=10)
     e = info.value
