@@ -310,10 +310,7 @@ def by_radius(solution: str = "vortex", dxs=(0.05, 0.025, 0.0125), dt_scale: flo
     edges = np.linspace(tw.r_in, tw.r_out, nbands + 1)
     out = {"solution": solution, "dt_scale": dt_scale, "backend": backend, "band_edges": edges.tolist(), "runs": {}}
     for dx in dxs:
-        sc = LS.scene(tw, dx=dx, t_end=0.55, affine=True, step_multiple=FRAMES)
-        if dt_scale != 1.0:
-            sc = LS.scene(tw, dx=dx, t_end=0.55, affine=True,
-                          dt=0.55 / int(round(round(0.55 / sc.resolve_dt()) / dt_scale)))
+        sc = LS.scene(tw, dx=dx, t_end=0.55, affine=True, step_multiple=FRAMES, dt_scale=dt_scale)
         steps = int(round(0.55 / sc.resolve_dt()))
         X0 = sc.particles().x
         band = np.clip(np.digitize(np.linalg.norm(X0, axis=1), edges) - 1, 0, nbands - 1)

@@ -315,14 +315,15 @@ class Annulus(Shape):
 
 def scene(tw: Twist | str = "annulus", dx: float = 0.05, particles_per_axis: int = 2, t_end: float | None = None,
           cfl: float = 0.3, affine: bool = True, pad_cells: int = 4, dt: float | None = None,
-          step_multiple: int = 1) -> Scene:
+          step_multiple: int = 1, dt_scale: float = 1.0) -> Scene:
     """The solution's 2D plane-strain scene: the annulus/disc centred at the origin, no walls, no
     gravity, the exact body force (``expression`` field), the exact initial velocity and (``affine``)
     C = grad v at t = 0 (needs APIC/MLS/TPIC; pass False for PIC/FLIP). F = I at t = 0 (h(0) = 0).
 
     dt: fixed, ``t_end / n`` with n = ceil(t_end / (cfl dx / (c_p + max |v|))) rounded up to a multiple of
     ``step_multiple`` (frames at the same times on every grid), so that ``t_end`` (default: 1.1 x the peak
-    time, past the peak deformation) is hit exactly; or give ``dt``."""
+    time, past the peak deformation) is hit exactly; or give ``dt``. ``dt_scale``: that step count divided
+    by it (rounded), so t_end is still hit exactly (dt/2: ``dt_scale`` 0.5)."""
     from ..boundaries.body_force import BodyForce
 
     tw = solution(tw) if isinstance(tw, str) else tw
@@ -343,7 +344,7 @@ def scene(tw: Twist | str = "annulus", dx: float = 0.05, particles_per_axis: int
     if dt is None:
         c = tw.wave_speeds()[1] + tw.peak_speed()
         steps = int(math.ceil(t_end / (cfl * dx / c) / step_multiple)) * step_multiple
-        dt = t_end / steps
+        dt = t_end / (steps if dt_scale == 1.0 else int(round(steps / dt_scale)))
     bf = BodyForce(field="expression", values=body_force_expressions(tw))
     return Scene(dim=2, dx=dx, domain=(lo, hi), bodies=[body], gravity=None, boundaries=[bf], dt=dt, cfl=cfl,
                  cfl_limit=max(0.6, 1.01 * cfl), name=f"large_shear_{tw.name}_{tw.law}_{dx:g}")
@@ -385,11 +386,7 @@ def run(tw: Twist | str = "annulus", dx: float = 0.05, backend: str = "jax", tra
     t_end = 1.1 * tw.t_peak if t_end is None else t_end
     affine = transfer in ("apic", "mls", "tpic")
     sc = scene(tw, dx=dx, particles_per_axis=particles_per_axis, t_end=t_end, cfl=cfl, affine=affine,
-               step_multiple=frames)
-    if dt_scale != 1.0:
-        steps0 = int(round(t_end / sc.resolve_dt()))
-        sc = scene(tw, dx=dx, particles_per_axis=particles_per_axis, t_end=t_end, cfl=cfl, affine=affine,
-                   dt=t_end / int(round(steps0 / dt_scale)))
+               step_multiple=frames, dt_scale=dt_scale)
     dt = sc.resolve_dt()
     steps = int(round(t_end / dt))
     every = max(1, steps // frames)     # frames at t_end k / frames on every grid (steps is a multiple)
