@@ -269,3 +269,100 @@ def test_mesh_parity_inside_test_matches_trimesh():
     inside = contains_parity(m.vertices, m.faces, x)
     assert 0.1 < inside.mean() < 0.5
     assert np.array_equal(inside, m.contains(x))
+
+
+# ---- the probes of a learned law (mpmlab.nclaw.probe) --------------------------------------------------------
+def _rotation(rng, d):
+    q, r = np.linalg.qr(rng.standard_normal((d, d)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_deviatoric_stretch_closed_form(dim):
+    """Q s diag(a, a^(-1/(D-1)), ...) R: the isochoric log-stretch is log a and J = s^D, whatever the
+    rotations; an inverted or non-finite F has an infinite stretch."""
+    from mpmlab.nclaw.probe import deviatoric_stretch
+
+    rng = np.random.default_rng(3)
+    a = np.array([1.0, 1.3, 0.6, 2.5])
+    s = np.array([1.0, 0.8, 1.1, 0.5])
+    F = np.stack([_rotation(rng, dim) @ (si * np.diag([ai] + [ai ** (-1 / (dim - 1))] * (dim - 1)))
+                  @ _rotation(rng, dim) for ai, si in zip(a, s)])
+    dev, J = deviatoric_stretch(F)
+    expect = np.maximum(np.abs(np.log(a)), np.abs(np.log(a)) / (dim - 1))
+    np.testing.assert_allclose(dev, expect, atol=1e-12)
+    np.testing.assert_allclose(J, s ** dim, rtol=1e-12)
+    bad = np.stack([np.diag([-1.0] + [1.0] * (dim - 1)), np.full((dim, dim), np.nan)])
+    dev, J = deviatoric_stretch(bad)
+    assert np.all(np.isinf(dev)) and J[0] == pytest.approx(-1.0)
+
+
+def _zeroed(net_outputs: str):
+    """nclaw weights whose named networks' last layer is zero: that network's output T is 0."""
+    from mpmlab.laws.nclaw import Law
+
+    w = Law().initial_weights(3)
+    for net in net_outputs:
+        w[f"{net}_W3"] = np.zeros_like(w[f"{net}_W3"])
+    return w
+
+
+def test_constitutive_errors_identities(water_dataset):
+    """NCLaw Tab. 5's two errors: with a zero plastic net F^e,new is F_trial, so its MSE equals the
+    no-return-map column exactly; with a zero elastic net P = 0, so its MSE is the mean square of the
+    true P (whose RMS the result also gives)."""
+    from mpmlab.laws.nclaw import Law
+    from mpmlab.nclaw.data import load_dataset
+    from mpmlab.nclaw.probe import constitutive_errors
+
+    ds = load_dataset(water_dataset)
+    r = constitutive_errors(Law(), _zeroed("ep"), ds, n=200, seed=1)
+    assert r["pairs"] == 200
+    assert r["F_new"] == pytest.approx(r["F_new_without_return_map"], rel=1e-12)
+    assert r["F_new_without_return_map"] > 0          # the flow sheared F_trial away from J^(1/3) I
+    assert 0 < r["F_new_floor"] < r["F_new_without_return_map"]   # the kept rotation: a floor above 0
+    assert r["P"] == pytest.approx(r["P_true_rms"] ** 2, rel=1e-12) and r["P"] > 0
+    # a learned (non-zero) plastic net changes F^e,new
+    r2 = constitutive_errors(Law(), _zeroed("e"), ds, n=200, seed=1)
+    assert r2["F_new"] != pytest.approx(r2["F_new_without_return_map"], rel=1e-6)
+
+
+def test_return_map_reach_without_a_return_map():
+    """A zero plastic net leaves every isochoric stretch where it started (not returned); its report
+    rows are the steps asked for."""
+    from mpmlab.laws.nclaw import Law
+    from mpmlab.nclaw.probe import return_map_reach
+
+    rows = return_map_reach(Law(), _zeroed("p"), 3, [1.2, 2.0], steps=20, report=(1, 10))
+    assert [(r["kind"], r["stretch"]) for r in rows] == [("uniaxial", 1.2), ("uniaxial", 2.0), ("shear", 1.2),
+                                                         ("shear", 2.0)]
+    for r in rows:
+        assert sorted(r["after"]) == [1, 10, 20] and not r["returned"]
+        for k, v in r["after"].items():
+            assert v["deviatoric_stretch"] == pytest.approx(np.log(r["stretch"]), abs=1e-12)
+            assert v["J"] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_best_in_rotation_is_the_closest_rotated_symmetric():
+    """best_in_rotation: exact when the target is R S (S symmetric, R the polar rotation of F_trial);
+    otherwise closer to the target than F_trial itself and than random R S'."""
+    from mpmlab.laws._linalg_np import polar_rotation
+    from mpmlab.nclaw.probe import best_in_rotation
+
+    rng = np.random.default_rng(5)
+    Ft = np.eye(3) + 0.2 * rng.standard_normal((20, 3, 3))
+    R = np.stack([polar_rotation(f) for f in Ft])
+    S = rng.standard_normal((20, 3, 3))
+    S = S + S.transpose(0, 2, 1)
+    np.testing.assert_allclose(best_in_rotation(Ft, R @ S), R @ S, atol=1e-12)
+    G = np.broadcast_to(np.eye(3), Ft.shape)                # WATER's target at J = 1: the rotation dropped
+    best = best_in_rotation(Ft, G)
+    err = np.sum((best - G) ** 2, axis=(1, 2))
+    assert np.all(err <= np.sum((Ft - G) ** 2, axis=(1, 2)) + 1e-15)
+    for _ in range(5):
+        D = 0.05 * rng.standard_normal((20, 3, 3))
+        other = R @ (R.transpose(0, 2, 1) @ best + D + D.transpose(0, 2, 1))
+        assert np.all(err <= np.sum((other - G) ** 2, axis=(1, 2)) + 1e-15)

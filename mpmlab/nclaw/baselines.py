@@ -113,8 +113,10 @@ def fit_labeled(law, dim: int, pairs: dict[str, np.ndarray], dt: float, epochs: 
             up, state = opt.update(g, state, train)
             return optax.apply_updates(train, up), state, val
 
-        full = jax.jit(lambda t: lossf({**frozen, **t}, *data))
-        first = float(full(train))
+        # the data as arguments, not closed over: a closed-over array is a constant that XLA folds
+        # (minutes for the 1M pairs of an NCLaw trajectory)
+        full = jax.jit(lambda t, *d: lossf({**frozen, **t}, *d))
+        first = float(full(train, *data))
         t0 = time.perf_counter()
         nb = max(1, math.ceil(M / batch))
         bar = tqdm(total=epochs * nb, disable=None if progress is None else not progress, leave=False,
@@ -126,7 +128,7 @@ def fit_labeled(law, dim: int, pairs: dict[str, np.ndarray], dt: float, epochs: 
                 train, state, _ = step(train, state, *(a[sel] for a in data))
                 bar.update(1)
         bar.close()
-        last = float(full(train))
+        last = float(full(train, *data))
         if not math.isfinite(last):
             from ..core.errors import FitDiverged
             raise FitDiverged(f"labeled baseline: the {net} network's loss became {last}; lower the learning rate.")

@@ -1,0 +1,141 @@
+"""Where a learned NCLaw law can be trusted: its constitutive errors on the training trajectory (NCLaw
+Tab. 5), the reach of its learned return map, and how far a rollout's states lie from the training's.
+
+* :func:`deviatoric_stretch` -- per particle, the largest isochoric log-stretch max_i |log(s_i / J^(1/D))|
+  (s_i: the singular values of F) and J = det F. The truth of a J-only law (WATER, NCLaw App. B
+  Eq. 21: F <- J^(1/3) I) keeps it at 0; a learned return map lets it grow with the shear rate.
+* :func:`constitutive_errors` -- NCLaw Sec. F.3 / Tab. 5: the MSE of P = tau F^-T and of F^e,new on
+  ``n`` pairs drawn from a ground-truth dataset (the pairs of :func:`mpmlab.nclaw.baselines.labeled_pairs`),
+  beside the error of taking no return map at all (F^e,new = F_trial), which sets its scale.
+* :func:`return_map_reach` -- the plastic network iterated with no velocity gradient from an isochoric
+  stretch (uniaxial, or simple shear) of principal stretch ``a``: does it bring F back to J^(1/D) I,
+  and does it keep J? A learned return map is a relaxation with a finite rate and a finite basin;
+  beyond the basin it drives F away (benchmarks/nclaw.md, "WATER (c)").
+"""
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+
+def deviatoric_stretch(F) -> tuple[np.ndarray, np.ndarray]:
+    """(max_i |log(s_i / |J|^(1/D))| [N], J = det F [N]) of ``F`` [N, D, D]; the stretch is inf where
+    J <= 0 (an inverted or collapsed F) or F is not finite."""
+    F = np.asarray(F, np.float64)
+    D = F.shape[-1]
+    finite = np.all(np.isfinite(F.reshape(len(F), -1)), axis=1)
+    Fs = np.where(finite[:, None, None], F, np.eye(D))
+    J = np.where(finite, np.linalg.det(Fs), np.nan)
+    s = np.linalg.svd(Fs, compute_uv=False)
+    ok = finite & (J > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iso = np.log(np.where(ok[:, None], s, 1.0)) - np.log(np.where(ok, J, 1.0))[:, None] / D
+    dev = np.where(ok, np.abs(iso).max(axis=1), np.inf)
+    return dev, J
+
+
+def _jax_law(law, dim: int, weights: Mapping[str, Any]):
+    import jax.numpy as jnp
+
+    from ..backends.jax import stepper as _x64  # noqa: F401  (float64 in JAX, as the backend enables it)
+    from ..backends.jax.laws import law_functions
+
+    return law_functions(law, dim), {k: jnp.asarray(np.asarray(a, np.float64)) for k, a in weights.items()}
+
+
+def constitutive_errors(law, weights: Mapping[str, Any], dataset, n: int = 1000, seed: int = 0,
+                        pairs: Mapping[str, np.ndarray] | None = None) -> dict:
+    """NCLaw Tab. 5 on ``dataset`` (a :func:`mpmlab.nclaw.data.load_dataset`): ``n`` elastic pairs
+    (F, P_true) and ``n`` plastic pairs (F_n, C_n+1 -> F_n+1) drawn with ``numpy`` PCG64(``seed``);
+    returns {"P": MSE of P [Pa^2], "F_new": MSE of F^e,new, "F_new_without_return_map": MSE of
+    F_trial against F^e,new (no plastic step at all), "pairs": n, "P_true_rms": RMS of the true P}.
+    ``pairs``: ``labeled_pairs(dataset)`` when already computed (it evaluates the true law on every frame)."""
+    import jax
+    import jax.numpy as jnp
+
+    from .baselines import labeled_pairs
+
+    dim = int(dataset.dim)
+    fns, w = _jax_law(law, dim, weights)
+    pairs = labeled_pairs(dataset) if pairs is None else pairs
+    rng = np.random.Generator(np.random.PCG64(seed))
+    ie = rng.choice(len(pairs["F"]), size=min(n, len(pairs["F"])), replace=False)
+    ip = rng.choice(len(pairs["F0"]), size=min(n, len(pairs["F0"])), replace=False)
+    row = jnp.zeros((0,))
+    kir = jax.jit(jax.vmap(lambda F: fns.kirchhoff({"F": F}, row, w)))
+    upd = jax.jit(jax.vmap(lambda F, C: fns.update({"F": F}, C, float(dataset.dt), row, w)["F"]))
+    F = pairs["F"][ie]
+    FinvT = np.linalg.inv(F).transpose(0, 2, 1)
+    P_net = np.asarray(kir(jnp.asarray(F))) @ FinvT
+    P_true = pairs["tau"][ie] @ FinvT
+    F0, C1, F1 = pairs["F0"][ip], pairs["C1"][ip], pairs["F1"][ip]
+    F_new = np.asarray(upd(jnp.asarray(F0), jnp.asarray(C1)))
+    F_trial = (np.eye(dim) + float(dataset.dt) * C1) @ F0
+    mse = lambda a, b: float(np.mean((a - b) ** 2))  # noqa: E731
+    return {"P": mse(P_net, P_true), "F_new": mse(F_new, F1), "F_new_without_return_map": mse(F_trial, F1),
+            "F_new_floor": mse(best_in_rotation(F_trial, F1), F1),
+            "pairs": int(len(ie)), "P_true_rms": float(np.sqrt(np.mean(P_true ** 2)))}
+
+
+def best_in_rotation(F_trial, F_target) -> np.ndarray:
+    """The F^e,new closest to ``F_target`` (Frobenius) that an nclaw return map can give from ``F_trial``.
+
+    F + alpha R T with T symmetric (Alg. 4) keeps F_trial's rotation R = U V^T: F_new = R (V S V^T +
+    alpha T) = R S' with S' symmetric. The closest R S' to a target G is S' = sym(R^T G). WATER's truth
+    (F <- J^(1/3) I, NCLaw Eq. 21) drops the rotation that (I + dt C) adds each step, so no weights can
+    do better than this: the floor under Tab. 5's F^e,new column."""
+    from ..laws._linalg_np import polar_rotation
+
+    Ft = np.asarray(F_trial, np.float64)
+    G = np.asarray(F_target, np.float64)
+    out = np.empty_like(Ft)
+    for i in range(len(Ft)):
+        R = polar_rotation(Ft[i])
+        M = R.T @ G[i]
+        out[i] = R @ (0.5 * (M + M.T))
+    return out
+
+
+def _start(kind: str, a: float, dim: int) -> np.ndarray:
+    """An isochoric F of principal stretch ``a``: uniaxial diag(a, a^(-1/(D-1)), ...) or simple shear
+    (gamma = a - 1/a, whose larger singular value is a)."""
+    if kind == "uniaxial":
+        return np.diag([a] + [a ** (-1.0 / (dim - 1))] * (dim - 1))
+    if kind == "shear":
+        F = np.eye(dim)
+        F[0, 1] = a - 1.0 / a
+        return F
+    raise ValueError(f"return_map_reach: kind '{kind}' is not uniaxial or shear")
+
+
+def return_map_reach(law, weights: Mapping[str, Any], dim: int, stretches: Sequence[float],
+                     kinds: Sequence[str] = ("uniaxial", "shear"), steps: int = 400, dt: float = 5e-4,
+                     report: Sequence[int] = (1, 10, 50, 400)) -> list[dict]:
+    """The law's update iterated ``steps`` times with zero velocity gradient (only the return map acts)
+    from each isochoric stretch; per (kind, a): the deviatoric stretch and J after the steps in ``report``,
+    and ``returned`` (the final deviatoric stretch below a tenth of the initial log a, J finite and
+    positive)."""
+    import jax
+    import jax.numpy as jnp
+
+    fns, w = _jax_law(law, dim, weights)
+    row = jnp.zeros((0,))
+    zero = jnp.zeros((dim, dim))
+    starts = [(k, float(a), _start(k, float(a), dim)) for k in kinds for a in stretches]
+    F = jnp.asarray(np.stack([s for _, _, s in starts]))
+    step = jax.jit(jax.vmap(lambda F: fns.update({"F": F}, zero, dt, row, w)["F"]))
+    want = sorted({int(r) for r in report if 0 < int(r) <= steps} | {int(steps)})
+    seen = {}
+    for k in range(1, steps + 1):
+        F = step(F)
+        if k in want:
+            seen[k] = deviatoric_stretch(np.asarray(F))
+    out = []
+    for i, (kind, a, _) in enumerate(starts):
+        rows = {k: {"deviatoric_stretch": float(seen[k][0][i]), "J": float(seen[k][1][i])} for k in want}
+        last = rows[want[-1]]
+        ok = np.isfinite(last["J"]) and last["J"] > 0 and last["deviatoric_stretch"] <= 0.1 * abs(np.log(a))
+        out.append({"kind": kind, "stretch": a, "log_stretch": float(np.log(a)), "after": rows,
+                    "returned": bool(ok)})
+    return out
