@@ -109,8 +109,8 @@ def configs(part: str, full: bool, aspect_dx: float):
         for dx in (0.005, 0.0025):
             for a in (0.5, 1.0, 2.0, 3.0):
                 yield cfg(setup="column", a=a, dx=dx, flip_ratio=1.0)
-        if full:                                        # 64 cells across L0 (a = 3 there: ~1 h here)
-            for a in (0.5, 1.0, 2.0):
+        if full:                                        # 64 cells across L0 (a = 3 there: ~1 h here, checkpointed)
+            for a in (0.5, 1.0, 2.0, 3.0):
                 yield cfg(setup="column", a=a, dx=0.00125, flip_ratio=1.0)
     elif part == "cylinder3d":                         # Sec. 4.2.3: the 3D cylinder at its cpu size (16 cells across
         for phi in (20.0, 25.0, 35.0, 40.0):            # its base, 22k particles), the paper's four friction angles
