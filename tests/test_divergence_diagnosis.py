@@ -134,3 +134,60 @@ def test_domain_edge_at_a_modest_speed():
     e = diverge(mpmlab.build_stepper(sc, "jax", "pic", "fp64", check_every=5), steps=100, every=10)
     assert e.cause == "domain" and e.field.startswith("x (outside"), str(e)
     assert e.measures["move_cells_prev"] < 0.5 and "enlarge the domain or add walls" in str(e)
+
+
+# ---- a law's own note: a learned law outside its training range (benchmarks/nclaw.md, "WATER (c)") -----------
+def _nclaw_file(tmp_path, state_range=None, dim=2):
+    import json
+
+    from safetensors.numpy import save_file
+
+    from mpmlab.laws.nclaw import Law
+
+    law = Law()
+    meta = law.weights_metadata(dim)
+    if state_range is not None:
+        meta["state_range"] = json.dumps(state_range)
+    path = tmp_path / "w.safetensors"
+    save_file({k: np.ascontiguousarray(a) for k, a in law.initial_weights(dim).items()}, str(path), metadata=meta)
+    return path
+
+
+def test_nclaw_note_compares_with_the_recorded_training_range(tmp_path):
+    """The note reports the failing particle's deviatoric log-stretch and J, the group's largest and 99th
+    percentile, and says whether the states left the recorded training range (or that none is recorded,
+    or that the training's own rollout diverged)."""
+    from mpmlab.laws.nclaw import Law
+
+    a = 2.0                                   # log-stretch 0.693 at particle 1
+    F = np.stack([np.eye(2), np.diag([a, 1 / a]), np.diag([1.1, 1.0]), np.diag([-1.0, 1.0])])
+    rng = {"deviatoric_stretch_max": 0.25, "deviatoric_stretch_p99": 0.2, "J_min": 0.5, "J_max": 1.5, "frames": 100}
+    note = Law(weights_file=str(_nclaw_file(tmp_path, rng))).divergence_note({"F": F}, 1)
+    assert "deviatoric log-stretch 0.693 (J 1)" in note and "1 inverted or non-finite" in note
+    assert "reached a deviatoric log-stretch of 0.25" in note and "outside the states it was trained on" in note
+    inside = Law(weights_file=str(_nclaw_file(tmp_path, dict(rng, deviatoric_stretch_max=1.0)))).divergence_note(
+        {"F": F[:3]}, -1)
+    assert "within that range" in inside and "failing particle" not in inside
+    none = Law().divergence_note({"F": F}, 0)
+    assert "untrained, seed 0" in none and "records no training range" in none
+    bad = Law(weights_file=str(_nclaw_file(tmp_path, {"diverged": True, "step": 40}))).divergence_note({"F": F}, 0)
+    assert "diverged at step 40" in bad
+    assert Law().divergence_note({}, 0) is None
+
+
+def test_diagnosis_line_carries_the_law_note(tmp_path):
+    """A run of an (untrained) learned law that fails after one particle is thrown at 400 m/s: the
+    one-line diagnosis names its cause and adds the law's note on its state (measures["law_notes"]): the
+    states left the range its weight file records."""
+    body = mpmlab.Body(shape={"kind": "box", "lo": [0.35, 0.35], "hi": [0.65, 0.65]}, material="nclaw",
+                       params={}, density=1000.0, particles_per_cell=4,
+                       options={"weights_file": str(_nclaw_file(tmp_path, {"deviatoric_stretch_max": 1e-3,
+                                                                           "J_min": 0.99, "J_max": 1.01}))})
+    sc = mpmlab.Scene(dim=2, dx=0.05, domain=([0.0, 0.0], [1.0, 1.0]), bodies=[body], gravity=[0.0, 0.0],
+                      boundaries=[], dt=2.5e-3, cfl_limit=1e9)
+    st = mpmlab.build_stepper(sc, "jax", "pic", "fp64", check_every=5)
+    v = np.zeros_like(st.particles.x)
+    v[7] = [400.0, 0.0]
+    e = diverge(st, with_velocity(st, "jax", v))
+    assert len(e.measures["law_notes"]) == 1 and e.measures["law_notes"][0] in str(e)
+    assert "law 'nclaw' (learned" in str(e) and "outside the states it was trained on" in str(e)

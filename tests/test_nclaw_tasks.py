@@ -118,6 +118,20 @@ def test_train_task_on_warp_and_reuse_on_jax(dataset, tmp_path, capsys):
     for entity in ("metrics/loss", "metrics/period", "metrics/lr/elastic", "metrics/grad_norm/plastic"):
         assert len(read_recording_component(rec, entity, "Scalars:scalars", index="epoch")) == 30, entity
     weights = run / "nclaw_weights.safetensors"
+    # the states the trained law visits on its own scene, recorded for the divergence note: the same
+    # numbers as a free JAX rollout of the trained weights, every 10th frame
+    import mpmlab
+    from mpmlab.nclaw.probe import state_range
+
+    rng = s["state_range"]
+    assert Law(weights_file=str(weights)).trained_range() == rng
+    st = mpmlab.build_stepper(square_scene("nclaw", {}, {"weights_file": str(weights)}), "jax", "mls", "fp64")
+    F = st.rollout(steps=s["steps"], every=10, fields=("F",)).fields["F"][1:]
+    ref = state_range(F)
+    assert ref["frames"] == rng["frames"] == s["steps"] // 10
+    for k in ("deviatoric_stretch_max", "deviatoric_stretch_p99", "J_min", "J_max"):
+        assert rng[k] == pytest.approx(ref[k], rel=1e-6, abs=1e-9), k
+    assert 0 < rng["deviatoric_stretch_max"] and rng["J_min"] < 1 < rng["J_max"]
     xs = {}
     for backend in ("jax", "warp"):
         out = tmp_path / f"reuse_{backend}"

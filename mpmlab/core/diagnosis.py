@@ -56,6 +56,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .interfaces import AbstractConstitutiveLaw
+
 CAUSES = ("law", "cfl", "compression", "cell_crossing", "velocity", "domain", "unknown")
 
 #: thresholds (see the module docstring); module constants so a study can change them
@@ -312,8 +314,12 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
     J_ok = not have_J or not np.isfinite(Jp_prev) or (J_COLLAPSE < Jp_prev < J_BLOWUP)
     quiet = (cfl_prev <= limit and move_prev_max <= QUIET_MOVE and J_ok and rip["ripple"] < RIPPLE_MIN)
 
+    notes = law_notes(stepper, prev, p)
+    if notes:
+        m["law_notes"] = notes
+
     def out(cause, line):
-        return Diagnosis(cause, line, m)
+        return Diagnosis(cause, "; ".join([line, *notes]), m)
 
     noise = have_J and rip["ripple"] >= RIPPLE_MIN and (rip["ripple_share"] >= RIPPLE_SHARE or two_sided
                                                          or max(vn_start, vn_prev) >= V_NOISE)
@@ -405,6 +411,31 @@ def diagnose(stepper, start: dict, history: Sequence[dict], failed: dict, failur
     return out("unknown", f"cause: not classified -- {where}, J {Jp_prev:.4g}, speed {speed_p:.3g} m/s, largest "
                           f"move {move_prev_max:.3g} cells per step, J ripple {rip['ripple']:.3g}; {nums}; reduce dt "
                           f"if the CFL number is near the limit, else check the law, loads and boundaries")
+
+
+def law_notes(stepper, npstate: dict, p: int) -> list[str]:
+    """Each material group's law's :meth:`~mpmlab.core.interfaces.AbstractConstitutiveLaw.divergence_note`
+    on its particles' state in ``npstate`` (``p``: the failing particle, scene order); a law whose note
+    fails to compute is left out (the diagnosis must not fail)."""
+    out = []
+    for g in getattr(stepper, "groups", ()):
+        law = getattr(g, "law", None)
+        if law is None or type(law).divergence_note is AbstractConstitutiveLaw.divergence_note:
+            continue
+        fields, local = {}, (p - g.start if g.start <= p < g.stop else -1)
+        for name in getattr(law, "state_fields", ()):
+            if name not in npstate:
+                continue
+            idx = np.asarray(npstate.get(name + "_particles", np.arange(len(npstate[name]))))
+            sel = (idx >= g.start) & (idx < g.stop)
+            fields[name] = np.asarray(npstate[name], float)[sel]
+        try:
+            note = law.divergence_note(fields, local)
+        except Exception:      # a note is a courtesy: never let it hide the diagnosis
+            note = None
+        if note:
+            out.append(note)
+    return out
 
 
 def _law_of(stepper, p: int) -> str:

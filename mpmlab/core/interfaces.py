@@ -333,6 +333,15 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
             if got != tuple(shape):
                 raise ConfigError(f"{where}: law '{self.name}' weight '{k}' has shape {got}; it declares {tuple(shape)}.")
 
+    # ---- diagnosis -----------------------------------------------------------------------------
+    def divergence_note(self, fields: Mapping[str, np.ndarray], particle: int) -> str | None:
+        """A clause the divergence diagnosis (``mpmlab.core.diagnosis``) adds about this law's state when a
+        run fails: ``fields`` are this law group's state arrays one step before the failure (name ->
+        [n, ...], host float64), ``particle`` the failing particle's index in them (-1: it is in another
+        group). None (the default): nothing to add. A learned law says here whether the run took it
+        outside the states it was trained on."""
+        return None
+
 
 def registered_state_fields() -> dict[str, StateField]:
     """Every state field the registered laws declare, by name (the first declaration of a name wins),

@@ -34,3 +34,19 @@ def hencky_strain(F: np.ndarray):
     """(U, eps = log(clamped singular values), V) for the Hencky-strain laws (NCLaw Eqs. 14-19)."""
     U, s, V = svd_rotations(F)
     return U, np.log(np.maximum(s, HENCKY_MIN_STRETCH)), V
+
+
+def deviatoric_stretch(F) -> tuple[np.ndarray, np.ndarray]:
+    """(max_i |log(s_i / |J|^(1/D))| [N], J = det F [N]) of ``F`` [N, D, D]; the stretch is inf where
+    J <= 0 (an inverted or collapsed F) or F is not finite."""
+    F = np.asarray(F, np.float64)
+    D = F.shape[-1]
+    finite = np.all(np.isfinite(F.reshape(len(F), -1)), axis=1)
+    Fs = np.where(finite[:, None, None], F, np.eye(D))
+    J = np.where(finite, np.linalg.det(Fs), np.nan)
+    s = np.linalg.svd(Fs, compute_uv=False)
+    ok = finite & (J > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iso = np.log(np.where(ok[:, None], s, 1.0)) - np.log(np.where(ok, J, 1.0))[:, None] / D
+    dev = np.where(ok, np.abs(iso).max(axis=1), np.inf)
+    return dev, J

@@ -18,21 +18,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-
-def deviatoric_stretch(F) -> tuple[np.ndarray, np.ndarray]:
-    """(max_i |log(s_i / |J|^(1/D))| [N], J = det F [N]) of ``F`` [N, D, D]; the stretch is inf where
-    J <= 0 (an inverted or collapsed F) or F is not finite."""
-    F = np.asarray(F, np.float64)
-    D = F.shape[-1]
-    finite = np.all(np.isfinite(F.reshape(len(F), -1)), axis=1)
-    Fs = np.where(finite[:, None, None], F, np.eye(D))
-    J = np.where(finite, np.linalg.det(Fs), np.nan)
-    s = np.linalg.svd(Fs, compute_uv=False)
-    ok = finite & (J > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        iso = np.log(np.where(ok[:, None], s, 1.0)) - np.log(np.where(ok, J, 1.0))[:, None] / D
-    dev = np.where(ok, np.abs(iso).max(axis=1), np.inf)
-    return dev, J
+from ..laws._linalg_np import deviatoric_stretch  # noqa: F401  (part of this module's API)
 
 
 def _jax_law(law, dim: int, weights: Mapping[str, Any]):
@@ -95,6 +81,22 @@ def best_in_rotation(F_trial, F_target) -> np.ndarray:
         M = R.T @ G[i]
         out[i] = R @ (0.5 * (M + M.T))
     return out
+
+
+def state_range(F_frames) -> dict:
+    """What a rollout's states span, from its F frames [T, N, D, D]: the largest deviatoric log-stretch
+    (:func:`deviatoric_stretch`), the largest per-frame 99th percentile of it, and J's range. The
+    training's range is recorded in a trained nclaw weight file (``state_range``); the law's divergence
+    note compares a failed run's states with it."""
+    F = np.asarray(F_frames, np.float64)
+    devs, p99, jmin, jmax = [], [], np.inf, -np.inf
+    for frame in F:
+        dev, J = deviatoric_stretch(frame)
+        devs.append(float(np.max(dev)))
+        p99.append(float(np.percentile(dev, 99)))
+        jmin, jmax = min(jmin, float(np.nanmin(J))), max(jmax, float(np.nanmax(J)))
+    return {"deviatoric_stretch_max": max(devs), "deviatoric_stretch_p99": max(p99), "J_min": jmin, "J_max": jmax,
+            "frames": int(len(F))}
 
 
 def _start(kind: str, a: float, dim: int) -> np.ndarray:

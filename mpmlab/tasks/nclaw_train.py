@@ -242,6 +242,7 @@ def run(cfg, ctx) -> dict:
         if rec is not None:
             rec.close()
     weights = None if method == "sysid" else _write_law_weights_as(out, fit, raw)
+    state_range = _record_state_range(out, fit, raw, group, steps, backend) if weights else None
     hist = fit.history
     times = np.diff([0.0] + [h["time_s"] for h in hist]) if hist else np.array([])
     summary = {
@@ -250,6 +251,7 @@ def run(cfg, ctx) -> dict:
         "method": method, "dataset": str(tc.dataset), "weights": weights,
         "law": group.law.weights_metadata(stepper.dim) if method != "sysid" else {"law": group.law.name},
         "parameters": fit.report(raw) if method == "sysid" else None,
+        "state_range": state_range,
         "epochs": int(fit.epoch), "epochs_planned": int(tc.epochs),
         "nets": {k: nets[k] for k in groups}, "lr_schedule": str(tc.lr_schedule),
         "teacher": {"start": forcing.start, "end": forcing.end, "reset": list(forcing.reset)},
@@ -352,6 +354,43 @@ def _write_law_weights_as(out: Path, fit, raw) -> str:
     files = _write_law_weights(out, fit, raw)
     os.replace(out / files["nclaw"], out / WEIGHTS)
     return WEIGHTS
+
+
+def _record_state_range(out: Path, fit, raw, group, steps: int, backend: str) -> dict:
+    """The states the trained law visits on its own training scene, rolled out freely (no teacher
+    forcing; ``mpmlab.nclaw.probe.state_range`` of every 10th frame of its particles' F), written into
+    the weight file's metadata (``state_range``), where the law's divergence note reads it: a run that
+    fails outside this range says so (benchmarks/nclaw.md, "WATER (c)"). A rollout that diverges
+    records where."""
+    import contextlib
+    import json
+
+    from safetensors.numpy import load_file, save_file
+
+    from ..core.errors import SimulationDiverged
+    from ..io.files import write_atomically
+    from ..nclaw.probe import state_range
+    from ..observations import ParticleState
+
+    D = fit.stepper.dim
+    frames = list(range(10, steps + 1, 10)) or [steps]
+    quiet = contextlib.nullcontext()
+    if backend == "warp":
+        import torch
+
+        quiet = torch.no_grad()
+    try:
+        with quiet:
+            y, invalid = fit.adapter.observe(fit.stepper, fit.controls_of(raw), ParticleState(quantity="F"), frames)
+        F = fit.adapter.numpy(y).reshape(len(frames), -1, D, D)[:, group.start:group.stop]
+        rng = state_range(F) if not bool(np.asarray(invalid).any()) else {"diverged": True}
+    except SimulationDiverged as e:
+        rng = {"diverged": True, "step": int(e.step)}
+    rng["rollout"] = f"the training scene, {steps} steps, no teacher forcing, every 10th frame"
+    arrays = load_file(str(out / WEIGHTS))
+    meta = {**group.law.weights_metadata(fit.stepper.dim), "state_range": json.dumps(rng)}
+    write_atomically(out / WEIGHTS, lambda tmp: save_file(arrays, str(tmp), metadata=meta), overwrite=True)
+    return rng
 
 
 def _recorder(out: Path, cfg, scene_name: str):

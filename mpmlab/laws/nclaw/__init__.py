@@ -190,6 +190,62 @@ class Law(AbstractConstitutiveLaw):
                               f"{self.width}: {', '.join(map(str, diff[:4]))}.")
         return arrays
 
+    # ---- where the law was trained -----------------------------------------------------------
+    def trained_range(self) -> dict | None:
+        """The states its training rollout visited (``mpmlab.nclaw.probe.state_range``: largest deviatoric
+        log-stretch, its largest 99th percentile, J's range), as ``task=nclaw_train`` records it in the
+        weight file (metadata ``state_range``); None without a weight file or for a file written before
+        it was recorded."""
+        if not self.weights_file:
+            return None
+        import json
+
+        try:
+            from safetensors import safe_open
+
+            with safe_open(self.weights_file, framework="numpy") as f:
+                raw = (f.metadata() or {}).get("state_range")
+            return json.loads(raw) if raw else None
+        except Exception:      # unreadable here: the note says it is not recorded (loading refused it already)
+            return None
+
+    def divergence_note(self, fields, particle):
+        """Where the failed run took this learned law: the deviatoric log-stretch max_i |log(s_i / J^(1/D))|
+        and J of its particles, beside the range its training visited (benchmarks/nclaw.md, "WATER (c)":
+        a learned return map brings back only stretches near those it was trained on)."""
+        from .._linalg_np import deviatoric_stretch
+
+        F = fields.get("F")
+        if F is None or not len(F):
+            return None
+        dev, J = deviatoric_stretch(F)
+        fin = np.isfinite(dev)
+        at = (f"the failing particle's deviatoric log-stretch {dev[particle]:.3g} (J {J[particle]:.3g}), "
+              if 0 <= particle < len(dev) else "")
+        seen = (f"largest {np.max(dev[fin]):.3g}, 99th percentile {np.percentile(dev[fin], 99):.3g}"
+                if fin.any() else "none finite")
+        inv = int(np.sum(~fin))
+        line = (f"law 'nclaw' (learned, {self.weights_file or f'untrained, seed {self.seed}'}): {at}{seen} over "
+                f"its {len(dev)} particles" + (f", {inv} inverted or non-finite" if inv else ""))
+        rng = self.trained_range()
+        if rng is None:
+            return (line + "; the weight file records no training range (task=nclaw_train records it); check the "
+                           "learned return map's reach with mpmlab.nclaw.probe.return_map_reach")
+        if "deviatoric_stretch_max" not in rng:
+            where = f" at step {rng['step']}" if "step" in rng else ""
+            return line + (f"; its own training rollout (no teacher forcing) diverged{where} when it was recorded: "
+                           f"the learned law is not stable even on its training scene")
+        worst = max(float(np.max(dev[fin])) if fin.any() else np.inf, np.inf if inv else 0.0)
+        outside = worst > rng["deviatoric_stretch_max"] or float(np.nanmin(J)) < rng["J_min"] \
+            or float(np.nanmax(J)) > rng["J_max"]
+        trained = (f"its training rollout reached a deviatoric log-stretch of {rng['deviatoric_stretch_max']:.3g} "
+                   f"and J {rng['J_min']:.3g} to {rng['J_max']:.3g}")
+        if outside:
+            return (line + f"; {trained}: the run took the learned law outside the states it was trained on, "
+                           f"where it is not to be trusted (check its return map's reach: "
+                           f"mpmlab.nclaw.probe.return_map_reach); the numerics' advice may not apply")
+        return line + f"; {trained}: the states are within that range"
+
     # ---- time step ---------------------------------------------------------------------------
     @classmethod
     def wave_speed(cls, params, density):
