@@ -115,6 +115,11 @@ def configs(part: str, full: bool, aspect_dx: float):
     elif part == "cylinder3d":                         # Sec. 4.2.3: the 3D cylinder at its cpu size (16 cells across
         for phi in (20.0, 25.0, 35.0, 40.0):            # its base, 22k particles), the paper's four friction angles
             yield cfg(setup="cylinder3d", dim=3, dx=0.0125, ppc=8, phi=phi)
+    elif part == "flip_dt":                             # is the run-out converged in dt? The 1 % PIC blend is
+        for dts in (1.0, 0.5):                          # applied per step: its damping rate is 0.01 / dt
+            more = {} if dts == 1.0 else {"dt_scale": dts}  # (dt_scale 1: the convergence / transfer parts' runs)
+            yield cfg(setup="bui", dx=0.005, **more)
+            yield cfg(setup="bui", dx=0.005, flip_ratio=1.0, **more)
     elif part == "bars":
         return                                          # uses the convergence part's Bui runs
     else:
@@ -153,7 +158,7 @@ def geometry(c) -> dict:
 
 def overrides(c) -> list[str]:
     g = geometry(c)
-    dt = DT_PER_DX * c["dx"]
+    dt = DT_PER_DX * c["dx"] * c.get("dt_scale", 1.0)
     every = max(1, int(round(FRAME_S / dt)))
     body = "column"
     if c["setup"] == "column3d":
@@ -372,8 +377,12 @@ def load() -> dict:
 
 
 def save(res: dict) -> None:
+    """Write ``res`` merged over what the file holds now: another invocation (another part) may have added
+    runs since this one loaded it, and those are kept; ``res`` is updated with them too."""
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    tmp = RESULTS.with_suffix(".tmp")
+    for k, v in load().items():
+        res.setdefault(k, v)
+    tmp = RESULTS.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(res, indent=1, default=float))
     os.replace(tmp, RESULTS)
 
@@ -383,7 +392,7 @@ def fmt(x, f="{:.4g}"):
 
 
 #: optional configuration keys (absent from the default runs' keys): a row matches only if they agree
-VARIANTS = ("walls", "psi", "transfer", "flip_ratio")
+VARIANTS = ("walls", "psi", "transfer", "flip_ratio", "dt_scale")
 
 
 def _rows(res, **match):
@@ -573,6 +582,35 @@ def table_sensitivity(res) -> str:
                 rr = richardson(dxs, vals)
                 parts.append(f"{q} order {fmt(rr['order'], '{:.2f}')} (Richardson {fmt(rr['extrapolated'])} m)")
             notes.append(f"- {name}: " + "; ".join(parts))
+    return "\n".join(lines + [""] + notes)
+
+
+def table_flip_dt(res) -> str:
+    """The Sec. 4.1.2 column at dx 5 mm, at dt and dt/2, with the scenes' FLIP (1 % PIC per step) and with
+    pure FLIP: the run-out's change with dt alone."""
+    lines = ["| transfer | dt [s] | L_f [m] | largest front [m] | front at 0.65 s [m] | H_wall [m] | kinetic energy at the end / peak | settled |",
+             "|---|---|---|---|---|---|---|---|"]
+    notes = []
+    for name, fr in (("FLIP + 1 % PIC per step (the scenes)", None), ("pure FLIP (JAX-MPM Eq. 15)", 1.0)):
+        got = {}
+        for dts in (None, 0.5):
+            rows = _rows(res, setup="bui", dim=2, dx=0.005, phi=19.8, ppc=4, precision="fp32", flip_ratio=fr,
+                         dt_scale=dts)
+            if not rows:
+                continue
+            r = rows[0]
+            ser = r["series"]
+            ke = np.asarray(ser["kinetic"], float)
+            t = np.asarray(ser["t"], float)
+            f065 = float(np.interp(0.65, t, ser["front"]))
+            st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else "NO"
+            lines.append(f"| {name} | {r['dt']:.3g} | {fmt(r['L_f'])} | {fmt(max(ser['front']))} | {fmt(f065)} | "
+                         f"{fmt(r['H_wall'])} | {ke[-1] / ke.max():.1e} | {st} |")
+            got[dts] = r
+        if len(got) == 2:
+            a, b = got[None], got[0.5]
+            notes.append(f"- {name}: halving dt changes L_f by {100 * (b['L_f'] / a['L_f'] - 1):+.1f} % and the "
+                         f"largest front by {100 * (max(b['series']['front']) / max(a['series']['front']) - 1):+.1f} %")
     return "\n".join(lines + [""] + notes)
 
 
@@ -781,7 +819,7 @@ def write_md(res: dict) -> None:
     for name, fn in (("convergence", table_convergence), ("aspect", table_aspect), ("friction", table_friction),
                      ("aspect3d", table_aspect3d), ("boundary", table_boundary), ("bars", bars_summary),
                      ("sensitivity", table_sensitivity), ("cylinder3d", table_cylinder),
-                     ("aspect_pure_flip", lambda r: table_aspect(r, flip_ratio=1.0))):
+                     ("aspect_pure_flip", lambda r: table_aspect(r, flip_ratio=1.0)), ("flip_dt", table_flip_dt)):
         a, b = f"<!-- {name} -->", f"<!-- /{name} -->"
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + "\n" + fn(res) + "\n" + text[text.index(b):]
@@ -790,7 +828,7 @@ def write_md(res: dict) -> None:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d|aspect_pure_flip (repeatable; default all)")
+    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d|aspect_pure_flip|flip_dt (repeatable; default all)")
     ap.add_argument("--full", action="store_true", help="add the finest grids")
     ap.add_argument("--report", action="store_true", help="tables and plots from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")

@@ -82,3 +82,33 @@ def test_checkpoint_restore_continues_the_run(tmp_path):
     # the same run up to the summation order of P2G (particles re-sorted after the restore); fp32
     np.testing.assert_allclose(resumed["x"], straight["x"], atol=1e-5)
     np.testing.assert_allclose(resumed["sigma"], straight["sigma"], atol=1e-2 * np.abs(straight["sigma"]).max())
+
+
+def test_save_keeps_runs_another_invocation_added(tmp_path, monkeypatch):
+    """Two invocations (two parts) write one results file: each save merges over what the file holds,
+    so neither loses the other's runs, and the saver's own entries win."""
+    monkeypatch.setattr(G, "RESULTS", tmp_path / "granular.json")
+    first, second = {"a": {"L_f": 1.0}}, {"b": {"L_f": 2.0}}
+    G.save(first)
+    G.save(second)                      # loaded before "a" existed
+    assert G.load() == {"a": {"L_f": 1.0}, "b": {"L_f": 2.0}} and set(second) == {"a", "b"}
+    first["a"] = {"L_f": 3.0}
+    G.save(first)
+    assert G.load()["a"] == {"L_f": 3.0} and G.load()["b"] == {"L_f": 2.0}
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_dt_scale_scales_only_the_step():
+    """Part flip_dt: dt_scale halves dt (and the frame stride keeps 10 ms frames); runs without it keep
+    their keys, so the convergence part's runs are reused; a dt_scale run is its own table row."""
+    base = G.cfg(setup="bui", dx=0.005)
+    half = G.cfg(setup="bui", dx=0.005, dt_scale=0.5)
+    ob, oh = G.overrides(base), G.overrides(half)
+    dt = lambda ov: float(next(o for o in ov if o.startswith("scene.dt="))[9:])  # noqa: E731
+    assert dt(oh) == pytest.approx(0.5 * dt(ob))
+    assert [o for o in ob if not o.startswith(("scene.dt=", "scene.frame_every=", "scene.steps="))] == \
+        [o for o in oh if not o.startswith(("scene.dt=", "scene.frame_every=", "scene.steps="))]
+    assert "dt_scale" not in G.key(base) and G.key(base) in {G.key(c) for c in G.configs("flip_dt", False, 0.0025)}
+    res = {G.key(c): {"config": c} for c in (base, half)}
+    assert G._rows(res, setup="bui", dx=0.005) == [res[G.key(base)]]
+    assert G._rows(res, setup="bui", dx=0.005, dt_scale=0.5) == [res[G.key(half)]]
