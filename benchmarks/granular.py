@@ -50,6 +50,8 @@ PLOTS = ROOT / "results"
 PAPER_DN = {0.5: 2.05, 1.0: 3.97, 2.0: 7.76, 3.0: 10.65}
 #: aluminium bars (Sec. 4.1.2): c_p = sqrt((K + 4G/3) / rho) = 20.7 m/s; dt = 0.01 dx is CFL 0.21
 DT_PER_DX = 0.01
+#: the PIC blend's time constant equal to flip_ratio 0.99 at dx 5 mm (dt = DT_PER_DX dx): -dt / ln 0.99
+PIC_TIME_5MM = round(-DT_PER_DX * 0.005 / math.log(0.99), 9)
 FRAME_S = 0.01                   # the monitor's frame spacing [s] (the stop rule's window is 0.1 s)
 L0_COLUMN = 0.08                 # granular_column_3d's L0 (the paper does not give one)
 
@@ -120,6 +122,11 @@ def configs(part: str, full: bool, aspect_dx: float):
             more = {} if dts == 1.0 else {"dt_scale": dts}  # (dt_scale 1: the convergence / transfer parts' runs)
             yield cfg(setup="bui", dx=0.005, **more)
             yield cfg(setup="bui", dx=0.005, flip_ratio=1.0, **more)
+            # the blend as a time constant (transfer.pic_time): the scenes' 0.99 at dt, exp(-dt / tau) at dt/2
+            yield cfg(setup="bui", dx=0.005, pic_time=PIC_TIME_5MM, **more)
+    elif part == "pic_time_dx":                         # the dx study with the blend's damping per second fixed
+        for dx in (0.01, 0.005, 0.0025) + ((0.00125,) if full else ()):   # (transfer.pic_time; dt = 0.01 dx)
+            yield cfg(setup="bui", dx=dx, pic_time=PIC_TIME_5MM)
     elif part == "bars":
         return                                          # uses the convergence part's Bui runs
     else:
@@ -246,7 +253,12 @@ def build(c):
     scene = build_scene(conf)
     from mpmlab.transfers import make_transfer
 
-    tr = make_transfer("flip", flip_ratio=c["flip_ratio"]) if c.get("flip_ratio") is not None else (c.get("transfer") or "flip")
+    if c.get("pic_time") is not None:
+        tr = make_transfer("flip", pic_time=c["pic_time"])
+    elif c.get("flip_ratio") is not None:
+        tr = make_transfer("flip", flip_ratio=c["flip_ratio"])
+    else:
+        tr = c.get("transfer") or "flip"
     stepper = build_stepper(scene, "warp", tr, c["precision"])
     dim = scene.dim
     center = geometry(c).get("center")
@@ -392,7 +404,7 @@ def fmt(x, f="{:.4g}"):
 
 
 #: optional configuration keys (absent from the default runs' keys): a row matches only if they agree
-VARIANTS = ("walls", "psi", "transfer", "flip_ratio", "dt_scale")
+VARIANTS = ("walls", "psi", "transfer", "flip_ratio", "dt_scale", "pic_time")
 
 
 def _rows(res, **match):
@@ -554,7 +566,9 @@ THICKNESS = (0.01, 0.02, 0.03)   # [m] fronts of the deposit at these thicknesse
 
 #: the Sec. 4.1.2 column's model variants (parts ``convergence``, ``flow_rule``, ``transfer``)
 SENSITIVITY = (("the scene: psi = 0, FLIP with 1 % PIC", {}), ("psi = phi (associated flow)", {"psi": 19.8}),
-               ("APIC", {"transfer": "apic"}), ("pure FLIP (JAX-MPM Eq. 15 as written)", {"flip_ratio": 1.0}))
+               ("APIC", {"transfer": "apic"}), ("pure FLIP (JAX-MPM Eq. 15 as written)", {"flip_ratio": 1.0}),
+               ("FLIP, PIC blend time 4.97 ms (transfer.pic_time: the damping per second of the scene's blend at 5 mm, "
+                "at every dx)", {"pic_time": PIC_TIME_5MM}))
 
 
 def table_sensitivity(res) -> str:
@@ -591,11 +605,11 @@ def table_flip_dt(res) -> str:
     lines = ["| transfer | dt [s] | L_f [m] | largest front [m] | front at 0.65 s [m] | H_wall [m] | kinetic energy at the end / peak | settled |",
              "|---|---|---|---|---|---|---|---|"]
     notes = []
-    for name, fr in (("FLIP + 1 % PIC per step (the scenes)", None), ("pure FLIP (JAX-MPM Eq. 15)", 1.0)):
+    for name, var in (("FLIP + 1 % PIC per step (the scenes)", {}), ("pure FLIP (JAX-MPM Eq. 15)", {"flip_ratio": 1.0}),
+                      (f"FLIP, PIC blend time {PIC_TIME_5MM * 1e3:.3g} ms (transfer.pic_time)", {"pic_time": PIC_TIME_5MM})):
         got = {}
         for dts in (None, 0.5):
-            rows = _rows(res, setup="bui", dim=2, dx=0.005, phi=19.8, ppc=4, precision="fp32", flip_ratio=fr,
-                         dt_scale=dts)
+            rows = _rows(res, setup="bui", dim=2, dx=0.005, phi=19.8, ppc=4, precision="fp32", dt_scale=dts, **var)
             if not rows:
                 continue
             r = rows[0]
@@ -828,7 +842,7 @@ def write_md(res: dict) -> None:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d|aspect_pure_flip|flip_dt (repeatable; default all)")
+    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d|aspect_pure_flip|flip_dt|pic_time_dx (repeatable; default all)")
     ap.add_argument("--full", action="store_true", help="add the finest grids")
     ap.add_argument("--report", action="store_true", help="tables and plots from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")

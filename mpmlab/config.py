@@ -17,7 +17,7 @@ generic objects (optimisers, networks) that later tasks instantiate.
 Layout of the composed config::
 
     backend:   {name, check_every, device, devices}   # config group backend/ (jax, warp)
-    transfer:  {name, flip_ratio, shape}               # transfer/ (pic, flip, apic, mls, tpic); shape:
+    transfer:  {name, flip_ratio, pic_time, shape}     # transfer/ (pic, flip, apic, mls, tpic); shape:
                                                        # quadratic (default), cubic, ugimp
     precision: {name}                                  # precision/ (fp32, fp64)
     material:  {law, params, density, label}           # material/: the default material of the scene
@@ -78,6 +78,8 @@ class TransferConfig:
     name: str = "mls"
     #: FLIP/PIC blend of ``flip`` (1 = pure FLIP); None = the scheme's default
     flip_ratio: Optional[float] = None
+    #: ``flip``'s blend as a time constant [s] (flip_ratio = exp(-dt / pic_time) per step); None = per-step flip_ratio
+    pic_time: Optional[float] = None
     #: the grid shape function (``mpmlab.shapes``: ``quadratic`` B-spline, ``cubic`` B-spline, ``ugimp``);
     #: a stepper option, not one of the scheme's (``mpmlab.build.shape_options_from_config``)
     shape: str = "quadratic"

@@ -49,6 +49,7 @@ def build_stepper(scene: Scene, backend: str = "jax", transfer: Any = "mls", pre
         transfer = make_transfer(transfer)
     if precision not in ("fp32", "fp64"):
         raise ConfigError(f"precision '{precision}' unknown; use 'fp32' or 'fp64'.")
+    transfer = transfer.for_scene(scene)     # e.g. FLIP's pic_time resolved at the scene's dt
     transfer.check()     # an inconsistent (plugin) transfer is refused here, not during tracing
     check_capabilities(scene, backend, transfer)
     if "devices" in options:

@@ -476,6 +476,11 @@ class AbstractTransfer(_Pluggable, ABC):
         """Runtime numbers of this scheme's math, in the order its Warp functions read ``tp``."""
         return ()
 
+    def for_scene(self, scene) -> "AbstractTransfer":
+        """This scheme as it runs on ``scene`` (``build_stepper`` calls it): the same instance unless an
+        option depends on the scene, e.g. FLIP's ``pic_time``, resolved to a per-step ratio at its dt."""
+        return self
+
     def describe(self) -> str:
         return f"transfer '{getattr(self, 'name', type(self).__name__)}' ({type(self).__module__})"
 
