@@ -24,7 +24,6 @@ learning rate). Each history entry carries its ``lr_scale``; the epoch re-run af
 from __future__ import annotations
 
 import logging
-import os
 import pickle
 import time
 from pathlib import Path
@@ -35,17 +34,11 @@ import numpy as np
 from ..core import signals
 from ..core.autodiff import adapter
 from ..core.errors import ConfigError, FitDiverged, MpmlabError
+from ..io.files import write_pickle
 from ..observations import ObservationSchedule
 from .parameters import FitParameter
 
 log = logging.getLogger("mpmlab")
-
-
-def _atomic_pickle(path: Path, obj: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(obj, f)
-    os.replace(tmp, path)
 
 
 class Fit:
@@ -423,7 +416,7 @@ class Fit:
                                     f"(lambda = {damping:.3g}): converged")
                 self._epoch_done(bar, val, on_epoch)
                 if checkpoint is not None and (self.epoch % every == 0 or self.epoch == epochs or self.lm_stop):
-                    _atomic_pickle(checkpoint, {"optimizer": "levenberg_marquardt", "epoch": self.epoch,
+                    write_pickle(checkpoint, {"optimizer": "levenberg_marquardt", "epoch": self.epoch,
                                                 "history": self.history, "x": x, "damping": damping})
                 if self.lm_stop or val <= tol:
                     break

@@ -20,7 +20,7 @@ import os
 import re
 import tempfile
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from ..core.budget import free_disk, human_bytes
 from ..core.errors import ConfigError, MpmlabError
@@ -157,6 +157,18 @@ def write_atomically(path: str | os.PathLike, write: Callable[[Path], None], ove
         discard(tmp)
         raise
     return path
+
+
+def write_pickle(path: str | os.PathLike, obj: Any) -> Path:
+    """``pickle`` ``obj`` to ``path`` atomically, replacing it (a training's checkpoint: a reader sees the
+    previous checkpoint or this one, never half of one)."""
+    import pickle
+
+    def dump(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            pickle.dump(obj, f)
+
+    return write_atomically(path, dump, overwrite=True)
 
 
 class AtomicWriter:

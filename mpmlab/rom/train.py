@@ -21,9 +21,7 @@ encoder always reads the whole snapshot). ``fit`` checkpoints every epoch (atomi
 from __future__ import annotations
 
 import math
-import os
 import pickle
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +30,7 @@ from typing import Callable
 import numpy as np
 
 from ..core.errors import ConfigError
+from ..io.files import write_pickle
 from . import networks as N
 from .options import TrainSettings
 
@@ -164,17 +163,6 @@ def make_loss(norm, lambda_F: float, lambda_v: float):
     return loss
 
 
-def _atomic_pickle(path: Path, obj) -> None:
-    fd, tmp = tempfile.mkstemp(dir=str(path.parent), prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            pickle.dump(obj, f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = None, *, stop_after_s: float | None = None,
         stop_after_epochs: int | None = None, on_epoch: Callable | None = None, progress: bool | None = None):
     """Train e and g on ``data`` (module doc); returns ``(weights: RomWeights, history: list of dicts)``.
@@ -298,7 +286,7 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
         history.append(rec)
         bar.set_postfix(loss=f"{rec['loss']:.3e}")
         if ckpt is not None:
-            _atomic_pickle(ckpt, {"epoch": epoch + 1, "spec": (d, int(opt.latent), n), "options": curve, "data": digest,
+            write_pickle(ckpt, {"epoch": epoch + 1, "spec": (d, int(opt.latent), n), "options": curve, "data": digest,
                                   "params": jax.tree_util.tree_map(np.asarray, params),
                                   "opt_state": jax.tree_util.tree_map(
                                       lambda a: np.asarray(a) if hasattr(a, "shape") else a, state),
