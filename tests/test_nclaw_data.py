@@ -366,3 +366,27 @@ def test_best_in_rotation_is_the_closest_rotated_symmetric():
         D = 0.05 * rng.standard_normal((20, 3, 3))
         other = R @ (R.transpose(0, 2, 1) @ best + D + D.transpose(0, 2, 1))
         assert np.all(err <= np.sum((other - G) ** 2, axis=(1, 2)) + 1e-15)
+
+
+def test_write_state_range_keeps_the_file(tmp_path):
+    """write_state_range adds the record to a weight file's metadata and keeps its arrays and its other
+    metadata; the law reads it back (trained_range)."""
+    from safetensors import safe_open
+    from safetensors.numpy import load_file
+
+    from mpmlab.laws.nclaw import Law, save_weights
+    from mpmlab.nclaw.probe import write_state_range
+
+    law = Law()
+    w = law.initial_weights(3)
+    path = tmp_path / "w.safetensors"
+    save_weights(str(path), w, law, 3)
+    rng = {"deviatoric_stretch_max": 0.25, "deviatoric_stretch_p99": 0.2, "J_min": 0.5, "J_max": 1.5, "frames": 100}
+    write_state_range(path, rng)
+    back = load_file(str(path))
+    assert set(back) == set(w) and all(np.array_equal(back[k], w[k]) for k in w)
+    with safe_open(str(path), framework="numpy") as f:
+        meta = f.metadata()
+    assert {k: meta[k] for k in law.weights_metadata(3)} == law.weights_metadata(3)
+    assert Law(weights_file=str(path)).trained_range() == rng
+    assert not list(tmp_path.glob("*.tmp*"))

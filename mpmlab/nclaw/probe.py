@@ -7,6 +7,9 @@ Tab. 5), the reach of its learned return map, and how far a rollout's states lie
 * :func:`constitutive_errors` -- NCLaw Sec. F.3 / Tab. 5: the MSE of P = tau F^-T and of F^e,new on
   ``n`` pairs drawn from a ground-truth dataset (the pairs of :func:`mpmlab.nclaw.baselines.labeled_pairs`),
   beside the error of taking no return map at all (F^e,new = F_trial), which sets its scale.
+* :func:`state_range` -- what a rollout's states span; ``task=nclaw_train`` records it for its training
+  rollout in the weight file (:func:`write_state_range`; :func:`record_state_range` for older files), and
+  the law's divergence note compares a failed run's states with it.
 * :func:`return_map_reach` -- the plastic network iterated with no velocity gradient from an isochoric
   stretch (uniaxial, or simple shear) of principal stretch ``a``: does it bring F back to J^(1/D) I,
   and does it keep J? A learned return map is a relaxation with a finite rate and a finite basin;
@@ -97,6 +100,48 @@ def state_range(F_frames) -> dict:
         jmin, jmax = min(jmin, float(np.nanmin(J))), max(jmax, float(np.nanmax(J)))
     return {"deviatoric_stretch_max": max(devs), "deviatoric_stretch_p99": max(p99), "J_min": jmin, "J_max": jmax,
             "frames": int(len(F))}
+
+
+def write_state_range(weights_file, rng: dict) -> None:
+    """Record ``rng`` (a :func:`state_range`) in a weight file's metadata (``state_range``, JSON), keeping
+    its arrays and its other metadata; atomic. The nclaw law's divergence note reads it."""
+    import json
+
+    from safetensors import safe_open
+    from safetensors.numpy import load_file, save_file
+
+    from ..io.files import write_atomically
+
+    with safe_open(str(weights_file), framework="numpy") as f:
+        meta = dict(f.metadata() or {})
+    arrays = load_file(str(weights_file))
+    meta["state_range"] = json.dumps(rng)
+    write_atomically(weights_file, lambda tmp: save_file(arrays, str(tmp), metadata=meta), overwrite=True)
+
+
+def record_state_range(weights_file, material: str, backend: str = "jax", precision: str = "fp32") -> dict:
+    """For a weight file trained before ``task=nclaw_train`` recorded it: roll the learned law out freely
+    on ``material``'s training scene (NCLaw's reconstruction case: 1000 steps, no teacher forcing), take
+    :func:`state_range` of every 10th frame and write it into the file (:func:`write_state_range`)."""
+    from ..config import build_scene, compose, make_transfer_from_config, shape_options_from_config
+    from ..core.errors import SimulationDiverged
+    from ..simulator import build_stepper
+    from .scenes import eval_cases
+
+    case = next(c for c in eval_cases(material) if c.name == "reconstruction")
+    cfg = compose(case.learned(str(weights_file)) + [f"backend={backend}", f"precision={precision}",
+                                                     "output.recording=false"])
+    scene = build_scene(cfg)
+    tr = make_transfer_from_config(cfg)
+    st = build_stepper(scene, backend, tr, precision, **shape_options_from_config(cfg, scene, tr))
+    try:
+        traj = st.rollout(steps=case.steps, every=10, fields=("F",))
+        rng = state_range(np.asarray(traj.fields["F"])[1:])
+    except SimulationDiverged as e:
+        rng = {"diverged": True, "step": int(e.step)}
+    rng["rollout"] = f"the training scene, {case.steps} steps, no teacher forcing, every 10th frame"
+    write_state_range(weights_file, rng)
+    return rng
 
 
 def _start(kind: str, a: float, dim: int) -> np.ndarray:

@@ -363,13 +363,9 @@ def _record_state_range(out: Path, fit, raw, group, steps: int, backend: str) ->
     fails outside this range says so (benchmarks/nclaw.md, "WATER (c)"). A rollout that diverges
     records where."""
     import contextlib
-    import json
-
-    from safetensors.numpy import load_file, save_file
 
     from ..core.errors import SimulationDiverged
-    from ..io.files import write_atomically
-    from ..nclaw.probe import state_range
+    from ..nclaw.probe import state_range, write_state_range
     from ..observations import ParticleState
 
     D = fit.stepper.dim
@@ -387,9 +383,7 @@ def _record_state_range(out: Path, fit, raw, group, steps: int, backend: str) ->
     except SimulationDiverged as e:
         rng = {"diverged": True, "step": int(e.step)}
     rng["rollout"] = f"the training scene, {steps} steps, no teacher forcing, every 10th frame"
-    arrays = load_file(str(out / WEIGHTS))
-    meta = {**group.law.weights_metadata(fit.stepper.dim), "state_range": json.dumps(rng)}
-    write_atomically(out / WEIGHTS, lambda tmp: save_file(arrays, str(tmp), metadata=meta), overwrite=True)
+    write_state_range(out / WEIGHTS, rng)
     return rng
 
 
