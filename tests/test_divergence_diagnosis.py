@@ -173,6 +173,8 @@ def test_nclaw_note_compares_with_the_recorded_training_range(tmp_path):
     bad = Law(weights_file=str(_nclaw_file(tmp_path, {"diverged": True, "step": 40}))).divergence_note({"F": F}, 0)
     assert "diverged at step 40" in bad
     assert Law().divergence_note({}, 0) is None
+    unsound = Law(weights_file=str(_nclaw_file(tmp_path, dict(rng, inverted=5)))).divergence_note({"F": F}, 0)
+    assert "already inverted 5 particle-frames" in unsound
 
 
 def test_diagnosis_line_carries_the_law_note(tmp_path):

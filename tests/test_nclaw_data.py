@@ -390,3 +390,13 @@ def test_write_state_range_keeps_the_file(tmp_path):
     assert {k: meta[k] for k in law.weights_metadata(3)} == law.weights_metadata(3)
     assert Law(weights_file=str(path)).trained_range() == rng
     assert not list(tmp_path.glob("*.tmp*"))
+
+
+def test_state_range_counts_inverted_particles_apart():
+    """state_range: the stretch range over sound particles, J's range, inverted particle-frames counted."""
+    from mpmlab.nclaw.probe import state_range
+
+    frame = np.stack([np.eye(3), np.diag([2.0, 0.5, 1.0]), np.diag([-1.0, 1.0, 1.0])])
+    r = state_range(np.stack([frame, frame]))
+    assert r["deviatoric_stretch_max"] == pytest.approx(np.log(2.0))
+    assert (r["J_min"], r["J_max"], r["inverted"], r["frames"]) == (-1.0, 1.0, 2, 2)

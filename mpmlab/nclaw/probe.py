@@ -88,18 +88,24 @@ def best_in_rotation(F_trial, F_target) -> np.ndarray:
 
 def state_range(F_frames) -> dict:
     """What a rollout's states span, from its F frames [T, N, D, D]: the largest deviatoric log-stretch
-    (:func:`deviatoric_stretch`), the largest per-frame 99th percentile of it, and J's range. The
+    (:func:`deviatoric_stretch`) of the sound particles, the largest per-frame 99th percentile of it, J's
+    range, and ``inverted``: how many particle-frames had J <= 0 or a non-finite F. The
     training's range is recorded in a trained nclaw weight file (``state_range``); the law's divergence
     note compares a failed run's states with it."""
     F = np.asarray(F_frames, np.float64)
-    devs, p99, jmin, jmax = [], [], np.inf, -np.inf
+    devs, p99, jmin, jmax, inverted = [], [], np.inf, -np.inf, 0
     for frame in F:
         dev, J = deviatoric_stretch(frame)
-        devs.append(float(np.max(dev)))
-        p99.append(float(np.percentile(dev, 99)))
-        jmin, jmax = min(jmin, float(np.nanmin(J))), max(jmax, float(np.nanmax(J)))
-    return {"deviatoric_stretch_max": max(devs), "deviatoric_stretch_p99": max(p99), "J_min": jmin, "J_max": jmax,
-            "frames": int(len(F))}
+        ok = np.isfinite(dev)                  # inverted (J <= 0) or non-finite F: counted, not a stretch
+        inverted += int(np.sum(~ok))
+        if ok.any():
+            devs.append(float(np.max(dev[ok])))
+            p99.append(float(np.percentile(dev[ok], 99)))
+        if np.isfinite(J).any():
+            jmin, jmax = min(jmin, float(np.nanmin(J))), max(jmax, float(np.nanmax(J)))
+    return {"deviatoric_stretch_max": max(devs, default=float("nan")),
+            "deviatoric_stretch_p99": max(p99, default=float("nan")), "J_min": jmin, "J_max": jmax,
+            "inverted": inverted, "frames": int(len(F))}
 
 
 def write_state_range(weights_file, rng: dict) -> None:

@@ -240,6 +240,8 @@ class Law(AbstractConstitutiveLaw):
             or float(np.nanmax(J)) > rng["J_max"]
         trained = (f"its training rollout reached a deviatoric log-stretch of {rng['deviatoric_stretch_max']:.3g} "
                    f"and J {rng['J_min']:.3g} to {rng['J_max']:.3g}")
+        if rng.get("inverted"):
+            trained += f" and already inverted {rng['inverted']} particle-frames (the law is unsound even there)"
         if outside:
             return (line + f"; {trained}: the run took the learned law outside the states it was trained on, "
                            f"where it is not to be trusted (check its return map's reach: "
