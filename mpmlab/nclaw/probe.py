@@ -6,7 +6,8 @@ Tab. 5), the reach of its learned return map, and how far a rollout's states lie
   Eq. 21: F <- J^(1/3) I) keeps it at 0; a learned return map lets it grow with the shear rate.
 * :func:`constitutive_errors` -- NCLaw Sec. F.3 / Tab. 5: the MSE of P = tau F^-T and of F^e,new on
   ``n`` pairs drawn from a ground-truth dataset (the pairs of :func:`mpmlab.nclaw.baselines.labeled_pairs`),
-  beside the error of taking no return map at all (F^e,new = F_trial), which sets its scale.
+  beside the error of taking no return map at all (F^e,new = F_trial), which sets its scale, and the
+  floor no nclaw return map can pass (:func:`best_in_rotation`: it keeps F_trial's rotation).
 * :func:`state_range` -- what a rollout's states span; ``task=nclaw_train`` records it for its training
   rollout in the weight file (:func:`write_state_range`; :func:`record_state_range` for older files), and
   the law's divergence note compares a failed run's states with it.
@@ -38,7 +39,8 @@ def constitutive_errors(law, weights: Mapping[str, Any], dataset, n: int = 1000,
     """NCLaw Tab. 5 on ``dataset`` (a :func:`mpmlab.nclaw.data.load_dataset`): ``n`` elastic pairs
     (F, P_true) and ``n`` plastic pairs (F_n, C_n+1 -> F_n+1) drawn with ``numpy`` PCG64(``seed``);
     returns {"P": MSE of P [Pa^2], "F_new": MSE of F^e,new, "F_new_without_return_map": MSE of
-    F_trial against F^e,new (no plastic step at all), "pairs": n, "P_true_rms": RMS of the true P}.
+    F_trial against F^e,new (no plastic step at all), "F_new_floor": the MSE of :func:`best_in_rotation`
+    (the best any nclaw return map can do), "pairs": n, "P_true_rms": RMS of the true P}.
     ``pairs``: ``labeled_pairs(dataset)`` when already computed (it evaluates the true law on every frame)."""
     import jax
     import jax.numpy as jnp
