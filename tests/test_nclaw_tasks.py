@@ -221,6 +221,9 @@ def test_labeled_baseline_and_eval_task(dataset, tmp_path, capsys):
     assert s["method"] == "labeled" and s["true_law"] == "fixed_corotated"
     assert s["labeled"]["e"]["loss_final"] < 1e-2 * s["labeled"]["e"]["loss_initial"]
     weights = run / "nclaw_weights.safetensors"
+    # its rollout's range is recorded as a teacher-forced training's is (the divergence note reads it)
+    assert Law(weights_file=str(weights)).trained_range() == s["state_range"]
+    assert s["state_range"]["frames"] == 20 and s["state_range"]["inverted"] == 0
     ev = tmp_path / "eval"
     mpmlab_cli(["task=nclaw_eval", "task.material=jelly", f"task.weights={weights}", "precision=fp64",
                 "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], capsys)

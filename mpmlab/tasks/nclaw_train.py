@@ -242,7 +242,8 @@ def run(cfg, ctx) -> dict:
         if rec is not None:
             rec.close()
     weights = None if method == "sysid" else _write_law_weights_as(out, fit, raw)
-    state_range = _record_state_range(out, fit, raw, group, steps, backend) if weights else None
+    state_range = (_record_state_range(out, fit.stepper, fit.adapter, fit.controls_of(raw), group, steps, backend)
+                   if weights else None)
     hist = fit.history
     times = np.diff([0.0] + [h["time_s"] for h in hist]) if hist else np.array([])
     summary = {
@@ -335,7 +336,16 @@ def _run_labeled(cfg, ctx, out, tc, scene, stepper, group, steps, t_task) -> dic
 
     write_atomically(out / WEIGHTS, lambda tmp: save_weights(str(tmp), weights, group.law, dim=stepper.dim),
                      overwrite=True)
-    summary = {"task": "nclaw_train", "method": "labeled", "status": "ok", "scene": scene.name,
+    # the fitted law rolled out on the training scene: its range, for the divergence note, as a teacher run's
+    from ..core.autodiff import adapter
+
+    ad = adapter(stepper)
+    controls = stepper.controls()
+    gi = next(i for i, g in enumerate(stepper.groups) if g is group)
+    controls["law_weights"] = list(controls["law_weights"])
+    controls["law_weights"][gi] = {k: ad.asarray(np.asarray(a)) for k, a in weights.items()}
+    state_range = _record_state_range(out, stepper, ad, controls, group, steps, cfg.backend.name)
+    summary = {"task": "nclaw_train", "method": "labeled", "status": "ok", "scene": scene.name, "state_range": state_range,
                "particles": int(stepper.particles.count), "dataset": str(tc.dataset), "weights": WEIGHTS,
                "law": group.law.weights_metadata(stepper.dim), "labeled": report, "true_law": ds.laws[0]["law"],
                "wall_time_s": float(time.perf_counter() - t_task), "mpmlab_version": __version__,
@@ -356,7 +366,7 @@ def _write_law_weights_as(out: Path, fit, raw) -> str:
     return WEIGHTS
 
 
-def _record_state_range(out: Path, fit, raw, group, steps: int, backend: str) -> dict:
+def _record_state_range(out: Path, stepper, ad, controls, group, steps: int, backend: str) -> dict:
     """The states the trained law visits on its own training scene, rolled out freely (no teacher
     forcing; ``mpmlab.nclaw.probe.state_range`` of every 10th frame of its particles' F), written into
     the weight file's metadata (``state_range``), where the law's divergence note reads it: a run that
@@ -368,7 +378,7 @@ def _record_state_range(out: Path, fit, raw, group, steps: int, backend: str) ->
     from ..nclaw.probe import state_range, write_state_range
     from ..observations import ParticleState
 
-    D = fit.stepper.dim
+    D = stepper.dim
     frames = list(range(10, steps + 1, 10)) or [steps]
     quiet = contextlib.nullcontext()
     if backend == "warp":
@@ -377,8 +387,8 @@ def _record_state_range(out: Path, fit, raw, group, steps: int, backend: str) ->
         quiet = torch.no_grad()
     try:
         with quiet:
-            y, invalid = fit.adapter.observe(fit.stepper, fit.controls_of(raw), ParticleState(quantity="F"), frames)
-        F = fit.adapter.numpy(y).reshape(len(frames), -1, D, D)[:, group.start:group.stop]
+            y, invalid = ad.observe(stepper, controls, ParticleState(quantity="F"), frames)
+        F = ad.numpy(y).reshape(len(frames), -1, D, D)[:, group.start:group.stop]
         rng = state_range(F) if not bool(np.asarray(invalid).any()) else {"diverged": True}
     except SimulationDiverged as e:
         rng = {"diverged": True, "step": int(e.step)}
