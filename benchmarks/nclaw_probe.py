@@ -63,10 +63,9 @@ def labeled_weights(ds, pairs) -> Path:
 
 
 def rollout_stats(case_name: str, weights: Path, max_steps: int | None = None) -> dict:
-    from mpmlab.config import build_scene, compose, make_transfer_from_config, shape_options_from_config
+    from mpmlab.config import compose, stepper_from_config
     from mpmlab.nclaw.probe import deviatoric_stretch
     from mpmlab.nclaw.scenes import eval_cases
-    from mpmlab.simulator import build_stepper
     from omegaconf import open_dict
 
     case = next(c for c in eval_cases("water") if c.name == case_name)
@@ -74,9 +73,7 @@ def rollout_stats(case_name: str, weights: Path, max_steps: int | None = None) -
                                                 "output.recording=false"])
     with open_dict(cfg):
         cfg.scene.cfl_limit = 1.0
-    scene = build_scene(cfg)
-    tr = make_transfer_from_config(cfg)
-    st = build_stepper(scene, "jax", tr, "fp32", **shape_options_from_config(cfg, scene, tr))
+    _, st = stepper_from_config(cfg)
     s = st.init()
     steps = min(case.steps, max_steps or case.steps)
     rows, failed, t0 = [], None, time.perf_counter()

@@ -221,6 +221,18 @@ def shape_options_from_config(cfg: DictConfig, scene=None, transfer=None) -> dic
     return {} if shape.name == "quadratic" else {"shape": shape.name}
 
 
+def stepper_from_config(cfg: DictConfig):
+    """``(scene, stepper)`` of a composed config: its scene, transfer (with ``transfer.shape``), backend and
+    precision, with the checks of :func:`build_scene` and :func:`shape_options_from_config`."""
+    from .simulator import build_stepper
+
+    scene = build_scene(cfg)
+    transfer = make_transfer_from_config(cfg)
+    stepper = build_stepper(scene, cfg.backend.name, transfer, cfg.precision.name,
+                            **shape_options_from_config(cfg, scene, transfer))
+    return scene, stepper
+
+
 def describe_scene(scene) -> dict:
     """Small JSON-able facts about a built scene (for summaries and logs)."""
     P = scene.particles()

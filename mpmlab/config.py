@@ -634,7 +634,7 @@ def check_run_options(cfg: DictConfig) -> None:
 # config -> objects lives in mpmlab.build; the built-in task schemas in their task modules
 # ---------------------------------------------------------------------------------------------
 from .build import (build_scene, check_resolution, describe_scene, make_boundary_from_config,  # noqa: E402,F401
-                    make_transfer_from_config, material_of, shape_options_from_config)
+                    make_transfer_from_config, material_of, shape_options_from_config, stepper_from_config)
 
 #: names that moved out of this module: ``mpmlab.config.<name>`` still finds them
 _MOVED = {"SimulateTaskConfig": "tasks.simulate", "ReplayTaskConfig": "tasks.replay", "BenchTaskConfig": "tasks.bench",

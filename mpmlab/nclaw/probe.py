@@ -131,17 +131,13 @@ def record_state_range(weights_file, material: str, backend: str = "jax", precis
     """For a weight file trained before ``task=nclaw_train`` recorded it: roll the learned law out freely
     on ``material``'s training scene (NCLaw's reconstruction case: 1000 steps, no teacher forcing), take
     :func:`state_range` of every 10th frame and write it into the file (:func:`write_state_range`)."""
-    from ..config import build_scene, compose, make_transfer_from_config, shape_options_from_config
+    from ..config import compose, stepper_from_config
     from ..core.errors import SimulationDiverged
-    from ..simulator import build_stepper
     from .scenes import eval_cases
 
     case = next(c for c in eval_cases(material) if c.name == "reconstruction")
-    cfg = compose(case.learned(str(weights_file)) + [f"backend={backend}", f"precision={precision}",
-                                                     "output.recording=false"])
-    scene = build_scene(cfg)
-    tr = make_transfer_from_config(cfg)
-    st = build_stepper(scene, backend, tr, precision, **shape_options_from_config(cfg, scene, tr))
+    _, st = stepper_from_config(compose(case.learned(str(weights_file)) + [
+        f"backend={backend}", f"precision={precision}", "output.recording=false"]))
     try:
         traj = st.rollout(steps=case.steps, every=10, fields=("F",))
         rng = state_range(np.asarray(traj.fields["F"])[1:])

@@ -124,17 +124,13 @@ def rollout(overrides: list[str], steps: int, every: int, cfl_floor: float | Non
     ``cfl_floor`` raises the scene's ``cfl_limit`` to at least that."""
     from omegaconf import open_dict
 
-    from ..config import build_scene, compose, make_transfer_from_config, shape_options_from_config
-    from ..simulator import build_stepper
+    from ..config import compose, stepper_from_config
 
     cfg = compose(overrides)
     if cfl_floor is not None:
         with open_dict(cfg):
             cfg.scene.cfl_limit = max(float(cfg.scene.get("cfl_limit", 0.5)), float(cfl_floor))
-    scene = build_scene(cfg)
-    transfer = make_transfer_from_config(cfg)
-    stepper = build_stepper(scene, cfg.backend.name, transfer, cfg.precision.name,
-                            **shape_options_from_config(cfg, scene, transfer))
+    _, stepper = stepper_from_config(cfg)
     t0 = time.perf_counter()
     traj = stepper.rollout(steps=steps, every=every)
     return np.asarray(traj.x), time.perf_counter() - t0, int(stepper.particles.count)
