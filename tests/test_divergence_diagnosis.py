@@ -138,18 +138,14 @@ def test_domain_edge_at_a_modest_speed():
 
 # ---- a law's own note: a learned law outside its training range (benchmarks/nclaw.md, "WATER (c)") -----------
 def _nclaw_file(tmp_path, state_range=None, dim=2):
-    import json
-
-    from safetensors.numpy import save_file
-
-    from mpmlab.laws.nclaw import Law
+    from mpmlab.laws.nclaw import Law, save_weights
+    from mpmlab.nclaw.probe import write_state_range
 
     law = Law()
-    meta = law.weights_metadata(dim)
-    if state_range is not None:
-        meta["state_range"] = json.dumps(state_range)
     path = tmp_path / "w.safetensors"
-    save_file({k: np.ascontiguousarray(a) for k, a in law.initial_weights(dim).items()}, str(path), metadata=meta)
+    save_weights(str(path), law.initial_weights(dim), law, dim)
+    if state_range is not None:
+        write_state_range(path, state_range)
     return path
 
 
