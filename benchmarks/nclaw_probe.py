@@ -30,6 +30,16 @@ MD = Path(__file__).resolve().parent / "nclaw.md"
 JSON = RESULTS / "nclaw_probe.json"
 PLOT = RESULTS / "nclaw_probe.png"
 DATASET = ROOT / "benchmarks" / "out" / "nclaw" / "data" / "water" / "trajectory.h5"
+TRUTH = ROOT / "benchmarks" / "out" / "nclaw" / "truth"
+JELLY_DATASET = ROOT / "benchmarks" / "out" / "nclaw" / "data" / "jelly" / "trajectory.h5"
+#: JELL-O's trained weights (the full-schedule seed-1 run is a second draw of the same training)
+JELLY_WEIGHTS = {
+    "full schedule, seed 0": RESULTS / "nclaw_full" / "train" / "jelly_jax" / "nclaw_weights.safetensors",
+    "full schedule, seed 1": RESULTS / "nclaw_full_seed1" / "train" / "jelly_jax" / "nclaw_weights.safetensors",
+    "sampled schedule (0.25), seed 0": RESULTS / "nclaw" / "train" / "jelly_jax" / "nclaw_weights.safetensors",
+}
+#: volumes J of the dilation starts F = J^(1/3) I for JELL-O's return map (its truth is elastic: the map is I)
+JELLY_J = (0.2, 0.5, 0.8, 1.1, 1.2, 1.33, 1.5, 2.0)
 WEIGHTS = {
     "ours, full schedule": RESULTS / "nclaw_full" / "train" / "water_jax" / "nclaw_weights.safetensors",
     "ours, sampled schedule (0.25)": RESULTS / "nclaw" / "train" / "water_jax" / "nclaw_weights.safetensors",
@@ -62,13 +72,20 @@ def labeled_weights(ds, pairs) -> Path:
     return path
 
 
-def rollout_stats(case_name: str, weights: Path, max_steps: int | None = None) -> dict:
+def rollout_stats(case_name: str, weights: Path, max_steps: int | None = None, material: str = "water",
+                  through_inversion: bool = False) -> dict:
+    """Every 10 steps of the learned rollout: the deviatoric stretch, J and (with nclaw_eval's ground truth
+    on disk) the position MSE. It stops at the first inverted particle (``failed_by_step``), or with
+    ``through_inversion`` only at non-finite positions, the statistics then over the particles not inverted
+    (``first_inverted``)."""
     from mpmlab.config import compose, stepper_from_config
     from mpmlab.nclaw.probe import deviatoric_stretch
     from mpmlab.nclaw.scenes import eval_cases
     from omegaconf import open_dict
 
-    case = next(c for c in eval_cases("water") if c.name == case_name)
+    case = next(c for c in eval_cases(material) if c.name == case_name)
+    truth = TRUTH / material / f"{case_name}_jax_fp32.npz"        # nclaw_eval's ground truth, every 5 steps
+    x_true = np.load(truth)["x"] if truth.exists() else None
     cfg = compose(case.learned(str(weights)) + ["backend=jax", "transfer=mls", "precision=fp32",
                                                 "output.recording=false"])
     with open_dict(cfg):
@@ -76,11 +93,19 @@ def rollout_stats(case_name: str, weights: Path, max_steps: int | None = None) -
     _, st = stepper_from_config(cfg)
     s = st.init()
     steps = min(case.steps, max_steps or case.steps)
-    rows, failed, t0 = [], None, time.perf_counter()
+    rows, failed, first_inverted, t0 = [], None, None, time.perf_counter()
     for k in range(10, steps + 1, 10):
         s = st._advance(s, 10)
         d = st.to_numpy(s)
         dev, J = deviatoric_stretch(d["F"])
+        bad = ~np.isfinite(dev)
+        if through_inversion and np.all(np.isfinite(d["x"])) and (~bad).any():
+            first_inverted = first_inverted or (k if bad.any() else None)
+            ok = ~bad
+            rows.append({"step": k, "dev_max": float(dev[ok].max()), "dev_p99": float(np.percentile(dev[ok], 99)),
+                         "J_min": float(J[ok].min()), "J_max": float(J[ok].max()), "inverted": int(bad.sum()),
+                         "mse": None if x_true is None else float(np.mean((d["x"] - x_true[k // 5]) ** 2))})
+            continue
         if not np.all(np.isfinite(d["x"])) or not np.all(np.isfinite(dev)):
             failed = k
             bad = ~np.isfinite(dev)
@@ -88,9 +113,10 @@ def rollout_stats(case_name: str, weights: Path, max_steps: int | None = None) -
                          else None, "J_min": None, "inverted": int(bad.sum())})
             break
         rows.append({"step": k, "dev_max": float(dev.max()), "dev_p99": float(np.percentile(dev, 99)),
-                     "J_min": float(J.min()), "inverted": 0})
+                     "J_min": float(J.min()), "J_max": float(J.max()), "inverted": 0,
+                     "mse": None if x_true is None else float(np.mean((d["x"] - x_true[k // 5]) ** 2))})
     return {"case": case_name, "particles": int(st.particles.count), "steps": steps, "failed_by_step": failed,
-            "rows": rows, "wall_s": time.perf_counter() - t0}
+            "first_inverted": first_inverted, "rows": rows, "wall_s": time.perf_counter() - t0}
 
 
 def measure(res: dict) -> dict:
@@ -127,6 +153,42 @@ def measure(res: dict) -> dict:
             save(res)
     res["machine"] = machine_info()
     save(res)
+    return res
+
+
+def measure_jelly(res: dict) -> dict:
+    """JELL-O (c): the truth's range on the training scene, the return map from pure volume changes and
+    the (c) rollout, per trained weight file present."""
+    import h5py
+    from mpmlab.laws.nclaw import Law
+    from mpmlab.nclaw.probe import return_map_reach, state_range
+
+    out = res.setdefault("jelly", {})
+    if "truth_range" not in out and JELLY_DATASET.exists():
+        with h5py.File(JELLY_DATASET) as f:
+            out["truth_range"] = state_range(np.asarray(f["frames/F"][10::10]))
+        save(res)
+    law = Law()
+    for label, path in JELLY_WEIGHTS.items():
+        done = path.parent / "summary.json"        # a training in progress writes its weights every epoch
+        if not (path.exists() and done.exists() and json.loads(done.read_text()).get("status") == "ok"):
+            log(f"JELL-O {label}: no finished training in {path.parent}; skipped")
+            continue
+        row = out.setdefault(label, {})
+        if "trained_range" not in row:
+            from safetensors import safe_open
+
+            with safe_open(str(path), "np") as f:
+                rng = (f.metadata() or {}).get("state_range")
+            row["trained_range"] = json.loads(rng) if rng else None
+        if "dilation" not in row:
+            row["dilation"] = return_map_reach(law, load(path), 3, [j ** (1.0 / 3.0) for j in JELLY_J],
+                                               kinds=("dilation",), steps=400, dt=1e-3, report=(10, 100, 400))
+            save(res)
+        if "geometry" not in row:
+            log(f"JELL-O rollout (c) geometry, {label}")
+            row["geometry"] = rollout_stats("geometry", path, material="jelly", through_inversion=True)
+            save(res)
     return res
 
 
@@ -195,6 +257,51 @@ def report(res: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def report_jelly(res: dict) -> str:
+    out = res.get("jelly", {})
+    L = ["Regenerate with `python benchmarks/nclaw_probe.py --part jelly` (raw numbers in "
+         "`benchmarks/results/nclaw_probe.json` under `jelly`). JAX; fp64 for the return map, fp32 for the rollouts.", ""]
+    tr = out.get("truth_range")
+    if tr:
+        L += [f"The truth on the training scene (every 10th of its 1000 frames): J {tr['J_min']:.3g} to "
+              f"{tr['J_max']:.3g}, largest deviatoric log-stretch {tr['deviatoric_stretch_max']:.3g}.", ""]
+    rows, dil = [], []
+    labels = [k for k in out if k != "truth_range"]
+    for lab in labels:
+        r = out[lab]
+        t = r.get("trained_range") or {}
+        g = r.get("geometry")
+        ok = [x for x in (g or {}).get("rows", []) if x["dev_max"] is not None]
+        first = next((x["step"] for x in ok if tr and x.get("J_max", 0) > 1.5 * tr["J_max"]), None)
+        mse = [x["mse"] for x in ok if x.get("mse") is not None]
+        rows.append([lab, f"{fmt(t.get('J_min'))} to {fmt(t.get('J_max'))}" if t else "–",
+                     (f"{fmt(min(x['J_min'] for x in ok))} to {fmt(max(x['J_max'] for x in ok))}" if ok else "–"),
+                     first or "never", (g or {}).get("first_inverted") or "none",
+                     max((x["inverted"] for x in ok), default=0), fmt(float(np.mean(mse[::2]))) if mse else "–"])
+        for d in r.get("dilation", []):
+            J0 = d["stretch"] ** 3
+            dil.append((J0, lab, [after(d, k)["J"] for k in (10, 100, 400)]))
+    if rows:
+        L += ["**(c) with each trained law** (the learned rollout every 10 steps; the MSE against the ground "
+              "truth every 20 steps, near NCLaw's every-5-step metric):", ""]
+        L += md_table(["weights", "J on its training scene (learned rollout)", "J on (c) (particles not inverted)",
+                       "first step with J > 1.5x the truth's largest", "first inverted particle by step",
+                       "most particles inverted at once", "(c) position MSE [m²]"], rows) + [""]
+    if dil:
+        L += ["**The return map alone from a pure volume change** F = J^(1/3) I (zero velocity gradient, so dt plays no part; "
+              "the truth is elastic, so its return map leaves J where it is): J after 10 / 100 / 400 steps:", ""]
+        Js = sorted({round(j, 6) for j, _, _ in dil})
+        table = []
+        for j in Js:
+            cells = [f"{j:.3g}"]
+            for lab in labels:
+                v = next((x for jj, l2, x in dil if round(jj, 6) == j and l2 == lab), None)
+                cells.append("–" if v is None else " / ".join(fmt(u) for u in v))
+            table.append(cells)
+        L += md_table(["J"] + labels, table) + [""]
+    return "\n".join(L) + "\n"
+
+
 def plot(res: dict) -> None:
     import matplotlib
 
@@ -227,12 +334,18 @@ def plot(res: dict) -> None:
 def main():
     ap = parser(__doc__, raw=True)
     ap.add_argument("--report", action="store_true", help="tables and plot from the saved JSON only")
+    ap.add_argument("--part", choices=("water", "jelly", "all"), default="all",
+                    help="water: Tab. 5, the return map's reach and the rollouts; jelly: JELL-O (c)")
     a = ap.parse_args()
     res = json.loads(JSON.read_text()) if JSON.exists() else {}
-    if not a.report:
+    if not a.report and a.part in ("water", "all"):
         res = measure(res)
+    if not a.report and a.part in ("jelly", "all"):
+        res = measure_jelly(res)
     plot(res)
     write_readme_section(MD, "nclaw-probe", "WATER (c): the learned law where the rollout takes it", report(res))
+    if res.get("jelly"):
+        write_readme_section(MD, "nclaw-probe-jelly", "JELL-O (c): the learned law's volume", report_jelly(res))
     log(f"wrote {MD} and {PLOT}")
 
 

@@ -346,6 +346,25 @@ def test_return_map_reach_without_a_return_map():
             assert v["J"] == pytest.approx(1.0, abs=1e-12)
 
 
+def test_return_map_reach_from_a_dilation():
+    """kind 'dilation' starts at F = a I: a zero plastic net keeps J = a^3 and no deviatoric part (returned:
+    J finite and positive); an unknown kind is refused by name."""
+    from mpmlab.laws.nclaw import Law
+    from mpmlab.nclaw.probe import return_map_reach
+
+    rows = return_map_reach(Law(), _zeroed("p"), 3, [0.8, 1.1], kinds=("dilation",), steps=5, report=(5,))
+    for r in rows:
+        assert r["kind"] == "dilation" and r["returned"]
+        assert after_5(r)["J"] == pytest.approx(r["stretch"] ** 3, rel=1e-12)
+        assert after_5(r)["deviatoric_stretch"] == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(ValueError, match="dilation"):
+        return_map_reach(Law(), _zeroed("p"), 3, [1.1], kinds=("twist",), steps=1)
+
+
+def after_5(row):
+    return row["after"][5]
+
+
 def test_best_in_rotation_is_the_closest_rotated_symmetric():
     """best_in_rotation: exact when the target is R S (S symmetric, R the polar rotation of F_trial);
     otherwise closer to the target than F_trial itself and than random R S'."""

@@ -150,23 +150,25 @@ def record_state_range(weights_file, material: str, backend: str = "jax", precis
 
 def _start(kind: str, a: float, dim: int) -> np.ndarray:
     """An isochoric F of principal stretch ``a``: uniaxial diag(a, a^(-1/(D-1)), ...) or simple shear
-    (gamma = a - 1/a, whose larger singular value is a)."""
+    (gamma = a - 1/a, whose larger singular value is a); or ``dilation``, a I (J = a^D, no deviatoric part)."""
     if kind == "uniaxial":
         return np.diag([a] + [a ** (-1.0 / (dim - 1))] * (dim - 1))
     if kind == "shear":
         F = np.eye(dim)
         F[0, 1] = a - 1.0 / a
         return F
-    raise ValueError(f"return_map_reach: kind '{kind}' is not uniaxial or shear")
+    if kind == "dilation":      # a volume change alone: F = a I, J = a^D (a < 1 compresses)
+        return a * np.eye(dim)
+    raise ValueError(f"return_map_reach: kind '{kind}' is not uniaxial, shear or dilation")
 
 
 def return_map_reach(law, weights: Mapping[str, Any], dim: int, stretches: Sequence[float],
                      kinds: Sequence[str] = ("uniaxial", "shear"), steps: int = 400, dt: float = 5e-4,
                      report: Sequence[int] = (1, 10, 50, 400)) -> list[dict]:
     """The law's update iterated ``steps`` times with zero velocity gradient (only the return map acts)
-    from each isochoric stretch; per (kind, a): the deviatoric stretch and J after the steps in ``report``,
+    from each start (:func:`_start`); per (kind, a): the deviatoric stretch and J after the steps in ``report``,
     and ``returned`` (the final deviatoric stretch below a tenth of the initial log a, J finite and
-    positive)."""
+    positive; for ``dilation``, whose start has no deviatoric part, only the latter: read J)."""
     import jax
     import jax.numpy as jnp
 
