@@ -52,6 +52,8 @@ PAPER_DN = {0.5: 2.05, 1.0: 3.97, 2.0: 7.76, 3.0: 10.65}
 DT_PER_DX = 0.01
 #: the PIC blend's time constant equal to flip_ratio 0.99 at dx 5 mm (dt = DT_PER_DX dx): -dt / ln 0.99
 PIC_TIME_5MM = round(-DT_PER_DX * 0.005 / math.log(0.99), 9)
+#: the granular scenes' PIC blend time since session 31 (conf/transfer/flip_pic_time.yaml)
+SCENE_PIC_TIME = 0.2
 FRAME_S = 0.01                   # the monitor's frame spacing [s] (the stop rule's window is 0.1 s)
 L0_COLUMN = 0.08                 # granular_column_3d's L0 (the paper does not give one)
 
@@ -127,6 +129,21 @@ def configs(part: str, full: bool, aspect_dx: float):
     elif part == "pic_time_dx":                         # the dx study with the blend's damping per second fixed
         for dx in (0.01, 0.005, 0.0025) + ((0.00125,) if full else ()):   # (transfer.pic_time; dt = 0.01 dx)
             yield cfg(setup="bui", dx=dx, pic_time=PIC_TIME_5MM)
+    elif part == "pic_time_tau":                        # how little damping does the stop rule need? The blend's
+        for tau in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5):   # time constant from 10 to 500 ms (pure FLIP: part
+            for dx in (0.005, 0.0025):                  # transfer; 4.97 ms: pic_time_dx), scene dx and half
+                yield cfg(setup="bui", dx=dx, pic_time=tau)
+        for tau in (0.2, 0.5):                          # the tall columns settle last: do they within t_max?
+            for a in (0.5, 1.0, 2.0, 3.0):
+                yield cfg(setup="column", a=a, dx=0.005, pic_time=tau)
+    elif part == "default_dx":                          # the scenes' default since session 31 (transfer=
+        for dx in (0.01, 0.005, 0.0025) + ((0.00125,) if full else ()):   # flip_pic_time, 0.2 s) in dx
+            yield cfg(setup="bui", dx=dx, pic_time=SCENE_PIC_TIME)
+            yield cfg(setup="column", a=2.0, dx=dx, pic_time=SCENE_PIC_TIME)
+    elif part == "base_friction":                       # the paper states the base only for Sec. 4.1.2 (no-slip):
+        for mu in (0.2, 0.36, 0.5):                      # a Coulomb base, mu 0.36 = tan 19.8 deg (the bars' own
+            for a in (0.5, 1.0, 2.0, 3.0):              # friction), at the scenes' default transfer, dx 5 mm
+                yield cfg(setup="column", a=a, dx=0.005, pic_time=SCENE_PIC_TIME, base_mu=mu)
     elif part == "bars":
         return                                          # uses the convergence part's Bui runs
     else:
@@ -177,6 +194,11 @@ def overrides(c) -> list[str]:
               f"scene.domain.hi=[{g['hi'][0]},{g['hi'][1]}]"]
     if c.get("walls") is not None:
         ov.append(f"scene.boundaries.walls.thickness={c['walls']}")
+    if c.get("base_mu") is not None:                     # a Coulomb-friction base (JAX-MPM Eqs. 35-36) instead
+        face = "y-" if c["dim"] == 2 else "z-"           # of the no-slip one: open wall, friction_walls there
+        ov += [f"scene.boundaries.walls.faces.{face}=none",
+               # (a new boundary merges as a whole dict: Hydra cannot add one key by key to the typed boundaries)
+               f"+scene.boundaries={{base:{{kind:friction_walls,face:{face},along:x,mu:[{c['base_mu']}],thickness:2}}}}"]
     if c.get("psi") is not None:
         ov.append(f"material.params.dilation_angle={c['psi']}")
     ov += [f"scene.dx={c['dx']}", f"scene.dt={dt}", f"scene.frame_every={every}",
@@ -404,7 +426,7 @@ def fmt(x, f="{:.4g}"):
 
 
 #: optional configuration keys (absent from the default runs' keys): a row matches only if they agree
-VARIANTS = ("walls", "psi", "transfer", "flip_ratio", "dt_scale", "pic_time")
+VARIANTS = ("walls", "psi", "transfer", "flip_ratio", "dt_scale", "pic_time", "base_mu")
 
 
 def _rows(res, **match):
@@ -565,10 +587,12 @@ THICKNESS = (0.01, 0.02, 0.03)   # [m] fronts of the deposit at these thicknesse
 
 
 #: the Sec. 4.1.2 column's model variants (parts ``convergence``, ``flow_rule``, ``transfer``)
-SENSITIVITY = (("the scene: psi = 0, FLIP with 1 % PIC", {}), ("psi = phi (associated flow)", {"psi": 19.8}),
+SENSITIVITY = (("the scenes until session 31: psi = 0, FLIP with 1 % PIC per step", {}), ("psi = phi (associated flow)", {"psi": 19.8}),
                ("APIC", {"transfer": "apic"}), ("pure FLIP (JAX-MPM Eq. 15 as written)", {"flip_ratio": 1.0}),
                ("FLIP, PIC blend time 4.97 ms (transfer.pic_time: the damping per second of the scene's blend at 5 mm, "
-                "at every dx)", {"pic_time": PIC_TIME_5MM}))
+                "at every dx)", {"pic_time": PIC_TIME_5MM}),
+               ("the scenes since session 31: FLIP, PIC blend time 0.2 s (transfer=flip_pic_time)",
+                {"pic_time": SCENE_PIC_TIME}))
 
 
 def table_sensitivity(res) -> str:
@@ -599,6 +623,24 @@ def table_sensitivity(res) -> str:
     return "\n".join(lines + [""] + notes)
 
 
+def table_default_dx(res) -> str:
+    """The a = 2 column (L0 0.08 m) against dx with the scenes' default since session 31 (pic_time 0.2 s)
+    and with pure FLIP: L_f, d_n, H_wall / H0; under it the observed order and Richardson value of L_f."""
+    lines = ["| transfer | dx [mm] | cells across L0 | L_f [m] | d_n | H_wall/H0 | settled |", "|---|---|---|---|---|---|---|"]
+    notes = []
+    for name, var in (("pic_time 0.2 s (the scenes)", {"pic_time": SCENE_PIC_TIME}), ("pure FLIP", {"flip_ratio": 1.0})):
+        rows = sorted(_rows(res, setup="column", a=2.0, dim=2, phi=19.8, ppc=4, precision="fp32", **var),
+                      key=lambda r: -r["config"]["dx"])
+        for r in rows:
+            st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else "NO"
+            lines.append(f"| {name} | {r['config']['dx'] * 1e3:g} | {L0_COLUMN / r['config']['dx']:.0f} | {fmt(r['L_f'])} | "
+                         f"{fmt(r['d_n'], '{:.3f}')} | {fmt(r['H_wall_over_H0'], '{:.3f}')} | {st} |")
+        if len(rows) >= 3:
+            rr = richardson([r["config"]["dx"] for r in rows], [r["L_f"] for r in rows])
+            notes.append(f"- {name}: L_f order {fmt(rr['order'], '{:.2f}')} (Richardson {fmt(rr['extrapolated'])} m)")
+    return "\n".join(lines + [""] + notes)
+
+
 def table_flip_dt(res) -> str:
     """The Sec. 4.1.2 column at dx 5 mm, at dt and dt/2, with the scenes' FLIP (1 % PIC per step) and with
     pure FLIP: the run-out's change with dt alone."""
@@ -626,6 +668,32 @@ def table_flip_dt(res) -> str:
             notes.append(f"- {name}: halving dt changes L_f by {100 * (b['L_f'] / a['L_f'] - 1):+.1f} % and the "
                          f"largest front by {100 * (max(b['series']['front']) / max(a['series']['front']) - 1):+.1f} %")
     return "\n".join(lines + [""] + notes)
+
+
+def table_pic_time_tau(res) -> str:
+    """The PIC blend's time constant from 10 ms to 0.5 s against pure FLIP and the per-step 0.99: the
+    Sec. 4.1.2 column at dx 5 and 2.5 mm, the Sec. 4.2.2 columns at 5 mm; does each settle, and how far
+    is its run-out from pure FLIP's (JAX-MPM Eq. 15)?"""
+    taus = (PIC_TIME_5MM, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+    lines = ["| column | dx [mm] | transfer | L_f [m] | vs pure FLIP | settled | H_wall [m] |", "|---|---|---|---|---|---|---|"]
+    setups = [("Sec. 4.1.2 (a = 0.5, L0 0.2 m)", {"setup": "bui"}, (0.005, 0.0025))]
+    setups += [(f"Sec. 4.2.2, a = {a:g}", {"setup": "column", "a": a}, (0.005,)) for a in (0.5, 1.0, 2.0, 3.0)]
+    for name, sel, dxs in setups:
+        for dx in dxs:
+            base = dict(dim=2, dx=dx, phi=19.8, ppc=4, precision="fp32", **sel)
+            flip = _rows(res, flip_ratio=1.0, **base)
+            ref = flip[0]["L_f"] if flip else None
+            variants = [("FLIP + 1 % PIC per step", {})] + [
+                (f"pic_time {t * 1e3:.3g} ms", {"pic_time": t}) for t in taus] + [("pure FLIP", {"flip_ratio": 1.0})]
+            for label, var in variants:
+                rows = _rows(res, **base, **var)
+                if not rows:
+                    continue
+                r = rows[0]
+                rel = f"{100 * (r['L_f'] / ref - 1):+.1f} %" if ref and var.get("flip_ratio") != 1.0 else "--"
+                st = f"yes, {r['settled_time']:.2f} s" if r["settled"] else f"NO (t_max {r['t_end']:.1f} s)"
+                lines.append(f"| {name} | {dx * 1e3:g} | {label} | {fmt(r['L_f'])} | {rel} | {st} | {fmt(r['H_wall'])} |")
+    return "\n".join(lines)
 
 
 def table_cylinder(res) -> str:
@@ -833,7 +901,8 @@ def write_md(res: dict) -> None:
     for name, fn in (("convergence", table_convergence), ("aspect", table_aspect), ("friction", table_friction),
                      ("aspect3d", table_aspect3d), ("boundary", table_boundary), ("bars", bars_summary),
                      ("sensitivity", table_sensitivity), ("cylinder3d", table_cylinder),
-                     ("aspect_pure_flip", lambda r: table_aspect(r, flip_ratio=1.0)), ("flip_dt", table_flip_dt)):
+                     ("aspect_pure_flip", lambda r: table_aspect(r, flip_ratio=1.0)), ("flip_dt", table_flip_dt),
+                     ("pic_time_tau", table_pic_time_tau), ("default_dx", table_default_dx)):
         a, b = f"<!-- {name} -->", f"<!-- /{name} -->"
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + "\n" + fn(res) + "\n" + text[text.index(b):]
@@ -842,7 +911,7 @@ def write_md(res: dict) -> None:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d|aspect_pure_flip|flip_dt|pic_time_dx (repeatable; default all)")
+    ap.add_argument("--part", action="append", help="convergence|aspect|friction|bars|aspect3d|aspect3d_fine|scale|boundary|flow_rule|transfer|cylinder3d|aspect_pure_flip|flip_dt|pic_time_dx|pic_time_tau|default_dx|base_friction (repeatable; default all)")
     ap.add_argument("--full", action="store_true", help="add the finest grids")
     ap.add_argument("--report", action="store_true", help="tables and plots from saved results only")
     ap.add_argument("--only", default="", help="run only configurations whose key contains this")

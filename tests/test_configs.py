@@ -74,8 +74,8 @@ def test_every_group_option_composes(cfg_of, group):
     for name in options(group):
         cfg = cfg_of(f"{group}={name}")
         node = cfg[group]
-        if "name" in node:
-            assert node.name == name
+        if "name" in node:     # a transfer preset <scheme>_<variant> (flip_pic_time) names its scheme
+            assert node.name == name or (group == "transfer" and name.startswith(f"{node.name}_"))
         OmegaConf.to_container(cfg, resolve=True)
 
 
@@ -141,7 +141,10 @@ def test_scene_vars_drive_geometry(cfg_of):
 def test_material_group_and_scene_defaults(cfg_of):
     assert cfg_of("scene=nclaw_sand").material.law == "hencky_drucker_prager"
     assert cfg_of("scene=nclaw_sand", "material=water").material.law == "weakly_compressible"  # CLI wins
-    assert cfg_of("scene=granular_collapse_2d").transfer.name == "flip"  # the paper's scheme
+    g = cfg_of("scene=granular_collapse_2d").transfer                       # the paper's scheme, with a PIC
+    assert (g.name, g.pic_time) == ("flip", 0.2)                             # blend time, not a per-step ratio
+    for scene in ("granular_column_3d", "granular_cylinder_3d"):
+        assert cfg_of(f"scene={scene}").transfer.pic_time == 0.2
     assert cfg_of("scene=granular_collapse_2d", "transfer=apic").transfer.name == "apic"
     pool = build_scene(cfg_of("scene=jelly_pool_drop", "material=plasticine"))
     assert sorted(g.law.name for g in pool.particles().groups) == ["hencky_von_mises", "weakly_compressible"]
