@@ -48,6 +48,7 @@ PLOTS = ROOT / "results"
 
 #: JAX-MPM Sec. 4.2.2: d_n at a = 0.5 / 1 / 2 / 3
 PAPER_DN = {0.5: 2.05, 1.0: 3.97, 2.0: 7.76, 3.0: 10.65}
+ASPECTS = (0.5, 1.0, 2.0, 3.0)
 #: aluminium bars (Sec. 4.1.2): c_p = sqrt((K + 4G/3) / rho) = 20.7 m/s; dt = 0.01 dx is CFL 0.21
 DT_PER_DX = 0.01
 #: the PIC blend's time constant equal to flip_ratio 0.99 at dx 5 mm (dt = DT_PER_DX dx): -dt / ln 0.99
@@ -141,9 +142,13 @@ def configs(part: str, full: bool, aspect_dx: float):
             yield cfg(setup="bui", dx=dx, pic_time=SCENE_PIC_TIME)
             yield cfg(setup="column", a=2.0, dx=dx, pic_time=SCENE_PIC_TIME)
     elif part == "base_friction":                       # the paper states the base only for Sec. 4.1.2 (no-slip):
-        for mu in (0.2, 0.36, 0.5):                      # a Coulomb base, mu 0.36 = tan 19.8 deg (the bars' own
+        for mu in (0.2, 0.36, 0.5, 0.1):                 # a Coulomb base, mu 0.36 = tan 19.8 deg (the bars' own
             for a in (0.5, 1.0, 2.0, 3.0):              # friction), at the scenes' default transfer, dx 5 mm
                 yield cfg(setup="column", a=a, dx=0.005, pic_time=SCENE_PIC_TIME, base_mu=mu)
+        for mu in (0.2, 0.36, None):                     # and at dx 2.5 mm (32 cells across L0), beside the
+            for a in (0.5, 1.0, 2.0, 3.0):              # scenes' no-slip base
+                yield cfg(setup="column", a=a, dx=0.0025, pic_time=SCENE_PIC_TIME,
+                          **({} if mu is None else {"base_mu": mu}))
     elif part == "bars":
         return                                          # uses the convergence part's Bui runs
     else:
@@ -696,6 +701,38 @@ def table_pic_time_tau(res) -> str:
     return "\n".join(lines)
 
 
+def table_base_friction(res) -> str:
+    """Sec. 4.2.2's columns on a Coulomb base (friction_walls, mu) against the no-slip base, at the scenes'
+    default transfer (pic_time 0.2 s): d_n per aspect ratio, its ratio to the paper's and the exponents."""
+    lines = ["| base | dx [mm] | " + " | ".join(f"d_n, a = {a:g} (paper {PAPER_DN[a]:g})" for a in ASPECTS)
+             + " | exponent a = 0.5-1 (paper 0.95, claim 1) | exponent a = 2-3 (paper 0.78, claim 0.7) | settled |",
+             "|---|---|" + "---|" * len(ASPECTS) + "---|---|---|"]
+    for mu in (None, 0.5, 0.36, 0.2, 0.1):
+        for dx in (0.005, 0.0025):
+            got = {}
+            for a in ASPECTS:
+                rows = _rows(res, setup="column", a=a, dim=2, dx=dx, phi=19.8, ppc=4, precision="fp32",
+                             pic_time=SCENE_PIC_TIME, base_mu=mu)
+                if rows:
+                    got[a] = rows[0]
+            if not got:
+                continue
+            cells = []
+            for a in ASPECTS:
+                r = got.get(a)
+                if r is None:
+                    cells.append("--")
+                    continue
+                cut = " (front at the domain's end)" if r.get("front_at_domain_end") else ""
+                cells.append(f"{r['d_n']:.2f} ({r['d_n'] / PAPER_DN[a]:.2f}){cut}")
+            e1 = power_fit([0.5, 1.0], [got[a]["d_n"] for a in (0.5, 1.0)]) if all(a in got for a in (0.5, 1.0)) else None
+            e2 = power_fit([2.0, 3.0], [got[a]["d_n"] for a in (2.0, 3.0)]) if all(a in got for a in (2.0, 3.0)) else None
+            st = "all" if all(r["settled"] for r in got.values()) else ", ".join(f"a = {a:g}: NO" for a, r in got.items() if not r["settled"])
+            name = "no-slip (the scenes)" if mu is None else f"Coulomb, mu = {mu:g}" + (" (tan phi)" if mu == 0.36 else "")
+            lines.append(f"| {name} | {dx * 1e3:g} | " + " | ".join(cells) + f" | {fmt(e1, '{:.2f}')} | {fmt(e2, '{:.2f}')} | {st} |")
+    return "\n".join(lines)
+
+
 def table_cylinder(res) -> str:
     """Sec. 4.2.3: the 3D cylinder's radial run-out, height at the axis and deposit slope against phi."""
     rows = sorted(_rows(res, setup="cylinder3d"), key=lambda r: r["config"]["phi"])
@@ -902,7 +939,8 @@ def write_md(res: dict) -> None:
                      ("aspect3d", table_aspect3d), ("boundary", table_boundary), ("bars", bars_summary),
                      ("sensitivity", table_sensitivity), ("cylinder3d", table_cylinder),
                      ("aspect_pure_flip", lambda r: table_aspect(r, flip_ratio=1.0)), ("flip_dt", table_flip_dt),
-                     ("pic_time_tau", table_pic_time_tau), ("default_dx", table_default_dx)):
+                     ("pic_time_tau", table_pic_time_tau), ("default_dx", table_default_dx),
+                     ("base_friction", table_base_friction)):
         a, b = f"<!-- {name} -->", f"<!-- /{name} -->"
         if a in text and b in text:
             text = text[: text.index(a) + len(a)] + "\n" + fn(res) + "\n" + text[text.index(b):]
