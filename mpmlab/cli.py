@@ -272,6 +272,12 @@ def _composition_message(exc) -> str:
         return (f"unknown option '{key}' ({_omegaconf_detail(cause)}); check the spelling "
                 f"(`mpmlab --cfg job` lists every option); `+{key}=VALUE` adds a key only where entries "
                 f"are open (scene.vars, a law's params, a plugin boundary's options).")
+    new_boundary = re.search(r"scene\.boundaries\.(\w+)\.\w+=", text)
+    if isinstance(cause, OmegaConfBaseException) and new_boundary and "BoundaryConfig" in str(cause):
+        name = new_boundary.group(1)      # the typed boundaries take a new entry whole, not key by key
+        return (f"{head.rstrip('.')}: '{name}' is not one of the scene's boundaries, and a new boundary is "
+                f"added whole, e.g. '+scene.boundaries={{{name}:{{kind:friction_walls,face:y-,along:x,mu:[0.3]}}}}' "
+                f"(`mpmlab --cfg job` lists the scene's boundaries).")
     if isinstance(cause, OmegaConfBaseException):
         return f"{head.rstrip('.')}: {_omegaconf_detail(cause)}; fix the value (`mpmlab --cfg job` shows the options and types)."
     if "Could not override" in text and "No match in the defaults list" in text:

@@ -148,7 +148,7 @@ def test_python_m_mpmlab_help(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "mpmlab", "--help"], cwd=tmp_path, capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 0
-    for line in ("backend: jax, warp", "transfer: apic, flip, mls, pic, tpic", "precision: fp32, fp64",
+    for line in ("backend: jax, warp", "transfer: apic, flip, flip_pic_time, mls, pic, tpic", "precision: fp32, fp64",
                  "task: bench, inverse, nclaw_eval, nclaw_train, replay, rom_eval, rom_train, simulate"):
         assert line in proc.stdout
     assert "nclaw_jelly" in proc.stdout and "experiment:" in proc.stdout
@@ -180,6 +180,8 @@ BAD = [
     (["scene.bodies.cube.shape.hi=[1.2,0.75,0.75]"], EXIT_CONFIG, "outside the domain"),
     (["scene.dt=0.01"], EXIT_CONFIG, "CFL number"),
     (["transfer=flip", "transfer.flip_ratio=2"], EXIT_CONFIG, "flip_ratio"),
+    (["scene=granular_collapse_2d", "+scene.boundaries.base.kind=friction_walls"], EXIT_CONFIG,
+     "'base' is not one of the scene's boundaries, and a new boundary is added whole, e.g. '+scene.boundaries={base:{"),
     (["transfer.shape=quintic"], EXIT_CONFIG, "unknown shape 'quintic'; known shapes: cpdi, cubic, quadratic, ugimp"),
     (["transfer.shape=cubic", "scene.bodies.cube.shape.lo=[0.03,0.25,0.25]"], EXIT_CONFIG,
      "4-node window of shape function 'cubic'"),
