@@ -141,6 +141,9 @@ def configs(part: str, full: bool, aspect_dx: float):
         for dx in (0.01, 0.005, 0.0025) + ((0.00125,) if full else ()):   # flip_pic_time, 0.2 s) in dx
             yield cfg(setup="bui", dx=dx, pic_time=SCENE_PIC_TIME)
             yield cfg(setup="column", a=2.0, dx=dx, pic_time=SCENE_PIC_TIME)
+        for ppc in (1, 9, 16):                           # and in particles per cell at dx 5 mm
+            yield cfg(setup="bui", ppc=ppc, pic_time=SCENE_PIC_TIME)
+            yield cfg(setup="column", a=2.0, ppc=ppc, pic_time=SCENE_PIC_TIME)
     elif part == "base_friction":                       # the paper states the base only for Sec. 4.1.2 (no-slip):
         for mu in (0.2, 0.36, 0.5, 0.1):                 # a Coulomb base, mu 0.36 = tan 19.8 deg (the bars' own
             for a in (0.5, 1.0, 2.0, 3.0):              # friction), at the scenes' default transfer, dx 5 mm
@@ -643,6 +646,18 @@ def table_default_dx(res) -> str:
         if len(rows) >= 3:
             rr = richardson([r["config"]["dx"] for r in rows], [r["L_f"] for r in rows])
             notes.append(f"- {name}: L_f order {fmt(rr['order'], '{:.2f}')} (Richardson {fmt(rr['extrapolated'])} m)")
+    for label, sel in (("Sec. 4.1.2 column", {"setup": "bui"}), ("a = 2 column", {"setup": "column", "a": 2.0})):
+        got = []
+        for ppc in (1, 4, 9, 16):
+            rows = _rows(res, dim=2, dx=0.005, phi=19.8, ppc=ppc, precision="fp32", pic_time=SCENE_PIC_TIME, **sel)
+            if rows:
+                got.append((ppc, rows[0]))
+        if len(got) > 1:
+            Ls = [r["L_f"] for _, r in got]
+            L4 = [r["L_f"] for p_, r in got if p_ >= 4]
+            notes.append(f"- {label}, pic_time 0.2 s, particles per cell at dx 5 mm ({', '.join(str(p) for p, _ in got)}): "
+                         f"L_f {', '.join(fmt(v) for v in Ls)} m (spread from 4 up {100 * (max(L4) - min(L4)) / max(L4):.1f} %); "
+                         f"H_wall {', '.join(fmt(r['H_wall']) for _, r in got)} m")
     return "\n".join(lines + [""] + notes)
 
 
