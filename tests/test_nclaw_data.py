@@ -361,6 +361,27 @@ def test_return_map_reach_from_a_dilation():
         return_map_reach(Law(), _zeroed("p"), 3, [1.1], kinds=("twist",), steps=1)
 
 
+def test_range_tracker_and_beyond_training():
+    """RangeTracker over frames equals state_range of the frames it samples; beyond_training names each
+    bound the rollout passed (J above / below, stretch, inverted) and nothing inside the range."""
+    from mpmlab.nclaw.probe import RangeTracker, beyond_training, state_range
+
+    rng = np.random.default_rng(3)
+    frames = np.eye(3) + 0.1 * rng.standard_normal((6, 40, 3, 3))
+    tr = RangeTracker(every=2)
+    for f in frames:
+        tr.update(f)
+    ref = state_range(frames[::2])
+    assert tr.range["frames"] == 3
+    for k in ref:
+        assert tr.range[k] == pytest.approx(ref[k], rel=1e-12), k
+    assert beyond_training(ref, ref) == [] and beyond_training(ref, None) == []
+    wide = dict(ref, J_max=ref["J_max"] * 3, J_min=ref["J_min"] / 3, deviatoric_stretch_max=2.0, inverted=4)
+    got = beyond_training(wide, ref)
+    assert [c.split(" (")[0].split(" up")[0].split(" down")[0] for c in got] == [
+        "J", "J", "deviatoric log-stretch", "4 inverted or non-finite particle-frames"], got
+
+
 def after_5(row):
     return row["after"][5]
 

@@ -230,6 +230,8 @@ def test_labeled_baseline_and_eval_task(dataset, tmp_path, capsys):
     e = json.loads((ev / "summary.json").read_text())
     mse = e["cases"]["recon"]["mse"]
     assert e["cases"]["recon"]["status"] == "ok" and mse <= 1e-6, mse
+    # the learned law's states every 50 steps (0, 50, ..., 200), inside the range of its training scene
+    assert e["cases"]["recon"]["state_range"]["frames"] == 5 and "beyond_training" not in e["cases"]["recon"]
     assert (ev / "eval.md").read_text().count("| recon |") == 2
     xs = {}
     for name, extra in (("truth", ["material=jelly"]), ("learned", ["material=nclaw", f"+material.options.weights_file={weights}"])):

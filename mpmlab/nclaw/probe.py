@@ -110,6 +110,49 @@ def state_range(F_frames) -> dict:
             "inverted": inverted, "frames": int(len(F))}
 
 
+def merge_ranges(a: dict | None, b: dict) -> dict:
+    """Two :func:`state_range` results as one (the union of their frames)."""
+    if a is None:
+        return dict(b)
+    nanmax = lambda u, v: max((x for x in (u, v) if x == x), default=float("nan"))   # noqa: E731  (NaN: no sound particle)
+    return {"deviatoric_stretch_max": nanmax(a["deviatoric_stretch_max"], b["deviatoric_stretch_max"]),
+            "deviatoric_stretch_p99": nanmax(a["deviatoric_stretch_p99"], b["deviatoric_stretch_p99"]),
+            "J_min": min(a["J_min"], b["J_min"]), "J_max": max(a["J_max"], b["J_max"]),
+            "inverted": a["inverted"] + b["inverted"], "frames": a["frames"] + b["frames"]}
+
+
+def beyond_training(rng: dict, trained: dict | None, rtol: float = 1e-6) -> list[str]:
+    """Where a rollout's range ``rng`` left the range ``trained`` its law's training rollout visited (both
+    :func:`state_range`) by more than ``rtol``, one clause each; empty when it stayed inside (or nothing
+    was recorded)."""
+    if not trained or "deviatoric_stretch_max" not in trained:
+        return []
+    out = []
+    if rng["J_max"] > trained["J_max"] * (1 + rtol):
+        out.append(f"J up to {rng['J_max']:.3g} (training: {trained['J_max']:.3g})")
+    if rng["J_min"] < trained["J_min"] * (1 - rtol):
+        out.append(f"J down to {rng['J_min']:.3g} (training: {trained['J_min']:.3g})")
+    if rng["deviatoric_stretch_max"] > trained["deviatoric_stretch_max"] * (1 + rtol) + 1e-12:
+        out.append(f"deviatoric log-stretch up to {rng['deviatoric_stretch_max']:.3g} "
+                   f"(training: {trained['deviatoric_stretch_max']:.3g})")
+    if rng["inverted"] > trained.get("inverted", 0):
+        out.append(f"{rng['inverted']} inverted or non-finite particle-frames")
+    return out
+
+
+class RangeTracker:
+    """:func:`state_range` accumulated over a rollout's frames without keeping them: ``update(F)`` with one
+    frame's F [N, D, D] (``every``-th call only; rollout callbacks pass every frame)."""
+
+    def __init__(self, every: int = 1):
+        self.every, self.calls, self.range = max(1, int(every)), 0, None
+
+    def update(self, F) -> None:
+        if self.calls % self.every == 0:
+            self.range = merge_ranges(self.range, state_range(np.asarray(F)[None]))
+        self.calls += 1
+
+
 def write_state_range(weights_file, rng: dict) -> None:
     """Record ``rng`` (a :func:`state_range`) in a weight file's metadata (``state_range``, JSON), keeping
     its arrays and its other metadata; atomic. The nclaw law's divergence note reads it."""

@@ -12,7 +12,9 @@ Ground-truth rollouts are kept (``truth/<case>.npz``) and reused by later evalua
 run directory or from ``task.truth_dir``, so ours, ours-init and other weights share them.
 
 Outputs: ``summary.json`` (per case: the metric, the paper's value where Tabs. 1-2 give one, wall
-times, particles, steps, status), ``eval.md`` (the table), ``eval.png`` (MSE per frame) and the
+times, particles, steps, status; for a learned law its ``state_range`` every 50 steps and, where the
+weight file records its training's range, ``beyond_training``: where the rollout left it, also logged
+as a warning, since the metric then measures an extrapolation), ``eval.md`` (the table), ``eval.png`` (MSE per frame) and the
 ground-truth cache. A learned rollout that diverges is reported as such; the other cases still run.
 """
 from __future__ import annotations
@@ -27,9 +29,12 @@ import numpy as np
 
 from ..config import TaskConfig, register_task_schema
 from ..core.errors import ConfigError, SimulationDiverged, TimeStepError
+from ..nclaw.probe import RangeTracker, beyond_training
 from .common import SUMMARY, save_figure, write_config, write_json, write_text
 
 log = logging.getLogger("mpmlab")
+#: the learned law's state range is sampled every this many steps (``nclaw.probe.RangeTracker``)
+RANGE_EVERY = 50
 
 #: NCLaw Tab. 1 ("ours", "ours-init") and Tab. 2 ("ours" (a) time, (b) velocity: mean of seeds 1, 7, 8,
 #: (c) geometry); JELL-O (a) lost its leading digit in the seed text (None: report only)
@@ -119,9 +124,10 @@ def resolve_cases(material: str, wanted) -> list:
     return out
 
 
-def rollout(overrides: list[str], steps: int, every: int, cfl_floor: float | None = None):
+def rollout(overrides: list[str], steps: int, every: int, cfl_floor: float | None = None, on_frame=None):
     """(positions [T, N, D] every ``every`` steps, wall time s, particles) of one composed run;
-    ``cfl_floor`` raises the scene's ``cfl_limit`` to at least that."""
+    ``cfl_floor`` raises the scene's ``cfl_limit`` to at least that; ``on_frame(i, numpy_state)`` sees
+    every kept frame."""
     from omegaconf import open_dict
 
     from ..config import compose, stepper_from_config
@@ -132,7 +138,7 @@ def rollout(overrides: list[str], steps: int, every: int, cfl_floor: float | Non
             cfg.scene.cfl_limit = max(float(cfg.scene.get("cfl_limit", 0.5)), float(cfl_floor))
     _, stepper = stepper_from_config(cfg)
     t0 = time.perf_counter()
-    traj = stepper.rollout(steps=steps, every=every)
+    traj = stepper.rollout(steps=steps, every=every, on_frame=on_frame)
     return np.asarray(traj.x), time.perf_counter() - t0, int(stepper.particles.count)
 
 
@@ -171,6 +177,7 @@ def run(cfg, ctx) -> dict:
     truth_dir.mkdir(parents=True, exist_ok=True)
     from tqdm.auto import tqdm
 
+    trained = _trained_range(weights)
     results, curves = {}, {}
     bar = tqdm(cases, disable=None if ctx.progress is None else not ctx.progress, unit="case", leave=False)
     for case in bar:
@@ -196,11 +203,15 @@ def run(cfg, ctx) -> dict:
             tmp.replace(cache)
         entry: dict[str, Any] = {"scene": case.scene, "steps": case.steps, "particles": n, "frame_every": every,
                                  "description": case.description, "truth_wall_s": t_truth, "tags": list(case.tags)}
+        # the learned law's states (every RANGE_EVERY steps): where they leave its training's range, the
+        # metric measures an extrapolation (benchmarks/nclaw.md, "WATER (c)", "JELL-O (c)")
+        tracker = None if law_params else RangeTracker(every=max(1, RANGE_EVERY // every))
+        on_frame = None if tracker is None else (lambda i, st: tracker.update(st["F"]) if "F" in st else None)
         try:
             learned = (case.truth() + [f"material.params.{k}={float(v)!r}" for k, v in law_params.items()]
                        if law_params else case.learned(weights or None, partners))
             xl, t_learned, _ = rollout(learned + common, case.steps, every,
-                                       None if law_params else float(tc.learned_cfl_limit))
+                                       None if law_params else float(tc.learned_cfl_limit), on_frame)
         except TimeStepError as exc:
             entry.update(status="refused", mse=None, message=str(exc).splitlines()[0])
             log.warning("nclaw_eval %s: the learned law's run was refused (%s)", case.name, entry["message"])
@@ -213,6 +224,12 @@ def run(cfg, ctx) -> dict:
             per_frame = np.mean(d * d, axis=(1, 2))
             entry.update(status="ok", mse=case.mse(xl, xt), learned_wall_s=t_learned)
             curves[case.name] = (np.arange(len(per_frame)) * stride * every, per_frame)
+        if tracker is not None and tracker.range is not None:
+            entry["state_range"] = tracker.range
+            beyond = beyond_training(tracker.range, trained)
+            if beyond:
+                entry["beyond_training"] = beyond
+                log.warning("nclaw_eval %s: the learned law left its training range: %s", case.name, "; ".join(beyond))
         results[case.name] = entry
     bar.close()
 
@@ -231,6 +248,19 @@ def run(cfg, ctx) -> dict:
     line = ", ".join(f"{k} {_fmt(v['mse'])}" for k, v in table.items())
     print(f"mpmlab: nclaw_eval {material} ({label}) {cfg.backend.name}: {line} -> {out}", flush=True)
     return summary
+
+
+def _trained_range(weights: str) -> dict | None:
+    """The training range recorded in a weight file (``state_range``), None without one."""
+    if not weights:
+        return None
+    import json
+
+    from safetensors import safe_open
+
+    with safe_open(weights, framework="numpy") as f:
+        raw = (f.metadata() or {}).get("state_range")
+    return json.loads(raw) if raw else None
 
 
 def _aggregate(results: dict, paper: dict) -> dict:
@@ -265,11 +295,13 @@ def _markdown(s: dict) -> str:
     for k, r in s["table"].items():
         ratio = "" if r["ratio"] is None else f"{r['ratio']:.2f}"
         lines.append(f"| {k} | {_fmt(r['mse'])} | {_fmt(r['paper'])} | {ratio} |")
-    lines += ["", "| case | particles | steps | status | truth s | learned s |", "|---|---|---|---|---|---|"]
+    lines += ["", "| case | particles | steps | status | truth s | learned s | the learned law beyond its training range |",
+              "|---|---|---|---|---|---|---|"]
     for k, r in s["cases"].items():
         tt, tl = r.get("truth_wall_s"), r.get("learned_wall_s")
+        beyond = "; ".join(r.get("beyond_training", [])) or ("no" if "state_range" in r else "–")
         lines.append(f"| {k} | {r['particles'] if r['particles'] is not None else '–'} | {r['steps']} | {r['status']} | "
-                     f"{'–' if tt is None else f'{tt:.1f}'} | {'–' if tl is None else f'{tl:.1f}'} |")
+                     f"{'–' if tt is None else f'{tt:.1f}'} | {'–' if tl is None else f'{tl:.1f}'} | {beyond} |")
     return "\n".join(lines) + "\n"
 
 
