@@ -30,7 +30,7 @@ MD = Path(__file__).resolve().parent / "nclaw.md"
 RES = RESULTS / "nclaw"
 RAW = OUT / "nclaw"
 MATERIALS = ("jelly", "sand", "plasticine", "water")
-#: the networks' Xavier seed of the trainings (--seed; the untrained "ours-init" row is always seed 0's)
+#: the networks' Xavier seed of the trainings and of the untrained "ours-init" row (--seed)
 SEED = 0
 #: a training whose checkpoint has not changed for this long is killed and resumed (``watched``)
 STALL_S = 900.0
@@ -131,7 +131,7 @@ def checkpoint_epoch(path: Path) -> int:
 
 
 def evaluate(material: str, backend: str, weights: Path | None, label: str, cases: list[str], precision: str,
-             law_params: dict | None = None, tag: str = "", partners: dict | None = None):
+             law_params: dict | None = None, tag: str = "", partners: dict | None = None, init_seed: int = 0):
     run = RES / "eval" / f"{material}_{backend}_{label}{tag}"
     summary = run / "summary.json"
     if summary.exists():
@@ -141,6 +141,8 @@ def evaluate(material: str, backend: str, weights: Path | None, label: str, case
             "task.cases=[" + ",".join(cases) + "]", f"hydra.run.dir={run}"]
     if weights is not None:
         args.append(f"task.weights={weights}")
+    elif init_seed:
+        args.append(f"task.init_seed={init_seed}")
     for k, v in (partners or {}).items():
         args.append(f"+task.partner_weights.{k}={v}")
     for k, v in (law_params or {}).items():
@@ -301,7 +303,7 @@ def main():
             weights = RES / "train" / f"{m}_{backend}" / "nclaw_weights.safetensors"
             cases = csv(a.cases)
             evaluate(m, backend, weights, "ours", cases, a.precision)
-            evaluate(m, backend, None, "ours-init", ["reconstruction"], a.precision)
+            evaluate(m, backend, None, "ours-init", ["reconstruction"], a.precision, init_seed=SEED)
             if a.extras:
                 extras(m, backend, weights, a.precision)
             if a.baselines:

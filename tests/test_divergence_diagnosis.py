@@ -165,7 +165,9 @@ def test_nclaw_note_compares_with_the_recorded_training_range(tmp_path):
         {"F": F[:3]}, -1)
     assert "within that range" in inside and "failing particle" not in inside
     none = Law().divergence_note({"F": F}, 0)
-    assert "untrained, seed 0" in none and "records no training range" in none
+    assert "untrained, seed 0" in none and "no training range to compare with" in none
+    unrecorded = Law(weights_file=str(_nclaw_file(tmp_path))).divergence_note({"F": F}, 0)
+    assert "records no training range" in unrecorded
     bad = Law(weights_file=str(_nclaw_file(tmp_path, {"diverged": True, "step": 40}))).divergence_note({"F": F}, 0)
     assert "diverged at step 40" in bad
     assert Law().divergence_note({}, 0) is None

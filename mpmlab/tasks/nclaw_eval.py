@@ -84,6 +84,8 @@ class NclawEvalConfig(TaskConfig):
     label: str = ""
     #: trained weights of other materials, for the cases that mix materials (melting: {sand: FILE})
     partner_weights: Dict[str, str] = field(default_factory=dict)
+    #: without weights: the Xavier seed of the untrained networks ("ours-init" of a training from that seed)
+    init_seed: int = 0
 
 
 register_task_schema("nclaw_eval", NclawEvalConfig)
@@ -210,6 +212,8 @@ def run(cfg, ctx) -> dict:
         try:
             learned = (case.truth() + [f"material.params.{k}={float(v)!r}" for k, v in law_params.items()]
                        if law_params else case.learned(weights or None, partners))
+            if not weights and not law_params and int(tc.init_seed) != 0:
+                learned = learned + [f"material.options.seed={int(tc.init_seed)}"]
             xl, t_learned, _ = rollout(learned + common, case.steps, every,
                                        None if law_params else float(tc.learned_cfl_limit), on_frame)
         except TimeStepError as exc:

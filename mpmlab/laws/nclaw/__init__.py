@@ -228,6 +228,8 @@ class Law(AbstractConstitutiveLaw):
         line = (f"law 'nclaw' (learned, {self.weights_file or f'untrained, seed {self.seed}'}): {at}{seen} over "
                 f"its {len(dev)} particles" + (f", {inv} inverted or non-finite" if inv else ""))
         rng = self.trained_range()
+        if not self.weights_file:
+            return line + "; untrained networks (no weight file): there is no training range to compare with"
         if rng is None:
             return (line + "; the weight file records no training range (task=nclaw_train records it); check the "
                            "learned return map's reach with mpmlab.nclaw.probe.return_map_reach")
