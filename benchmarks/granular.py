@@ -36,9 +36,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT.parent))
+from mpmlab.config import CONF_DIR  # noqa: E402  (this checkout's, after the path above)
 
 RESULTS = ROOT / "results" / "granular.json"
 CKPT = ROOT / "results" / "granular_ckpt"
@@ -54,7 +56,7 @@ DT_PER_DX = 0.01
 #: the PIC blend's time constant equal to flip_ratio 0.99 at dx 5 mm (dt = DT_PER_DX dx): -dt / ln 0.99
 PIC_TIME_5MM = round(-DT_PER_DX * 0.005 / math.log(0.99), 9)
 #: the granular scenes' PIC blend time since session 31 (conf/transfer/flip_pic_time.yaml)
-SCENE_PIC_TIME = 0.2
+SCENE_PIC_TIME = float(OmegaConf.load(CONF_DIR / "transfer" / "flip_pic_time.yaml").pic_time)
 FRAME_S = 0.01                   # the monitor's frame spacing [s] (the stop rule's window is 0.1 s)
 L0_COLUMN = 0.08                 # granular_column_3d's L0 (the paper does not give one)
 
@@ -599,7 +601,7 @@ SENSITIVITY = (("the scenes until session 31: psi = 0, FLIP with 1 % PIC per ste
                ("APIC", {"transfer": "apic"}), ("pure FLIP (JAX-MPM Eq. 15 as written)", {"flip_ratio": 1.0}),
                ("FLIP, PIC blend time 4.97 ms (transfer.pic_time: the damping per second of the scene's blend at 5 mm, "
                 "at every dx)", {"pic_time": PIC_TIME_5MM}),
-               ("the scenes since session 31: FLIP, PIC blend time 0.2 s (transfer=flip_pic_time)",
+               (f"the scenes since session 31: FLIP, PIC blend time {SCENE_PIC_TIME:g} s (transfer=flip_pic_time)",
                 {"pic_time": SCENE_PIC_TIME}))
 
 
@@ -636,7 +638,8 @@ def table_default_dx(res) -> str:
     and with pure FLIP: L_f, d_n, H_wall / H0; under it the observed order and Richardson value of L_f."""
     lines = ["| transfer | dx [mm] | cells across L0 | L_f [m] | d_n | H_wall/H0 | settled |", "|---|---|---|---|---|---|---|"]
     notes = []
-    for name, var in (("pic_time 0.2 s (the scenes)", {"pic_time": SCENE_PIC_TIME}), ("pure FLIP", {"flip_ratio": 1.0})):
+    for name, var in ((f"pic_time {SCENE_PIC_TIME:g} s (the scenes)", {"pic_time": SCENE_PIC_TIME}),
+                      ("pure FLIP", {"flip_ratio": 1.0})):
         rows = sorted(_rows(res, setup="column", a=2.0, dim=2, phi=19.8, ppc=4, precision="fp32", **var),
                       key=lambda r: -r["config"]["dx"])
         for r in rows:
@@ -655,7 +658,7 @@ def table_default_dx(res) -> str:
         if len(got) > 1:
             Ls = [r["L_f"] for _, r in got]
             L4 = [r["L_f"] for p_, r in got if p_ >= 4]
-            notes.append(f"- {label}, pic_time 0.2 s, particles per cell at dx 5 mm ({', '.join(str(p) for p, _ in got)}): "
+            notes.append(f"- {label}, pic_time {SCENE_PIC_TIME:g} s, particles per cell at dx 5 mm ({', '.join(str(p) for p, _ in got)}): "
                          f"L_f {', '.join(fmt(v) for v in Ls)} m (spread from 4 up {100 * (max(L4) - min(L4)) / max(L4):.1f} %); "
                          f"H_wall {', '.join(fmt(r['H_wall']) for _, r in got)} m")
     return "\n".join(lines + [""] + notes)

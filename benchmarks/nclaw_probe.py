@@ -98,22 +98,16 @@ def rollout_stats(case_name: str, weights: Path, max_steps: int | None = None, m
         s = st._advance(s, 10)
         d = st.to_numpy(s)
         dev, J = deviatoric_stretch(d["F"])
-        bad = ~np.isfinite(dev)
-        if through_inversion and np.all(np.isfinite(d["x"])) and (~bad).any():
-            first_inverted = first_inverted or (k if bad.any() else None)
-            ok = ~bad
-            rows.append({"step": k, "dev_max": float(dev[ok].max()), "dev_p99": float(np.percentile(dev[ok], 99)),
-                         "J_min": float(J[ok].min()), "J_max": float(J[ok].max()), "inverted": int(bad.sum()),
-                         "mse": None if x_true is None else float(np.mean((d["x"] - x_true[k // 5]) ** 2))})
-            continue
-        if not np.all(np.isfinite(d["x"])) or not np.all(np.isfinite(dev)):
+        ok = np.isfinite(dev)                      # not inverted (J > 0) and finite
+        if not np.all(np.isfinite(d["x"])) or not ok.any() or (not ok.all() and not through_inversion):
             failed = k
-            bad = ~np.isfinite(dev)
-            rows.append({"step": k, "dev_max": None, "dev_p99": float(np.percentile(dev[~bad], 99)) if (~bad).any()
-                         else None, "J_min": None, "inverted": int(bad.sum())})
+            rows.append({"step": k, "dev_max": None, "dev_p99": float(np.percentile(dev[ok], 99)) if ok.any()
+                         else None, "J_min": None, "inverted": int(np.sum(~ok))})
             break
-        rows.append({"step": k, "dev_max": float(dev.max()), "dev_p99": float(np.percentile(dev, 99)),
-                     "J_min": float(J.min()), "J_max": float(J.max()), "inverted": 0,
+        if not ok.all():
+            first_inverted = first_inverted or k
+        rows.append({"step": k, "dev_max": float(dev[ok].max()), "dev_p99": float(np.percentile(dev[ok], 99)),
+                     "J_min": float(J[ok].min()), "J_max": float(J[ok].max()), "inverted": int(np.sum(~ok)),
                      "mse": None if x_true is None else float(np.mean((d["x"] - x_true[k // 5]) ** 2))})
     return {"case": case_name, "particles": int(st.particles.count), "steps": steps, "failed_by_step": failed,
             "first_inverted": first_inverted, "rows": rows, "wall_s": time.perf_counter() - t0}
@@ -161,7 +155,7 @@ def measure_jelly(res: dict) -> dict:
     the (c) rollout, per trained weight file present."""
     import h5py
     from mpmlab.laws.nclaw import Law
-    from mpmlab.nclaw.probe import return_map_reach, state_range
+    from mpmlab.nclaw.probe import read_state_range, return_map_reach, state_range
 
     out = res.setdefault("jelly", {})
     if "truth_range" not in out and JELLY_DATASET.exists():
@@ -176,11 +170,7 @@ def measure_jelly(res: dict) -> dict:
             continue
         row = out.setdefault(label, {})
         if "trained_range" not in row:
-            from safetensors import safe_open
-
-            with safe_open(str(path), "np") as f:
-                rng = (f.metadata() or {}).get("state_range")
-            row["trained_range"] = json.loads(rng) if rng else None
+            row["trained_range"] = read_state_range(path)
         if "dilation" not in row:
             row["dilation"] = return_map_reach(law, load(path), 3, [j ** (1.0 / 3.0) for j in JELLY_J],
                                                kinds=("dilation",), steps=400, dt=1e-3, report=(10, 100, 400))

@@ -153,6 +153,18 @@ class RangeTracker:
         self.calls += 1
 
 
+def read_state_range(weights_file) -> dict | None:
+    """The :func:`state_range` recorded in a weight file's metadata (:func:`write_state_range`), None when
+    it records none."""
+    import json
+
+    from safetensors import safe_open
+
+    with safe_open(str(weights_file), framework="numpy") as f:
+        raw = (f.metadata() or {}).get("state_range")
+    return json.loads(raw) if raw else None
+
+
 def write_state_range(weights_file, rng: dict) -> None:
     """Record ``rng`` (a :func:`state_range`) in a weight file's metadata (``state_range``, JSON), keeping
     its arrays and its other metadata; atomic. The nclaw law's divergence note reads it."""

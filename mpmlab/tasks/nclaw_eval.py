@@ -29,7 +29,7 @@ import numpy as np
 
 from ..config import TaskConfig, register_task_schema
 from ..core.errors import ConfigError, SimulationDiverged, TimeStepError
-from ..nclaw.probe import RangeTracker, beyond_training
+from ..nclaw.probe import RangeTracker, beyond_training, read_state_range
 from .common import SUMMARY, save_figure, write_config, write_json, write_text
 
 log = logging.getLogger("mpmlab")
@@ -179,7 +179,7 @@ def run(cfg, ctx) -> dict:
     truth_dir.mkdir(parents=True, exist_ok=True)
     from tqdm.auto import tqdm
 
-    trained = _trained_range(weights)
+    trained = read_state_range(weights) if weights else None
     results, curves = {}, {}
     bar = tqdm(cases, disable=None if ctx.progress is None else not ctx.progress, unit="case", leave=False)
     for case in bar:
@@ -252,19 +252,6 @@ def run(cfg, ctx) -> dict:
     line = ", ".join(f"{k} {_fmt(v['mse'])}" for k, v in table.items())
     print(f"mpmlab: nclaw_eval {material} ({label}) {cfg.backend.name}: {line} -> {out}", flush=True)
     return summary
-
-
-def _trained_range(weights: str) -> dict | None:
-    """The training range recorded in a weight file (``state_range``), None without one."""
-    if not weights:
-        return None
-    import json
-
-    from safetensors import safe_open
-
-    with safe_open(weights, framework="numpy") as f:
-        raw = (f.metadata() or {}).get("state_range")
-    return json.loads(raw) if raw else None
 
 
 def _aggregate(results: dict, paper: dict) -> dict:

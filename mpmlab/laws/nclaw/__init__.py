@@ -198,14 +198,10 @@ class Law(AbstractConstitutiveLaw):
         it was recorded."""
         if not self.weights_file:
             return None
-        import json
+        from ...nclaw.probe import read_state_range
 
         try:
-            from safetensors import safe_open
-
-            with safe_open(self.weights_file, framework="numpy") as f:
-                raw = (f.metadata() or {}).get("state_range")
-            return json.loads(raw) if raw else None
+            return read_state_range(self.weights_file)
         except Exception:      # unreadable here: the note says it is not recorded (loading refused it already)
             return None
 
