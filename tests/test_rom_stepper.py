@@ -60,7 +60,7 @@ def test_eulerian_quadrature_points_carry_the_body_mass():
     n = fom.particles.count
     rom = ReducedStepper(fom, translation(2), samples=n, quadrature="eulerian")
     s = rom.init()._replace(z=jnp.asarray([0.00625, -0.025]))        # no lattice point on a voxel face
-    x, v, law, prm, rows, (outside, unconverged, overflow) = rom._eulerian_points(s, jnp.arange(n))
+    x, v, law, prm, rows, (outside, unconverged, overflow), _ = rom._eulerian_points(s, jnp.arange(n))
     body = float(np.sum(fom.particles.mass))
     assert float(jnp.sum(prm["mass"])) == pytest.approx(body, rel=1e-12)
     assert int(unconverged) == 0 and int(outside) > 0 and int(overflow) == 0    # outside: the ring of cells around the box
@@ -95,6 +95,41 @@ def test_the_eulerian_point_budget_changes_no_step():
     assert small._q_size < full._q_size == 20 * 10 ** 2
     a, b = small.rollout(steps=20, every=10), full.rollout(steps=20, every=10)
     assert np.ptp(a["z"], axis=0).max() > 1e-3 and np.array_equal(a["z"], b["z"])
+
+
+def _boundary_scene(dim):
+    """A body on a Coulomb floor, gripped at one end (particle_velocity + grid_velocity, rotating in 3D),
+    between separating walls, under gravity: every built-in grid boundary kind the ROM scenes use."""
+    lo, hi = [0.3] * dim, [0.55] + [0.45] * (dim - 1)
+    body = mpmlab.Body(shape={"kind": "box", "lo": lo, "hi": hi}, material="fixed_corotated",
+                       params={"E": 2e4, "nu": 0.3}, density=1000.0, particles_per_cell=4 if dim == 2 else 8)
+    grip = {"kind": "box", "lo": [0.5] + [0.0] * (dim - 1), "hi": [1.0] * dim}
+    spin = {} if dim == 2 else {"angular_velocity": [3.0, 0.0, 0.0]}
+    bcs = {"walls": {"kind": "walls", "default": "separate", "thickness": 2},
+           "floor": {"kind": "friction_walls", "face": "y-", "along": "x", "mu": [0.3], "thickness": 7},
+           "grip": {"kind": "particle_velocity", "region": grip, "velocity": [0.2] + [0.0] * (dim - 1), **spin},
+           "grip_grid": {"kind": "grid_velocity", "region": grip, "velocity": [0.2] + [0.0] * (dim - 1), **spin}}
+    from mpmlab.boundaries import make_boundary
+
+    return mpmlab.Scene(dim=dim, dx=0.05, domain=([0.0] * dim, [1.0] * dim), bodies=[body],
+                        boundaries=[make_boundary(v) for v in bcs.values()], gravity=[0.0, -9.8] + [0.0] * (dim - 2), dt=1e-3, name="rom_compact_nodes")
+
+
+@pytest.mark.parametrize("dim", (2, 3))
+def test_the_compact_node_set_steps_as_the_scene_grid_does(dim):
+    """The Eulerian quadrature on windows around the samples (backends/jax/node_windows.py) gives the
+    scene grid's steps to round-off: overlapping windows summed, every boundary read at the windows' nodes,
+    the grip applied to the samples only. A nonlinear map, so the points carry different F and v."""
+    fom = build_stepper(_boundary_scene(dim), "jax", "pic", "fp64")
+    spec = N.RomSpec(dim=dim, latent=3)
+    X = np.asarray(fom.particles.x)
+    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(dim), "u_std": np.full(dim, 3e-3)}
+    w = N.RomWeights(N.init_params(spec, seed=5), norm, spec, 5)
+    kw = dict(samples=12, quadrature="eulerian", projection="linear", eulerian_capacity=1e9)
+    a = ReducedStepper(fom, w, nodes="compact", **kw).rollout(steps=12, every=4)
+    b = ReducedStepper(fom, w, nodes="scene", **kw).rollout(steps=12, every=4)
+    assert np.ptp(b["z"], axis=0).max() > 1e-4
+    assert np.max(np.abs(a["z"] - b["z"])) <= 1e-12 * max(1.0, np.max(np.abs(b["z"])))
 
 
 def test_a_body_that_outgrows_the_eulerian_budget_stops_the_rollout():

@@ -50,6 +50,7 @@ The Warp counterpart is ``mpmlab.rom.stepper_warp.WarpReducedStepper`` (Lagrangi
 """
 from __future__ import annotations
 
+import inspect
 import math
 from types import SimpleNamespace
 from typing import NamedTuple
@@ -95,6 +96,18 @@ _EULER_REACH = np.arange(-3, 7)
 #: |M| = 50: 9,700-10,000 distinct points of 50,000 slots), and each slot costs an inverse map. A step that
 #: needs more (the body spread) is flagged (``ReducedState.overflow``) and the rollout stops with a ConfigError.
 EULER_CAPACITY = 1.5
+#: where the Eulerian quadrature's P2G, grid update and G2P run (JAX): "compact", a window of nodes per
+#: sample (``sample_window``) (backends/jax/node_windows.py), or "scene", the scene's grid
+NODE_SETS = ("compact", "scene")
+
+
+def sample_window(offset: float, width: int) -> tuple[int, int]:
+    """(first node relative to the sample's base node, nodes per axis) of a sample's window: its quadrature
+    points (j - 2 base in _EULER_REACH, x = (j/2 + 1/4) dx) have stencil bases base + floor(r/2 + 1/4 -
+    offset), and their ``width``-node stencils (lowest node floor(x/dx - offset)) end ``width`` - 1 above.
+    Quadratic B-splines: base - 2 .. base + 4, 7 nodes."""
+    lo, hi = (int(np.floor(r / 2 + 0.25 - offset)) for r in (_EULER_REACH[0], _EULER_REACH[-1]))
+    return lo, hi - lo + int(width)
 
 
 def eulerian_footprint(x, origin, dx, grid_shape) -> int:
@@ -300,11 +313,16 @@ class ReducedStepper(_ReducedBase):
 
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0,
-                 eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next"):
+                 eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next", nodes: str = "compact"):
         import jax
         import jax.numpy as jnp
 
         self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent)
+        if nodes not in NODE_SETS:
+            raise ConfigError(f"ReducedStepper: nodes '{nodes}'; choose {' or '.join(NODE_SETS)} (where the Eulerian "
+                              f"quadrature's P2G, grid update and G2P run).")
+        #: the Eulerian quadrature's nodes: "compact" (windows around the samples) or "scene" (the scene's grid)
+        self.nodes = nodes
         self.dtype = dt = fom.dtype
         self.params = N.to_jax(weights.params, dt)
         self.norm = N.to_jax(weights.norm, dt)
@@ -328,6 +346,16 @@ class ReducedStepper(_ReducedBase):
         self._ref_box = (jnp.asarray(e.box_lo, self.dtype), jnp.asarray(e.box_hi, self.dtype))
         self._q_off = jnp.asarray(e.q_off)
         self._q_lattice, self._q_size, self._inv_tol = e.q_lattice, e.q_size, e.inv_tol
+        if self.nodes == "compact":
+            from ..backends.jax.node_windows import fits
+            self._window = sample_window(self.fom.shape.offset, self.fom.shape.width)
+            if not fits(self.scene.grid_shape, self._window[1]):
+                raise ConfigError(f"ReducedStepper: the scene's grid {self.scene.grid_shape} is too large for the compact "
+                                  f"node set's 32-bit node keys; use nodes='scene'.")
+            for b, bc in zip(self.scene.boundaries, self.fom._grid_bcs):
+                if "node_ids" not in inspect.signature(bc.apply).parameters:
+                    raise ConfigError(f"ReducedStepper: boundary '{b.name}' has no apply(..., node_ids=) for a compact "
+                                      f"node set (backends/jax/boundaries.py); use nodes='scene'.")
 
     # ---- state ------------------------------------------------------------------------------------
     def init(self):
@@ -375,7 +403,7 @@ class ReducedStepper(_ReducedBase):
     def _lagrangian_points(self, s, M, law=None, fom_params=None):
         """Alg. 3: every material point, with its own mass and volume where it shares a node with a sample
         (else zero); the samples are rows M. Returns (x, v, law state per group, step params, sample rows,
-        (outside, unconverged, overflow) counts, zero here), as ``_eulerian_points`` does."""
+        (outside, unconverged, overflow) counts, zero here, and no compact node set), as ``_eulerian_points`` does."""
         import jax.numpy as jnp
 
         x, F, v = N.g_state(self.params, self.norm, self.X, s.z[None, :], s.zdot[None, :])
@@ -388,7 +416,7 @@ class ReducedStepper(_ReducedBase):
         prm["mass"] = prm["mass"] * quad
         prm["volume"] = prm["volume"] * quad
         none = jnp.zeros((), jnp.int32)
-        return x, v, tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), prm, M, (none, none, none)
+        return x, v, tuple({"F": F[g.start:g.stop]} for g in self.fom.groups), prm, M, (none, none, none), None
 
     def _eulerian_points(self, s, M, law=None, fom_params=None):
         """Alg. 4: quadrature points on the cells around the samples, then the samples (massless rows)."""
@@ -435,21 +463,23 @@ class ReducedStepper(_ReducedBase):
         rows = jnp.arange(self._q_size, self._q_size + n_M)
         counts = (jnp.sum(real & ~in_body).astype(jnp.int32), jnp.sum(real & in_body & ~converged).astype(jnp.int32),
                   jnp.maximum(distinct - self._q_size, 0).astype(jnp.int32))
-        return x, v, ({"F": F},), prm, rows, counts
+        windows = None
+        if self.nodes == "compact":       # one window per sample: its points' stencils (module doc, WINDOW)
+            from ..backends.jax.node_windows import NodeWindows
+            low, width = self._window
+            windows = NodeWindows(base + low, jnp.concatenate([jnp.where(real, src, 0), jnp.arange(n_M)]).astype(
+                jnp.int32), width)
+        return x, v, ({"F": F},), prm, rows, counts, windows
 
     def _kinematic_boundaries(self, M, x0, v, t_end, boundary):
         """The scene's particle_velocity boundaries on the samples (they address material points by index):
         (trial positions, velocities) at M after the step from x0; ``boundary``: the step's boundary
         parameters (stepper order, as ``fom.params["boundary"]``)."""
-        import jax.numpy as jnp
-
-        n, d = self.X.shape
-        xf = jnp.zeros((n, d), self.dtype).at[M].set(x0)
-        vp = vpic = jnp.zeros((n, d), self.dtype).at[M].set(v)
+        vp = vpic = v
         nb = len(self.fom._grid_bcs)
         for bc, bp in zip(self.fom._particle_bcs, boundary[nb:nb + len(self.fom._particle_bcs)]):
-            vp, vpic = bc.apply_particles(xf, vp, vpic, t_end, self.dt, bp)
-        return x0 + self.dt * vpic[M], vp[M]
+            vp, vpic = bc.apply_particles(x0, vp, vpic, t_end, self.dt, bp, rows=M)   # O(|M|), not O(N)
+        return x0 + self.dt * vpic, vp
 
     def _step_impl(self, s: ReducedState, law=None, fom_params=None):
         """One reduced step; ``law``: the law parameters (as ``fom.params["law"]``; default the scene's);
@@ -463,10 +493,10 @@ class ReducedStepper(_ReducedBase):
         points = self._eulerian_points if self.quadrature == "eulerian" else self._lagrangian_points
         if fom_params is not None:
             law = fom_params["law"]
-        x, v, state_law, prm, rows, counts = points(s, M, law, fom_params)
+        x, v, state_law, prm, rows, counts, windows = points(s, M, law, fom_params)
         state = {"x": x, "v": v, "law": state_law, "t": s.t}
         if self.quadrature == "eulerian":             # Alg. 5 from the quadrature points; boundaries on M here
-            new = self.fom.step_fn(state, prm, particle_bcs=False, update_law=False)
+            new = self.fom.step_fn(state, prm, particle_bcs=False, update_law=False, nodes=windows)
             x_tr, v_tr = self._kinematic_boundaries(M, x[rows], new["v"][rows], s.t + self.dt, prm["boundary"])
         else:                                         # Alg. 5 over every material point (massless off P)
             new = self.fom.step_fn(state, prm, update_law=False)

@@ -4,6 +4,10 @@ Each factory takes (boundary, scene, dtype) and returns an object with ``params`
 stepper passes back, differentiable: e.g. friction coefficients) and one of ``apply`` (grid),
 ``apply_particles`` (particle velocity) or ``particle_force`` (particle load). Node masks are
 computed once in NumPy from the static scene, so the compiled step only touches arrays it needs.
+
+A grid boundary's ``apply(v, node_x, m, t, params, node_ids=None)`` acts on every node of the scene's grid
+(``node_ids`` None) or on a compact node set (``node_ids``: each node's flat index in the scene's grid, -1
+outside it; ``backends/jax/node_windows.py``), whose per-node masks it reads at those indices.
 """
 from __future__ import annotations
 
@@ -35,14 +39,23 @@ def coulomb(v, n, mu):
     return jnp.where((vn > 0)[..., None], vt * scale[..., None], v)
 
 
+def _at(mask, node_ids):
+    """A per-node array of the scene's grid read at a compact node set (nodes outside the grid: False / 0)."""
+    if node_ids is None:
+        return mask
+    return jnp.where((node_ids >= 0).reshape((-1,) + (1,) * (mask.ndim - 1)), mask[jnp.maximum(node_ids, 0)],
+                     jnp.zeros((), mask.dtype))
+
+
 def walls(b, scene, dtype):
     kinds = b.face_kinds(scene.dim)
     masks = wall_masks(scene, b.thickness)  # per face: bool [G]
     faces = _faces(scene.dim)
     active = [(f, k, jnp.asarray(masks[f])) for f, k in zip(faces, kinds) if k != "none"]
 
-    def apply(v, node_x, m, t, params):
+    def apply(v, node_x, m, t, params, node_ids=None):
         for face, kind, mask in active:
+            mask = _at(mask, node_ids)
             a = "xyz".index(face[0])
             side = -1.0 if face[1] == "-" else 1.0
             if kind == "sticky":
@@ -62,9 +75,9 @@ def friction_walls(b, scene, dtype):
     n = np.zeros(scene.dim); n[b.axis] = b.side
     n = jnp.asarray(n, dtype)
 
-    def apply(v, node_x, m, t, params):
-        mu = params["mu"][mu_index]
-        return jnp.where(mask[:, None], coulomb(v, n, mu), v)
+    def apply(v, node_x, m, t, params, node_ids=None):
+        mu = params["mu"][_at(mu_index, node_ids)]
+        return jnp.where(_at(mask, node_ids)[:, None], coulomb(v, n, mu), v)
 
     return SimpleNamespace(params={"mu": jnp.asarray(b.mu, dtype)}, apply=apply)
 
@@ -73,7 +86,7 @@ def plane(b, scene, dtype):
     n_in = jnp.asarray(b.unit_normal(), dtype)   # into the free side
     p0 = jnp.asarray(b.point, dtype)
 
-    def apply(v, node_x, m, t, params):
+    def apply(v, node_x, m, t, params, node_ids=None):
         behind = jnp.sum((node_x - p0) * n_in, axis=-1) < 0
         if b.condition == "sticky":
             return jnp.where(behind[:, None], 0.0, v)
@@ -92,11 +105,12 @@ def box_obstacle(b, scene, dtype):
     inside = jnp.asarray(inside)
     normals = jnp.asarray(normals, dtype)
 
-    def apply(v, node_x, m, t, params):
-        vn = jnp.sum(v * normals, axis=-1)
+    def apply(v, node_x, m, t, params, node_ids=None):
+        inside_, normals_ = _at(inside, node_ids), _at(normals, node_ids)
+        vn = jnp.sum(v * normals_, axis=-1)
         # JAX-MPM Eq. 33: remove the normal component (only when it points into the box, so fluid may leave)
-        out = v - jnp.minimum(vn, 0.0)[:, None] * normals
-        return jnp.where(inside[:, None], out, v)
+        out = v - jnp.minimum(vn, 0.0)[:, None] * normals_
+        return jnp.where(inside_[:, None], out, v)
 
     return SimpleNamespace(params={}, apply=apply)
 
@@ -120,27 +134,38 @@ def _cross(w, r, dim):
 
 
 def particle_velocity(b, scene, dtype):
-    """``apply_particles(x, v_p, v_pic, t_end, dt, params) -> (v_p, v_pic)``: the particle velocity and
-    the velocity that moves the particles over the step that ends at ``t_end`` (x: positions at its start)."""
+    """``apply_particles(x, v_p, v_pic, t_end, dt, params, rows=None) -> (v_p, v_pic)``: the particle
+    velocity and the velocity that moves the particles over the step that ends at ``t_end`` (x: positions
+    at its start). ``rows``: x, v_p and v_pic are those of the scene's particles ``rows`` only (a reduced
+    model's samples), not of all of them."""
     x0 = scene.particles().x
-    idx = jnp.asarray(b.select(x0))
+    sel = b.select(x0)
+    idx = jnp.asarray(sel)
+    member = jnp.asarray(np.isin(np.arange(len(x0)), sel))
     params = {"velocity": jnp.asarray(b.velocity, dtype)}
     dim = scene.dim
     if b.rotating:
         params["angular_velocity"] = jnp.asarray(b.angular_velocity, dtype)
         c0 = jnp.asarray(b.rotation_center(x0), dtype)
 
-    def apply_particles(x, v_p, v_pic, t_end, dt, params):
-        on = (t_end > b.t_start) & (t_end <= b.t_end)
+    def motion(xs, t_end, dt, params):
+        """(particle velocity, moving velocity) of the prescribed motion for particles at xs."""
         v0 = params["velocity"]
         if not b.rotating:
-            return v_p.at[idx].set(jnp.where(on, v0, v_p[idx])), v_pic.at[idx].set(jnp.where(on, v0, v_pic[idx]))
+            return v0, v0
         w = params["angular_velocity"]
         c_end = c0 + v0 * (t_end - b.t_start)            # the centre moves with the translation
-        x_end = c_end + (x[idx] - (c_end - v0 * dt)) @ _rotation(w * dt, dim).T   # exactly rigid over the step
-        move = (x_end - x[idx]) / dt
-        rigid = v0 + _cross(w, x_end - c_end, dim)         # the rigid velocity at the new position
-        return (v_p.at[idx].set(jnp.where(on, rigid, v_p[idx])), v_pic.at[idx].set(jnp.where(on, move, v_pic[idx])))
+        x_end = c_end + (xs - (c_end - v0 * dt)) @ _rotation(w * dt, dim).T   # exactly rigid over the step
+        return v0 + _cross(w, x_end - c_end, dim), (x_end - xs) / dt   # rigid velocity at the new position
+
+    def apply_particles(x, v_p, v_pic, t_end, dt, params, rows=None):
+        on = (t_end > b.t_start) & (t_end <= b.t_end)
+        if rows is not None:
+            rigid, move = motion(x, t_end, dt, params)
+            hit = (member[rows] & on)[:, None]
+            return jnp.where(hit, rigid, v_p), jnp.where(hit, move, v_pic)
+        rigid, move = motion(x[idx], t_end, dt, params)
+        return v_p.at[idx].set(jnp.where(on, rigid, v_p[idx])), v_pic.at[idx].set(jnp.where(on, move, v_pic[idx]))
 
     return SimpleNamespace(params=params, apply_particles=apply_particles)
 
@@ -155,7 +180,7 @@ def grid_velocity(b, scene, dtype):
     if b.rotating:
         params["angular_velocity"] = jnp.asarray(b.angular_velocity, dtype)
 
-    def apply(v, node_x, m, t, params):
+    def apply(v, node_x, m, t, params, node_ids=None):
         tau = t - b.t_start
         v0 = params["velocity"]
         r = node_x - (c0 + v0 * tau)

@@ -180,7 +180,7 @@ class JaxStepper(BaseStepper):
         return self._params
 
     # ---- the step ------------------------------------------------------------------------------
-    def step_fn(self, state, params, dt=None, *, particle_bcs: bool = True, update_law: bool = True):
+    def step_fn(self, state, params, dt=None, *, particle_bcs: bool = True, update_law: bool = True, nodes=None):
         """One explicit MPM step (JAX-MPM Sec. 2.2; NCLaw Alg. 3) with the scheme's transfer math, pure.
 
         Layout for speed on CPU (the math is the textbook one): each particle's W^D stencil is one
@@ -204,7 +204,9 @@ class JaxStepper(BaseStepper):
         A reduced model (``mpmlab.rom.stepper``, Eulerian quadrature) steps pseudo-particles that are not
         the scene's particles: ``particle_bcs=False`` leaves out the boundaries that address particles
         by index (it applies them to its own points), ``update_law=False`` the law-state update (its F
-        comes from the deformation map; the returned state has no ``law``).
+        comes from the deformation map; the returned state has no ``law``), and ``nodes`` (a
+        ``node_windows.NodeWindows``) runs P2G, the grid update and G2P on the compact node set around its
+        points instead of the scene's grid (the same result; the cost no longer grows with the grid).
         """
         T, tf = self.transfer, self._tf
         D, dx = self.dim, self.scene.dx
@@ -217,7 +219,7 @@ class JaxStepper(BaseStepper):
         bc_params = params["boundary"]
         nb = len(self._grid_bcs)
         split = bool(T.split_force)
-        gshape = tuple(self.grid_shape)
+        gshape = tuple(self.grid_shape) if nodes is None else nodes.shape
 
         # stencil: the shape function's window and weights ------------------------------------------------
         shape = self.shape
@@ -232,6 +234,13 @@ class JaxStepper(BaseStepper):
             w1, dw1 = self._shape_fns.weights(fx, lp)                        # [N, W, D]
             Dinv = self._Dinv(w1, fx, inv_dx)                                # APIC's D_p^-1 (Jiang et al. 2015)
             dw1 = dw1 * inv_dx                                              # d w / d x (not cell units)
+        node_x, node_ids = self._node_x, None
+        if nodes is not None:                     # the compact node set: base nodes within each particle's window
+            if self.corners:
+                raise ConfigError("step_fn: a compact node set (nodes=) does not carry CPDI's corner stencils.")
+            at = nodes.nodes()
+            node_x, node_ids = self._node_x[0] + at.astype(dtype) * dx, nodes.scene_ids(at, self.grid_shape)
+            base = nodes.local_base(base, int(shape.width))
 
         # stress (Kirchhoff) from each law present ----------------------------------------------------
         tau = jnp.concatenate([jax.vmap(law.kirchhoff, in_axes=(0, 0, None))(st, prm, w) for law, st, prm, w in
@@ -278,6 +287,8 @@ class JaxStepper(BaseStepper):
         K = lin.shape[-1]
         grid = self._sum_grid(adjoints.p2g(base, w1, dw1, lin, acol, gcol, pred, gshape, self.adjoints))
         grid = grid.reshape(-1, K)
+        if nodes is not None:                     # every copy of a node gets the sum over its copies
+            grid = nodes.merge(grid, at)
         grid_mv, grid_m = grid[:, :D], grid[:, D]
 
         # grid update (JAX-MPM Eqs. 13-14) -------------------------------------------------------------------
@@ -289,7 +300,8 @@ class JaxStepper(BaseStepper):
             acc = per_mass(grid[:, D + 1:], safe_m) + acc
         v_new = jnp.where(has_mass[:, None], v_old + dt * acc, 0.0)
         for bc, bp in zip(self._grid_bcs, bc_params[:nb]):
-            v_new = bc.apply(v_new, self._node_x, grid_m, state["t"], bp)
+            v_new = bc.apply(v_new, node_x, grid_m, state["t"], bp) if node_ids is None else \
+                bc.apply(v_new, node_x, grid_m, state["t"], bp, node_ids=node_ids)
 
         # G2P: one windowed gather per particle (adjoints.g2p) -------------------------------------------------
         gfield = jnp.concatenate([v_new, v_old], axis=-1) if split else v_new
