@@ -78,6 +78,8 @@ def run(a) -> None:
         opts.append(f"task.schedule={a.schedule}")
     if a.points:
         opts.append(f"task.points={a.points}")
+    if a.frame_stride > 1:
+        opts.append(f"task.frame_stride={a.frame_stride}")
     if a.budget_min:
         opts.append(f"task.stop_after_s={60.0 * a.budget_min}")
     complete = (train / "summary.json").exists() and json.loads((train / "summary.json").read_text())["status"] == "ok"
@@ -98,7 +100,7 @@ def run(a) -> None:
                  f"task.weights={train / 'rom_weights.safetensors'}", f"task.samples=[{a.samples}]",
                  f"task.quadratures=[{a.quadratures}]", f"task.projections=[{a.projections}]", f"precision={a.precision}",
                  f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"hydra.run.dir={ev}",
-                 "output.overwrite=true"])
+                 "output.overwrite=true", *([f"task.max_runs={a.max_runs}"] if a.max_runs else [])])
     if rc not in (0, 3):
         raise SystemExit(f"rom_eval failed (exit {rc})")
     dst = RES / a.tag
@@ -174,6 +176,69 @@ def superres_report() -> list[str]:
             *md_table(["tag", "backend", "model", "E", "E disp.", "E_F", "s / simulated s"], rows), ""]
 
 
+#: Figs. 7-8 (Sec. 5.1.1-5.1.2): gravity, no hyper-reduction; (latent, lambda_F, lambda_v) per training, tag
+#: ``fig78_l{latent}_lf{lambda_F:g}_lv{lambda_v:g}`` (the paper: Fig. 7 at latent 7, Fig. 8 at lambda 100 / 0.01)
+FIG78 = [(7, 0.0, 0.0), (7, 0.0, 0.01), (7, 100.0, 0.0), (7, 100.0, 0.01), (1, 100.0, 0.01), (2, 100.0, 0.01),
+         (4, 100.0, 0.01)]
+
+
+def fig78_tag(latent, lf, lv) -> str:
+    return f"fig78_l{latent}_lf{lf:g}_lv{lv:g}"
+
+
+def fig78_report() -> list[str]:
+    """Figs. 7-8 from the ``fig78_*`` tags' evaluations: a table and ``results/rom/fig7_8.png``."""
+    rows, pts = [], {}
+    for latent, lf, lv in FIG78:
+        d = RES / fig78_tag(latent, lf, lv)
+        if not (d / "eval.json").exists():
+            continue
+        e, t = json.loads((d / "eval.json").read_text()), json.loads((d / "train.json").read_text())
+        E = {s["scheme"].split(",")[0]: s["E"] for s in e["schemes"]}
+        pts[(latent, lf, lv)] = E
+        rows.append([latent, f"{lf:g}", f"{lv:g}", t["epochs"], pct(t.get("reconstruction_error", {}).get("test", {}).get("E"))]
+                    + [pct(E.get(k)) for k in SCHEMES])
+    if not rows:
+        return []
+    plot_fig78(pts)
+    return ["Figs. 7-8 (Sec. 5.1.1-5.1.2): the gravity study, no hyper-reduction (every point a sample), E in % on the 6 "
+            "test runs, tangent `next`. Each training: 480 points per snapshot, 85 epochs (the paper's schedule x 0.1), "
+            "batch 8, seed 0 (`python benchmarks/rom.py --study gravity --resolution default --latent L --lambda-F LF "
+            "--lambda-v LV --points 480 --schedule \"[[1e-3,50],[1e-4,20],[1e-5,10],[1e-6,5]]\" --tag "
+            "fig78_lL_lfLF_lvLV --samples all`). The paper (Fig. 7, latent 7): errors within 0-0.3 %, λ_v helping the "
+            "linear projection, λ_F all four schemes; (Fig. 8) the error falling with the latent size, latent 1 worst "
+            "(up to 1 %). Plot: `results/rom/fig7_8.png`.", "",
+            *md_table(["latent", "λ_F", "λ_v", "epochs", "recon. E"] + list(SCHEMES), rows), ""]
+
+
+SCHEMES = ("lagrangian+nonlinear", "eulerian+nonlinear", "lagrangian+linear", "eulerian+linear")
+
+
+def plot_fig78(pts: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    fig7 = [k for k in pts if k[0] == 7]
+    for i, sch in enumerate(SCHEMES):
+        ys = [100 * pts[k].get(sch, float("nan")) for k in fig7]
+        a.bar([j + 0.2 * i for j in range(len(fig7))], ys, 0.2, label=sch)
+    a.set_xticks([j + 0.3 for j in range(len(fig7))], [f"λ_F {k[1]:g}\nλ_v {k[2]:g}" for k in fig7])
+    a.set_ylabel("position error E (%)")
+    a.set_title("Fig. 7: penalties (latent 7)")
+    a.legend(fontsize=7)
+    fig8 = sorted(k for k in pts if k[1:] == (100.0, 0.01))
+    for sch in SCHEMES:
+        b.plot([k[0] for k in fig8], [100 * pts[k].get(sch, float("nan")) for k in fig8], "o-", label=sch)
+    b.set_xlabel("latent size")
+    b.set_ylabel("position error E (%)")
+    b.set_title("Fig. 8: latent size (λ_F 100, λ_v 0.01)")
+    fig.tight_layout()
+    fig.savefig(RES / "fig7_8.png", dpi=110)
+    plt.close(fig)
+
+
 def pct(x) -> str:
     return "–" if x is None else f"{100 * x:.2f}"
 
@@ -200,7 +265,7 @@ def report() -> None:
             "`--report` rewrites this table.", "",
             *md_table(["tag", "study", "ROM backend", "latent", "batch", "epochs", "λ_F", "recon. E", "scheme", "E", "E disp.", "E_v",
                        "E_F", "ROM s/s", "FOM s/s", "diverged"], rows), "",
-            *superres_report(), f"Machine: {json.dumps(machine_info(load=True))}", ""]
+            *superres_report(), *fig78_report(), f"Machine: {json.dumps(machine_info(load=True))}", ""]
     write_readme_section(MD, "rom-runs", "Runs (train + evaluate)", "\n".join(body))
     log(f"wrote {MD}")
 
@@ -218,6 +283,10 @@ def main():
     ap.add_argument("--lambda-v", dest="lambda_v", type=float, default=0.01)
     ap.add_argument("--points", type=int, default=0,
                     help="points per snapshot per batch in training (0: all; the loss is a mean over points)")
+    ap.add_argument("--frame-stride", dest="frame_stride", type=int, default=1,
+                    help="train on every k-th snapshot of each run")
+    ap.add_argument("--max-runs", dest="max_runs", type=int, default=0,
+                    help="evaluate only the study's first k test runs (0: all)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--samples", default="50,all", help="comma-separated |M| values (integers or all)")
     ap.add_argument("--quadratures", default="lagrangian,eulerian")

@@ -168,13 +168,15 @@ def markdown(builtin_only: bool = False) -> str:
     plugin_table(registry.observations, "observation", (), implemented)
     # the deformation-map reduced model (mpmlab.rom): its quadratures per backend, linear and nonlinear projection
     from .rom.stepper import CAPABILITIES as ROM
+    from .rom.stepper import EULERIAN_NODES
 
     rom_backends = ("jax", "warp")
     lines += ["", "| reduced model (`mpmlab.rom`), quadrature | " + " | ".join(rom_backends) + " | "
               + " | ".join(f"{b} gradient" for b in rom_backends) + " |", "|---|" + "---|" * (2 * len(rom_backends))]
     for q, by in ROM.items():
         grad = {"reverse": "✓", "forward": "forward mode", None: "–"}
-        lines.append("| " + " | ".join([f"`{q}`"] + ["✓" for _ in rom_backends] + [grad[by[b]] for b in rom_backends]) + " |")
+        runs = [f"✓ ({EULERIAN_NODES[b]})" if q == "eulerian" else "✓" for b in rom_backends]
+        lines.append("| " + " | ".join([f"`{q}`"] + runs + [grad[by[b]] for b in rom_backends]) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -226,3 +226,44 @@ def test_a_free_translation_on_a_curved_manifold_keeps_its_velocity(backend, qua
 def test_an_unknown_tangent_is_refused():
     with pytest.raises(ConfigError, match="choose next or current"):
         ReducedStepper(build_stepper(scene(), "jax", "pic", "fp64"), translation(2), tangent="middle")
+
+
+@pytest.mark.parametrize("dim", (2, 3))
+def test_a_particle_velocity_boundary_on_a_subset_of_rows_is_the_full_one_restricted(dim):
+    """``apply_particles(..., rows=M)`` (a reduced model's samples: O(|M|), not O(N)) gives the rows M of
+    the all-particle call, inside and outside the region, rotating in 3D."""
+    import jax.numpy as jnp
+
+    from mpmlab.backends.jax.boundaries import particle_velocity
+
+    sc = _boundary_scene(dim)
+    b = next(b for b in sc.boundaries if b.stage == "particle_velocity")
+    impl = particle_velocity(b, sc, jnp.float64)
+    n = sc.particles().count
+    rng = np.random.default_rng(dim)
+    x = jnp.asarray(sc.particles().x + rng.normal(0, 1e-3, (n, dim)))
+    vp, vpic = jnp.asarray(rng.normal(size=(n, dim))), jnp.asarray(rng.normal(size=(n, dim)))
+    M = jnp.asarray(rng.choice(n, 40, replace=False))
+    full = impl.apply_particles(x, vp, vpic, 0.01, 1e-3, impl.params)
+    sub = impl.apply_particles(x[M], vp[M], vpic[M], 0.01, 1e-3, impl.params, rows=M)
+    inside = np.asarray(b.select(np.asarray(sc.particles().x)))
+    assert 0 < np.isin(np.asarray(M), inside).sum() < len(M)
+    for a, c in zip(full, sub):
+        assert np.max(np.abs(np.asarray(a)[np.asarray(M)] - np.asarray(c))) <= 1e-14
+
+
+def test_floyds_samples_are_distinct_and_uniform():
+    """The large-body sampler (O(|M|^2), not a permutation of every point): distinct indices in range, and
+    each index drawn with frequency m / n (chi-squared over 4,000 draws of 5 of 20, within 4 sigma)."""
+    import jax
+
+    from mpmlab.rom.stepper import _floyd_sample
+
+    draws = np.asarray(jax.vmap(lambda k: _floyd_sample(k, 20, 5))(jax.random.split(jax.random.PRNGKey(0), 4000)))
+    assert all(len(set(r)) == 5 for r in draws) and draws.min() >= 0 and draws.max() < 20
+    counts = np.bincount(draws.ravel(), minlength=20)
+    expect = 4000 * 5 / 20
+    chi2 = np.sum((counts - expect) ** 2 / expect)
+    assert chi2 < 19 + 4 * np.sqrt(2 * 19)
+    big = np.asarray(_floyd_sample(jax.random.PRNGKey(1), 800_000, 50))
+    assert len(set(big)) == 50 and big.max() < 800_000
