@@ -36,7 +36,7 @@ Choices the paper leaves open, made here:
   "Another 4 simulations are sampled using the same approach".
 - Continual poking: the poke directions theta_i ~ U[0, 2 pi) (``default_rng(seed)``), phi as in the
   single pokes, poke i during [3 i, 3 i + 0.25) s, each released for the rest of its 3 s: 10 x 432
-  snapshots = 30 s. The pokes are ten timed ``particle_velocity`` boundaries (``poke_0`` ... ``poke_9``)
+  snapshots = 30 s. The pokes are ten timed ``grid_velocity`` boundaries (``poke_0`` ... ``poke_9``)
   added to ``rom_poke`` with its single ``poke`` disabled.
 - Every run stores x, v and F at the snapshots (``output.fields=[F]``), no recording, and runs the PIC
   transfer, as the reduced model does (``OUTPUT_OVERRIDES``); the FOM's dt comes from the CFL bound
@@ -201,25 +201,26 @@ def continual_pokes(seed: int = 0, pokes: int = 10, period: float = 3.0) -> list
 
 def continual_poke_boundaries(seed: int = 0, pokes: int = 10, period: float = 3.0) -> dict:
     """The boundaries that turn ``rom_poke`` into the continual run: ``poke`` disabled and ``poke_0`` ...
-    added, each a particle_velocity on the particles near its own top point during [3 i, 3 i + 0.25) s
-    (+ half a step, as ``poke``). phi, the speed, the poke radius and dt stay the scene's (interpolated),
-    so they hold at every resolution. (Hydra cannot add a boundary from the command line, a typed
-    dict refuses a plain one: they live in ``experiment=rom_snapshots_poke_continual``, written by
-    :func:`experiment_yaml`.)"""
+    added, each a grid_velocity (as ``poke``) on the nodes within poke_radius of its own top point during
+    [3 i, 3 i + 0.25) s of step start times (the window ends half a step early, as ``poke``'s). phi, the
+    speed, the poke radius and dt stay the scene's (interpolated), so they hold at every resolution. (Hydra
+    cannot add a boundary from the command line, a typed dict refuses a plain one: they live in
+    ``experiment=rom_snapshots_poke_continual``, written by :func:`experiment_yaml`.)"""
     bx, by, bz = POKE_BASE
     out: dict = {"poke": {"enabled": False}}
+    r = "${scene.resolutions.${scene.resolution}.poke_radius}"
     for i, p in enumerate(continual_pokes(seed, pokes, period)):
         th, t0 = p["theta"], p["t_start"]
         s, sp = "${scene.vars.speed}", "${mpmlab.sin:${scene.vars.phi}}"
+        c = [_num(bx - POKE_RADIUS * math.cos(th)), _num(by - POKE_RADIUS * math.sin(th)), _num(bz + POKE_HEIGHT)]
         out[f"poke_{i}"] = {
-            "kind": "particle_velocity",
-            "region": {"kind": "sphere", "center": [bx - POKE_RADIUS * math.cos(th), by - POKE_RADIUS * math.sin(th),
-                                                    bz + POKE_HEIGHT],
-                       "radius": "${scene.resolutions.${scene.resolution}.poke_radius}"},
+            "kind": "grid_velocity",
+            "region": {"kind": "box", "lo": [f"${{mpmlab.add:{a},${{mpmlab.mul:-1,{r}}}}}" for a in c],
+                       "hi": [f"${{mpmlab.add:{a},{r}}}" for a in c]},
             "velocity": [f"${{mpmlab.mul:{s},{sp},{_num(math.cos(th))}}}", f"${{mpmlab.mul:{s},{sp},{_num(math.sin(th))}}}",
                          "${mpmlab.mul:${scene.vars.speed},${mpmlab.cos:${scene.vars.phi}}}"],
             "t_start": float(t0),
-            "t_end": f"${{mpmlab.add:{_num(t0)},${{scene.vars.duration}},${{mpmlab.mul:0.5,${{scene.dt}}}}}}",
+            "t_end": f"${{mpmlab.add:{_num(t0)},${{scene.vars.duration}},${{mpmlab.mul:-0.5,${{scene.dt}}}}}}",
         }
     return out
 
