@@ -26,10 +26,18 @@ import jax.numpy as jnp
 import numpy as np
 
 
+@jax.tree_util.register_pytree_node_class
 class NodeWindows(NamedTuple):
     origin: Any        #: [n_win, D] int32: the global index of each window's lowest node
     window: Any        #: [N] int32: the window each particle scatters into and gathers from
-    width: int         #: nodes per axis of a window (static)
+    width: int         #: nodes per axis of a window (static: a pytree's auxiliary data, never traced)
+
+    def tree_flatten(self):
+        return (self.origin, self.window), self.width
+
+    @classmethod
+    def tree_unflatten(cls, width, children):
+        return cls(*children, width)
 
     @property
     def shape(self) -> tuple[int, ...]:
