@@ -378,7 +378,8 @@ class ReducedStepper(_ReducedBase):
             if not fits(self.scene.grid_shape, self._window[1]):
                 raise ConfigError(f"ReducedStepper: the scene's grid {self.scene.grid_shape} is too large for the compact "
                                   f"node set's 32-bit node keys; use nodes='scene'.")
-            for b, bc in zip(self.scene.boundaries, self.fom._grid_bcs):
+            grid_stage = [b for b in self.scene.boundaries if getattr(b, "stage", "") == "grid"]   # _grid_bcs' order
+            for b, bc in zip(grid_stage, self.fom._grid_bcs):
                 if "node_ids" not in inspect.signature(bc.apply).parameters:
                     raise ConfigError(f"ReducedStepper: boundary '{b.name}' has no apply(..., node_ids=) for a compact "
                                       f"node set (backends/jax/boundaries.py); use nodes='scene'.")
@@ -494,7 +495,7 @@ class ReducedStepper(_ReducedBase):
         counts = (jnp.sum(real & ~in_body).astype(jnp.int32), jnp.sum(real & in_body & ~converged).astype(jnp.int32),
                   jnp.maximum(distinct - self._q_size, 0).astype(jnp.int32))
         windows = None
-        if self.nodes == "compact":       # one window per sample: its points' stencils (module doc, WINDOW)
+        if self.nodes == "compact":       # one window per sample: its points' stencils (sample_window)
             from ..backends.jax.node_windows import NodeWindows
             low, width = self._window
             windows = NodeWindows(base + low, jnp.concatenate([jnp.where(real, src, 0), jnp.arange(n_M)]).astype(
