@@ -12,6 +12,8 @@
     python benchmarks/rom_diagnose.py --tag gravity_l4_s02 swing g26   # also: energy, attachment
     python benchmarks/rom_diagnose.py --tag gravity_l4_s02 damping g26 [--transfers pic,apic,pic:2]
     python benchmarks/rom_diagnose.py --tag gravity_lf100_p480_e85 accounting g26 [--tangent current] [--dt-scale 0.5]
+    python benchmarks/rom_diagnose.py --tag poke_l6_p480_e85 poke k01 [--samples 50,all] [--hold 0.5]
+        [--forced deepest] [--constrain-kinematic]
 
 * ``reconstruction``: encoder + g on every snapshot of a run: E, E_displacement, E_F (relative to F - I)
   and E_v of the manifold's own tangent velocities, from the encoder's latents (finite differences in time)
@@ -43,6 +45,15 @@
   at x_hat_n), the kinetic energy's change from evaluating v_hat_{n+1} in the tangent at x_hat_{n+1}
   instead, and the elastic and gravity energies' change from the trial state to the manifold's (F = dg/dX,
   g). With the paper's tangent the fourth term is a gain no force makes (benchmarks/rom.md).
+* ``poke``: the poke study (benchmarks/rom.md, "Why the poke's reduced model misses the poke"). The
+  points initially inside the poke's grid box: their mean displacement in the full-order run, the
+  manifold's error there (the encoder's latent, and the best latent, Gauss-Newton on all points) and the
+  body's rms error, at the snapshots of the poke; then reduced rollouts (Lagrangian + linear, each
+  ``--samples``) over ``--hold`` seconds: the poked points' mean displacement against the full-order one.
+  ``--forced deepest`` forces the 5 points deepest inside the box instead of the 5 lowest indices;
+  ``--constrain-kinematic`` fits the forced samples' rows first while their boundary acts (a
+  lexicographic least squares: the free rows only in the forced rows' null space, SVD truncated at
+  ``--rcond``, default 1e-3). Both are studies, not options of the stepper.
 * ``consistency``: can one map fit both the positions and F of the snapshots? Per particle, the affine
   least-squares fit A of x over its neighbours in X (within 1.8 lattice spacings) is the snapshot's own
   displacement gradient. E_F relative to F - I of: the stored F against A, dg/dX against A, dg/dX against
@@ -474,18 +485,121 @@ def consistency(a, w, params, norm, snap):
                   f"stencil error (dg/dX vs the fit of g) {rel(Fg - Ag, Fg, m):.1%}")
 
 
+def poke_box_points(cfg, X):
+    """Indices of the points initially inside the scene's ``poke`` box, and each one's depth in it [m]."""
+    lo = np.asarray(cfg.scene.boundaries.poke.region.lo, float)
+    hi = np.asarray(cfg.scene.boundaries.poke.region.hi, float)
+    idx = np.where(np.all((X >= lo) & (X <= hi), axis=1))[0]
+    return idx, np.min(np.minimum(X[idx] - lo, hi - X[idx]), axis=1)
+
+
+def lexicographic(J, r, D, rcond):
+    """argmin |J_f y - r_f| over the minimisers of |J_D y - r_D| (D: 1 on the constrained rows, else 0),
+    the constrained rows' SVD truncated at ``rcond`` of its largest singular value."""
+    import jax.numpy as jnp
+
+    U, s, Vt = jnp.linalg.svd(J * D[:, None], full_matrices=False)
+    keep = s > rcond * s[0]
+    y0 = Vt.T @ (jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0) * (U.T @ (r * D)))
+    null = Vt.T * (~keep)[None, :]
+    Jf = J * (1.0 - D)[:, None]
+    return y0 + null @ jnp.linalg.lstsq(Jf @ null, r * (1.0 - D) - Jf @ y0)[0]
+
+
+def constrain_kinematic(rom, held, poked, t_end, rcond):
+    """Make ``rom``'s linear projection fit its forced samples first (``lexicographic``): the held ones
+    always, the poked ones while the poke acts (t < ``t_end``). A study, not an option of the stepper."""
+    import jax
+    import jax.numpy as jnp
+
+    from mpmlab.rom import networks as N
+
+    cls = type(rom)
+    step_impl = cls._step_impl
+
+    def impl(self, s, law=None, fom_params=None):
+        self._t_now = s.t
+        return step_impl(self, s, law, fom_params)
+
+    def project(self, mf, XM, z, z_prev, x_tr, v_tr):
+        d = XM.shape[1]
+        on = jnp.concatenate([jnp.ones(held), jnp.where(self._t_now < t_end, 1.0, 0.0) * jnp.ones(poked),
+                              jnp.zeros(XM.shape[0] - held - poked)])
+
+        def fit(at):
+            _, _, dxdz = N.g_jacobians(self.params, self.norm, XM, at[None, :])
+            return lexicographic(dxdz.reshape(-1, dxdz.shape[-1]), v_tr.reshape(-1), jnp.repeat(on, d), rcond)
+        vhat = fit(z)
+        z1 = z + self.dt * vhat
+        return z1, fit(z1)
+    rom._step_impl = impl.__get__(rom)
+    rom._project = project.__get__(rom)
+    rom._step = jax.jit(rom._step_impl)
+
+
+def poke(a, w, params, norm, snap):
+    import jax.numpy as jnp
+
+    from mpmlab.rom import manifold as Mf
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    interval = float(snap.time[1] - snap.time[0])
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        cfg = run_config(snap, k)
+        X, x = snap.x[k, 0], snap.x[k]
+        pts, depth = poke_box_points(cfg, X)
+        t_end = float(cfg.scene.boundaries.poke.t_end)
+        frames = int(round(a.hold / interval))
+        u = lambda xs: 1e3 * np.linalg.norm(xs[:, pts] - X[pts], axis=-1).mean(1)            # noqa: E731
+        rms = lambda e: 1e3 * np.sqrt((e ** 2).sum(-1).mean(-1))                              # noqa: E731
+        print(f"{run}: {len(pts)} points inside the poke box (depth {1e3 * depth.min():.2f}-{1e3 * depth.max():.2f} mm)")
+        for f in range(0, min(frames, int(round(t_end / interval)) + 1) + 1, 12):
+            z = N.encode(params, norm, jnp.asarray(x[f].T))
+            zb, _ = Mf.gauss_newton(params, norm, jnp.asarray(X), jnp.asarray(x[f]), z, iterations=20)
+            xe, xb = (np.asarray(N.g_apply(params, norm, jnp.asarray(X), q[None, :])) for q in (z, zb))
+            print(f"  t {snap.time[f]:.3f} s: poked points moved {u(x[f][None])[0]:.2f} mm; the manifold misses them "
+                  f"by {1e3 * np.linalg.norm(xe - x[f], axis=1)[pts].mean():.2f} (encoder) / "
+                  f"{1e3 * np.linalg.norm(xb - x[f], axis=1)[pts].mean():.2f} mm (best latent); body rms error "
+                  f"{rms(xe - x[f]):.3f} / {rms(xb - x[f]):.3f} mm of {rms(x[f] - X):.3f} mm moved")
+        _, fom = build_full_order(cfg, "fp64")
+        every = int(round(interval / float(fom.dt)))
+        for m in a.samples:
+            rom = reduced_stepper(fom, w, samples=len(X) if m == "all" else int(m), quadrature="lagrangian",
+                                  projection="linear")
+            held = [i for i in rom._forced if i not in set(pts.tolist())]
+            if a.forced == "deepest":
+                forced = np.concatenate([held, pts[np.argsort(-depth, kind="stable")[:5]]]).astype(np.int64)
+                free = np.setdiff1d(np.arange(len(X)), forced)
+                rom._forced, rom._forced_j, rom._free_np, rom._free = forced, jnp.asarray(forced), free, jnp.asarray(free)
+                rom._n_random = rom.samples - len(forced)
+            if a.constrain_kinematic:
+                constrain_kinematic(rom, len(held), len(rom._forced) - len(held), t_end, a.rcond or 1e-3)
+            out = rom.rollout(steps=every * frames, every=every)
+            xr = np.stack([rom._positions(np.asarray(z))[0] for z in out["z"]])
+            c = X.mean(0)
+            e = np.sqrt(np.sum((xr - x[:frames + 1]) ** 2) / np.sum((x[:frames + 1] - c) ** 2))
+            print(f"  reduced, M = {m} (forced {a.forced}{', constrained' if a.constrain_kinematic else ''}): "
+                  f"E {e:.2%} over {a.hold:g} s")
+            for f in list(range(0, min(frames, 72) + 1, 12)) + list(range(144, frames + 1, 144)):
+                print(f"    t {snap.time[f]:.3f} s: poked points {u(x[f][None])[0]:.2f} mm full-order, "
+                      f"{u(xr[f][None])[0]:.2f} mm reduced; body rms error {rms(xr[f] - x[f]):.3f} mm")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=("reconstruction", "rollout", "profile", "one-interval", "equilibrium",
                                            "consistency", "swing", "energy", "attachment",
-                                           "damping", "accounting"))
+                                           "damping", "accounting", "poke"))
     ap.add_argument("runs", type=lambda s: s.split(","))
     ap.add_argument("--tag", default="torsion_grip_l7_s02")
     ap.add_argument("--dt-scale", dest="dt_scale", type=float, default=1.0)
     ap.add_argument("--start", choices=("eq19", "encoder"), default="eq19")
     ap.add_argument("--rcond", type=float, default=0.0)
     ap.add_argument("--frame", type=int, default=-1, help="equilibrium: the snapshot to start from")
-    ap.add_argument("--hold", type=float, default=0.1, help="equilibrium: seconds to run from it")
+    ap.add_argument("--hold", type=float, default=0.1, help="equilibrium: seconds to run from it; poke: seconds of the rollouts")
     ap.add_argument("--projection", choices=("linear", "nonlinear"), default="linear")
     ap.add_argument("--transfers", type=lambda q: q.split(","), default=["pic", "apic", "pic:2"],
                     help="damping: full-order transfers, each optionally :k for dx/k (and dt/k)")
@@ -493,12 +607,17 @@ def main():
                     help="accounting: where the velocity fit takes dg/dx_hat (mpmlab.rom.stepper)")
     ap.add_argument("--boundary-weight", dest="boundary_weight", type=float, default=1.0,
                     help="rollout: weight of the attachment's rows in the velocity least squares (1: Eqs. 21/23)")
+    ap.add_argument("--samples", type=lambda q: q.split(","), default=["50", "all"], help="poke: |M| of the rollouts")
+    ap.add_argument("--forced", choices=("lowest", "deepest"), default="lowest",
+                    help="poke: which 5 points of the poke box are forced samples (the stepper: the lowest indices)")
+    ap.add_argument("--constrain-kinematic", dest="constrain_kinematic", action="store_true",
+                    help="poke: fit the forced samples' rows first while their boundary acts (a study)")
     a = ap.parse_args()
     w, params, norm, snap = setup(a.tag)
     {"reconstruction": reconstruction, "rollout": rollout, "profile": profile,
      "one-interval": one_interval, "equilibrium": equilibrium, "consistency": consistency, "swing": swing,
      "energy": energy, "attachment": attachment, "damping": damping,
-     "accounting": accounting}[a.what](a, w, params, norm, snap)
+     "accounting": accounting, "poke": poke}[a.what](a, w, params, norm, snap)
 
 
 if __name__ == "__main__":
