@@ -102,6 +102,7 @@ class WarpReducedStepper(_ReducedBase):
         scene over the quadrature's fixed-size point set (its budget of lattice points, then the samples): the
         same kernels and walls, no particle boundaries (the step applies the scene's to the samples)."""
         import copy
+        import dataclasses
 
         import torch
         import warp as wp
@@ -120,10 +121,23 @@ class WarpReducedStepper(_ReducedBase):
             q_size=e.q_size, inv_tol=e.inv_tol)
         g = self.fom.groups[0]
         sc = copy.copy(self.scene)
-        sc.boundaries = [b for b in self.scene.boundaries if getattr(b, "stage", "") != "particle_velocity"]
+        # the grid boundaries as the scene's: a grid grip (grid_velocity) takes its rotation centre and its
+        # "holds a particle" check from the particles at t = 0, which the pseudo-particles are not, so its
+        # centre is pinned to the real one and the pseudo-particles start on the real particles' positions,
+        # one of each grip's first (they are massless, and every step overwrites them)
+        X = np.asarray(self.fom.particles.x)
+        sc.boundaries, first = [], []
+        for b in self.scene.boundaries:
+            if getattr(b, "stage", "") == "particle_velocity":
+                continue
+            if getattr(b, "stage", "") == "grid" and hasattr(b, "rotation_center"):
+                first.append(int(np.asarray(b.select(X))[0]))
+                b = dataclasses.replace(b, center=tuple(float(c) for c in b.rotation_center(X)))
+            sc.boundaries.append(b)
+        order = np.concatenate([first, np.setdiff1d(np.arange(len(X)), first)]).astype(np.int64)
         zeros = np.zeros(Q)
         sc.__dict__["_particles"] = ParticleSet(
-            x=np.tile(np.asarray(self.fom.particles.x[:1]), (Q, 1)), v=np.zeros((Q, d)), mass=zeros, volume=zeros,
+            x=np.resize(X[order], (Q, d)), v=np.zeros((Q, d)), mass=zeros, volume=zeros,
             body_id=np.zeros(Q, np.int64), material_id=np.zeros(Q, np.int64),
             groups=[MaterialGroup(g.law, 0, Q, np.tile(np.asarray(e.law_row, float), (Q, 1)), g.weights)])
         fom = self.fom
@@ -133,7 +147,10 @@ class WarpReducedStepper(_ReducedBase):
         self._q_in.order = SimpleNamespace(perm=None, mass=wp.empty_like(ps.mass), vol=wp.empty_like(ps.vol),
                                            params=ps.law_params)
         self._q_in.age = 0
-        # the samples' kinematic boundaries run on scene-indexed scratch arrays (start, end positions, velocity)
+        # the samples' kinematic boundaries run on scene-indexed scratch arrays (start, end positions, velocity),
+        # allocated once and never cleared: a step writes the sample rows and the boundaries' kernels touch
+        # their own points only, so a step costs O(|M| + prescribed points), not O(N); the rows it reads
+        # back (M) are always freshly written, and the other rows only ever hold finite values
         n = fom.particles.count
         self._kb = [wp.zeros(n, dtype=fom.T.vec, device=fom.device) for _ in range(3)] if fom.particle_bcs else None
 
@@ -273,8 +290,6 @@ class WarpReducedStepper(_ReducedBase):
         x_tr = x0 + self.dt * v_tr
         if self._kb is not None:                  # the scene's particle_velocity boundaries on the samples
             xs, xe, vs = self._kb
-            for arr in self._kb:
-                arr.zero_()
             wp.to_torch(xs)[M] = x0
             wp.to_torch(xe)[M] = x_tr
             wp.to_torch(vs)[M] = v_tr
