@@ -267,3 +267,20 @@ def test_floyds_samples_are_distinct_and_uniform():
     assert chi2 < 19 + 4 * np.sqrt(2 * 19)
     big = np.asarray(_floyd_sample(jax.random.PRNGKey(1), 800_000, 50))
     assert len(set(big)) == 50 and big.max() < 800_000
+
+
+def test_the_samples_hold_five_points_of_each_kinematic_boundary():
+    """Sec. 3.3: every step's samples include 5 points of each boundary that declares ``kinematic`` (a
+    prescribed motion: particle_velocity, grid_velocity), and none of a load (particle_load)."""
+    from mpmlab.boundaries import GridVelocity, ParticleLoad, ParticleVelocity, make_boundary
+
+    assert ParticleVelocity.kinematic and GridVelocity.kinematic and not ParticleLoad.kinematic
+    sc = _boundary_scene(2)
+    grip = np.asarray(sc.boundaries[2].select(sc.particles().x))
+    rom = ReducedStepper(build_stepper(sc, "jax", "pic", "fp64"), translation(2), samples=12)
+    assert len(rom._forced) == 5 and set(rom._forced) <= set(grip.tolist())
+    assert all(set(rom._forced) <= set(np.asarray(m).tolist()) for m in rom.draws(3))
+    loaded = scene()
+    region = {"kind": "box", "lo": [0.3, 0.3], "hi": [0.35, 0.4]}
+    loaded.boundaries = [make_boundary({"kind": "particle_load", "region": region, "force": [1.0, 0.0]})]
+    assert len(ReducedStepper(build_stepper(loaded, "jax", "pic", "fp64"), translation(2), samples=12)._forced) == 0

@@ -168,6 +168,7 @@ class ParticleVelocity(AbstractBoundary):
     implementations: ClassVar[dict] = _impl("particle_velocity")
     gradients: ClassVar[tuple] = ("jax", "warp")
     stage: ClassVar[str] = "particle_velocity"
+    kinematic: ClassVar[bool] = True
     region: Mapping[str, Any] = field(default_factory=dict)
     velocity: Sequence[float] = (0.0, 0.0, 0.0)
     t_start: float = 0.0
@@ -253,6 +254,7 @@ class ParticleLoad(ParticleVelocity):
     implementations: ClassVar[dict] = _impl("particle_load")
     gradients: ClassVar[tuple] = ("jax", "warp")
     stage: ClassVar[str] = "particle_force"
+    kinematic: ClassVar[bool] = False           # a load, not a prescribed motion
     force: Sequence[float] = (0.0, 0.0, 0.0)
 
     def validate(self, scene) -> None:

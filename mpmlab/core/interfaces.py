@@ -580,6 +580,10 @@ class AbstractBoundary(_Pluggable, ABC):
     #: columns). JAX differentiates its (pure) implementation; on Warp the factory's result must give
     #: ``tape()``, a tape-safe implementation (``mpmlab/backends/warp/boundaries.py``).
     gradients: ClassVar[tuple] = ("jax",)
+    #: True where the boundary prescribes the motion of the material it holds (a Dirichlet condition on
+    #: particles or on grid nodes). Such a boundary also gives ``select(x) -> indices`` of the material
+    #: points it holds at t = 0: the reduced model samples at least five of them (ROM paper Sec. 3.3).
+    kinematic: ClassVar[bool] = False
 
     @abstractmethod
     def validate(self, scene) -> None:

@@ -41,8 +41,9 @@ so P2G, the grid update, every boundary, G2P and the law's ``kirchhoff`` are the
   kinetic energy at any dt (benchmarks/rom.md, "The explicit Jacobian gains energy"). The linear projection still steps
   x_hat_{n+1} = x_hat_n + dt v_hat with the explicit fit (Alg. 7), then refits v_hat at x_hat_{n+1}.
 * **Samples** M: ``samples`` points drawn anew every step, uniformly without replacement from a seeded
-  key, plus at least ``per_boundary`` (5) points of each kinematic boundary (Sec. 3.3): a
-  particle_velocity region, or the particles initially inside a grid_velocity box (a grip or a poke).
+  key, plus at least ``per_boundary`` (5) points of each kinematic boundary (Sec. 3.3; a boundary that
+  declares ``kinematic``): a particle_velocity region, or the particles initially inside a grid_velocity
+  box (a grip or a poke).
 * **Initial state** (Eq. 19): x_hat(0), v_hat(0) fitted to the scene's initial positions and
   velocities, from the encoder's latent when the weights have one (else zero).
 * PIC only and hyperelastic laws only (F must be a function of the deformation map): others refused.
@@ -203,7 +204,7 @@ class _ReducedBase(AbstractStepper):
         # particles initially inside a grid grip's box (a poke: its nodes move the samples there)
         forced = []
         for b in self.scene.boundaries:
-            if getattr(b, "stage", "") == "particle_velocity" or getattr(b, "name", "") == "grid_velocity":
+            if getattr(b, "kinematic", False):             # a prescribed motion (AbstractBoundary.kinematic)
                 idx = np.asarray(b.select(P.x))
                 forced.append(idx[:max(0, min(int(per_boundary), len(idx)))] if len(idx) else idx)
         self._forced = np.unique(np.concatenate(forced)).astype(np.int64) if forced else np.zeros(0, np.int64)
