@@ -205,7 +205,10 @@ def fig78_report() -> list[str]:
             "test runs, tangent `next`. Each training: 480 points per snapshot, 85 epochs (the paper's schedule x 0.1), "
             "batch 8, seed 0 (`python benchmarks/rom.py --study gravity --resolution default --latent L --lambda-F LF "
             "--lambda-v LV --points 480 --schedule \"[[1e-3,50],[1e-4,20],[1e-5,10],[1e-6,5]]\" --tag "
-            "fig78_lL_lfLF_lvLV --samples all`). The paper (Fig. 7, latent 7): errors within 0-0.3 %, λ_v helping the "
+            "fig78_lL_lfLF_lvLV --samples all --quadratures lagrangian --projections linear`). Lagrangian + linear only: "
+            "with every point a sample the nonlinear projection took 1,620 s per simulated second on the shared 2 cores "
+            "(about 50 min per training for the 6 test runs) and the Eulerian quadrature more; a dash is a scheme not "
+            "run. The paper (Fig. 7, latent 7): errors within 0-0.3 %, λ_v helping the "
             "linear projection, λ_F all four schemes; (Fig. 8) the error falling with the latent size, latent 1 worst "
             "(up to 1 %). Plot: `results/rom/fig7_8.png`.", "",
             *md_table(["latent", "λ_F", "λ_v", "epochs", "recon. E"] + list(SCHEMES), rows), ""]
