@@ -59,7 +59,8 @@ def test_rom_eval_task_writes_errors_and_timings(torsion, tmp_path):
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk["schemes"][0]["E"] == res["schemes"][0]["E"]
     assert "| eulerian+nonlinear, M=all |" in (out / "rom_eval.md").read_text()
-    assert (out / "rom_eval.png").exists()
+    assert (out / "rom_eval.png").exists() and (out / "rom_latent.png").exists()
+    assert all(0.0 <= r["latent_return"] <= 1.0 for r in res["rows"]) and "x̂ return" in (out / "rom_eval.md").read_text()
 
 
 def test_rom_eval_refuses_runs_the_weights_were_trained_on(torsion, tmp_path):
@@ -170,6 +171,21 @@ def test_error_measures_of_a_uniform_offset():
     assert err["E_v"] == pytest.approx(0.0, abs=1e-12)
     assert err["E_F"] is None                                       # F = I: no deformation to be relative to
     assert per_frame["x"] == pytest.approx([30 * 0.005 ** 2] * 2, rel=1e-9)
+
+
+def test_latent_return_and_principal_components():
+    """Fig. 14's measures: a latent that goes out and comes back returns 0, one that stays out returns 1;
+    its principal components hold the motion (a planar loop in 4 latent dimensions: 2 components, all of it)."""
+    from mpmlab.rom import evaluate as ev
+
+    t = np.linspace(0.0, 2.0 * math.pi, 50)
+    loop = np.stack([np.sin(t), 1.0 - np.cos(t), 0.0 * t, 0.0 * t], 1) @ np.linalg.qr(np.arange(16.0).reshape(4, 4) + np.eye(4))[0]
+    assert ev.latent_return(loop) == pytest.approx(0.0, abs=1e-12)
+    assert ev.latent_return(np.linspace(0.0, 1.0, 10)[:, None] * np.ones((1, 3))) == pytest.approx(1.0)
+    assert ev.latent_return(np.ones((5, 3))) is None
+    proj, share = ev.latent_pca(loop)
+    assert proj.shape == (50, 2) and share.sum() == pytest.approx(1.0)
+    assert np.linalg.norm(proj[0] - proj[-1]) == pytest.approx(0.0, abs=1e-12)
 
 
 # ---- Tab. 4's tracer baseline ----------------------------------------------------------------------------

@@ -104,6 +104,29 @@ def error_sums(xr, vr, Fr, x, v, F, X, c):
             "F": float(np.sum((Fr - F) ** 2)), "F_I": float(np.sum((F - eye) ** 2))}
 
 
+def latent_return(z) -> float | None:
+    """How far x_hat ends from where it started, relative to its largest excursion: |x_hat(T) - x_hat(0)| /
+    max_t |x_hat(t) - x_hat(0)| (Fig. 14's "return property": 0 when a poked body's latent comes back to
+    its start; None when x_hat never moved)."""
+    z = np.asarray(z, float)
+    far = float(np.max(np.linalg.norm(z - z[0], axis=1)))
+    return float(np.linalg.norm(z[-1] - z[0]) / far) if far > 0 else None
+
+
+def latent_pca(z) -> tuple[np.ndarray, np.ndarray]:
+    """(the trajectory x_hat(t) [T, d_hat] on its first two principal components [T, 2], their share of
+    the variance [2]): Fig. 14's view of a reduced rollout."""
+    z = np.asarray(z, float)
+    c = z - z.mean(axis=0)
+    _, sv, vt = np.linalg.svd(c, full_matrices=False)
+    k = min(2, vt.shape[0])
+    share = sv[:k] ** 2 / max(float(np.sum(sv ** 2)), np.finfo(float).tiny)
+    proj = c @ vt[:k].T
+    if k < 2:
+        proj, share = np.pad(proj, ((0, 0), (0, 2 - k))), np.pad(share, (0, 2 - k))
+    return proj, share
+
+
 def errors_of(sums: dict) -> dict:
     return {k: (math.sqrt(sums[a] / sums[b]) if sums[b] > 0 else None) for k, (a, b) in _SUMS.items()}
 
@@ -191,7 +214,8 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
                 per_frame, sums = _sums(params, norm, Xt, out["z"], out["zdot"], truth.x[k], truth.v[k],
                                         truth.F[k], c)
                 row.update(sums=sums, per_frame=per_frame, **errors_of(sums), outside=int(out["state"].outside),
-                           unconverged=int(out["state"].unconverged), z=out["z"].tolist())
+                           unconverged=int(out["state"].unconverged), z=out["z"].tolist(),
+                           latent_return=latent_return(out["z"]))
             else:
                 row.update(message=why, diverged_at_step=at)
             rows.append(row)
@@ -212,7 +236,9 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
         table.append({"scheme": sch.label, "quadrature": sch.quadrature, "projection": sch.projection,
                       "samples": sch.samples, "runs": len(mine), "diverged": len(mine) - len(ok),
                       **(errors_of(pooled) if pooled and len(ok) == len(mine) else {k: None for k in _SUMS}),
-                      "wall_s_per_simulated_s": wall / sim if sim else None})
+                      "wall_s_per_simulated_s": wall / sim if sim else None,
+                      "latent_return": max((r["latent_return"] for r in ok if r["latent_return"] is not None),
+                                           default=None)})
     fom_wall = sum(f["wall_s"] for f in fom_rows)
     fom_sim = sum(f["simulated_s"] for f in fom_rows)
     fom = {"backend": fom_backend, "rom_backend": backend, "transfer": "pic", "precision": precision, "timed_steps": [f["steps"] for f in fom_rows],

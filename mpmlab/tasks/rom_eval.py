@@ -11,7 +11,9 @@ Tabs. 3-6), and relative to the displacement, the velocity and F - I. ``task.tru
 ``torsion_fine``); ``task.tracer_baseline=true`` adds Tab. 4's baseline, the finer points advected as
 massless tracers through the coarse full-order runs. Outputs: ``summary.json`` (per scheme and per run, the latent trajectories, ROM and
 FOM wall time per simulated second from this process), ``rom_eval.md`` (the table) and
-``rom_eval.png`` (E against time per scheme).
+``rom_eval.png`` (E against time per scheme) and ``rom_latent.png`` (Fig. 14: each run's latent trajectory
+on its first two principal components; the table's "x̂ return" is |x̂(T) - x̂(0)| over x̂'s largest
+excursion from x̂(0), the worst run: near 0 where the body's latent comes back after a poke).
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from .common import SUMMARY, save_figure, write_config, write_json, write_text
 log = logging.getLogger("mpmlab")
 TABLE = "rom_eval.md"
 PLOT = "rom_eval.png"
+LATENT_PLOT = "rom_latent.png"
 
 
 @dataclass
@@ -173,6 +176,7 @@ def run(cfg, ctx) -> dict:
     write_text(out / TABLE, table_markdown(summary), True)
     if cfg.output.plots:
         _plot(out / PLOT, summary)
+        _plot_latent(out / LATENT_PLOT, summary)
     best = min((r for r in res["schemes"] if r["E"] is not None), key=lambda r: r["E"], default=None)
     print(f"mpmlab: rom_eval {s.name}: {len(snap.names)} test runs x {len(sch)} schemes"
           + (f"; best {best['scheme']}: E {best['E']:.2%}" if best else "")
@@ -197,18 +201,18 @@ def table_markdown(s: dict) -> str:
              f"Errors in % (pooled over runs, snapshots and points); reduced model on {s['fom'].get('rom_backend', 'jax')}. "
              f"Full-order model ({s['fom']['backend']}, PIC): "
              f"{fom:.3g} s per simulated s." if fom else "", "",
-             "| scheme | E | E (displacement) | E_v | E_F | s per simulated s | speed-up | diverged |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| scheme | E | E (displacement) | E_v | E_F | s per simulated s | speed-up | x̂ return | diverged |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in s["schemes"]:
         sp = r["speedup_vs_fom"]
         lines.append(f"| {r['scheme']} | {_pct(r['E'])} | {_pct(r['E_displacement'])} | {_pct(r['E_v'])} | "
                      f"{_pct(r['E_F'])} | {r['wall_s_per_simulated_s']:.3g} | {'—' if sp is None else f'{sp:.2f}x'} | "
-                     f"{r['diverged']}/{r['runs']} |")
+                     f"{_pct(r.get('latent_return'))} | {r['diverged']}/{r['runs']} |")
     tb = s.get("tracer_baseline")
     if tb:
         lines.append(f"| tracer baseline (the truth's points advected in the coarse full-order run) | {_pct(tb['E'])} | "
                      f"{_pct(tb['E_displacement'])} | {_pct(tb['E_v'])} | {_pct(tb['E_F'])} | "
-                     f"{tb['wall_s_per_simulated_s']:.3g} | — | — |")
+                     f"{tb['wall_s_per_simulated_s']:.3g} | — | — | — |")
     lines += ["", "E = sqrt(sum |x_ROM - x_FOM|^2 / sum |x_FOM - c|^2), c the initial centroid (mpmlab.rom.evaluate)."]
     return "\n".join(lines) + "\n"
 
@@ -230,5 +234,38 @@ def _plot(path: Path, s: dict) -> None:
         ax.plot(t, 100 * np.sqrt(num / den), label=sch["scheme"], lw=1.2)
     ax.set_xlabel("time [s]"); ax.set_ylabel("E per snapshot [%]")
     ax.set_title(f"rom_eval {s['study']}: latent {s['latent']}", fontsize=9); ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path, "rom_eval")
+
+
+def _plot_latent(path: Path, s: dict) -> None:
+    """Fig. 14: per run (first scheme that ran), x̂(t) on its first two principal components, the start
+    marked and the step numbers annotated at a few frames."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..rom.evaluate import latent_pca
+
+    rows = next(([r for r in s["rows"] if r["scheme"] == sch["scheme"] and r["status"] == "ok" and r.get("z")]
+                 for sch in s["schemes"] if any(r["scheme"] == sch["scheme"] and r["status"] == "ok" for r in s["rows"])),
+                [])[:4]
+    if not rows:
+        return
+    fig, axes = plt.subplots(1, len(rows), figsize=(3.6 * len(rows), 3.4), squeeze=False)
+    for ax, r in zip(axes[0], rows):
+        p, share = latent_pca(r["z"])
+        every = max(1, round(r["steps"] / max(1, len(p) - 1)))
+        ax.plot(p[:, 0], p[:, 1], lw=0.8)
+        ax.plot(p[0, 0], p[0, 1], "ko", ms=5, label="x̂(0)")
+        for i in np.linspace(0, len(p) - 1, 7).astype(int)[1:]:
+            ax.annotate(str(i * every), p[i], fontsize=6)
+        ret = r.get("latent_return")
+        ax.set_title(f"{r['run']}: return {'—' if ret is None else f'{100 * ret:.1f} %'}", fontsize=8)
+        ax.set_xlabel(f"PC 1 ({100 * share[0]:.0f} %)", fontsize=7)
+        ax.set_ylabel(f"PC 2 ({100 * share[1]:.0f} %)", fontsize=7)
+        ax.legend(fontsize=6)
+    fig.suptitle(f"rom_eval {s['study']}: {rows[0]['scheme']}, latent on its principal components (Fig. 14)", fontsize=9)
     fig.tight_layout()
     save_figure(fig, path, "rom_eval")
