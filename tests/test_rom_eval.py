@@ -173,6 +173,20 @@ def test_error_measures_of_a_uniform_offset():
     assert per_frame["x"] == pytest.approx([30 * 0.005 ** 2] * 2, rel=1e-9)
 
 
+def test_a_study_without_parameters_is_not_taken_for_a_training_run():
+    """The continual poke (one run, no parameters) evaluated with weights trained on the poke study is not
+    refused; a poke run the weights were trained on is."""
+    from types import SimpleNamespace
+
+    from mpmlab.rom.snapshots import study
+    from mpmlab.tasks.rom_eval import check_not_trained_on
+
+    w = SimpleNamespace(training={"study": "poke", "params": [{"theta": 0.0}, {"theta": math.pi / 6}]})
+    check_not_trained_on(w, study("poke_continual"), [0])
+    with pytest.raises(ConfigError, match="one of the weights' training runs"):
+        check_not_trained_on(w, study("poke"), [3])
+
+
 def test_latent_return_and_principal_components():
     """Fig. 14's measures: a latent that goes out and comes back returns 0, one that stays out returns 1;
     its principal components hold the motion (a planar loop in 4 latent dimensions: 2 components, all of it)."""

@@ -100,6 +100,8 @@ def check_not_trained_on(weights, s, test_runs) -> None:
     if not t or not t.get("params"):
         return
     names = list(s.param_names)
+    if not names:        # runs without parameters (e.g. the continual poke's one run) cannot repeat a training run's
+        return
     seen = [tuple(float(p[k]) for k in names) for p in t["params"] if all(k in p for k in names)]
     for i in test_runs:
         key = tuple(float(s.runs[i].params[k]) for k in names)
