@@ -220,6 +220,9 @@ def test_labeled_baseline_and_eval_task(dataset, tmp_path, capsys):
     s = json.loads((run / "summary.json").read_text())
     assert s["method"] == "labeled" and s["true_law"] == "fixed_corotated"
     assert s["labeled"]["e"]["loss_final"] < 1e-2 * s["labeled"]["e"]["loss_initial"]
+    for net in ("e", "p"):      # each net keeps its best epoch: never worse than it started or ended
+        r = s["labeled"][net]
+        assert 0 <= r["best_epoch"] <= 30 and r["loss_final"] <= min(r["loss_initial"], r["loss_last_epoch"])
     weights = run / "nclaw_weights.safetensors"
     # its rollout's range is recorded as a teacher-forced training's is (the divergence note reads it)
     assert Law(weights_file=str(weights)).trained_range() == s["state_range"]

@@ -7,7 +7,8 @@ two networks fitted directly to ground-truth constitutive pairs instead of throu
   -- against the dataset's F_{n+1} (MLS-MPM's velocity gradient is C, NCLaw App. D.1).
 
 Adam (lr 0.1 for both, the release's), mini-batches of 1,000 pairs, 30 epochs, on JAX (a regression,
-not a rollout: the resulting weight file runs on both backends). Each net's loss is the MSE scaled by
+not a rollout: the resulting weight file runs on both backends); each net keeps its best epoch (the lowest
+loss over all pairs, checked after every epoch). Each net's loss is the MSE scaled by
 the variance of its targets, so one learning rate suits stresses in Pa and F near I.
 """
 from __future__ import annotations
@@ -121,18 +122,27 @@ def fit_labeled(law, dim: int, pairs: dict[str, np.ndarray], dt: float, epochs: 
         nb = max(1, math.ceil(M / batch))
         bar = tqdm(total=epochs * nb, disable=None if progress is None else not progress, leave=False,
                    desc=f"labeled {net}")
-        for _ in range(int(epochs)):
+        # the weights of the epoch with the lowest loss over every pair are kept: at the release's lr 0.1 the
+        # plastic net, which starts near its target (F_new ~ F_trial), can climb away from it again, and
+        # whether it does varies with the float round-off of the machine (a 14x rise on one CPU, a 3e5x fall
+        # on another, same data and seed)
+        best, best_epoch, last = first, 0, first
+        keep = dict(train)
+        for epoch in range(1, int(epochs) + 1):
             perm = rng.permutation(M)
             for b in range(nb):
                 sel = jnp.asarray(perm[b * batch:(b + 1) * batch])
                 train, state, _ = step(train, state, *(a[sel] for a in data))
                 bar.update(1)
+            last = float(full(train, *data))
+            if math.isfinite(last) and last < best:
+                best, best_epoch, keep = last, epoch, dict(train)
         bar.close()
-        last = float(full(train, *data))
-        if not math.isfinite(last):
+        if not math.isfinite(last) and best_epoch == 0:
             from ..core.errors import FitDiverged
             raise FitDiverged(f"labeled baseline: the {net} network's loss became {last}; lower the learning rate.")
-        weights.update(train)
-        report[net] = {"pairs": M, "loss_initial": first, "loss_final": last, "seconds": time.perf_counter() - t0,
+        weights.update(keep)
+        report[net] = {"pairs": M, "loss_initial": first, "loss_final": best, "loss_last_epoch": last,
+                       "best_epoch": best_epoch, "seconds": time.perf_counter() - t0,
                        "target_variance": scale_e if net == "e" else scale_p}
     return {k: np.asarray(v, np.float64) for k, v in weights.items()}, report
