@@ -109,7 +109,8 @@ def run(a) -> None:
     t.pop("history", None)                      # the loss curve is in training.png and the run's recording
     (dst / "train.json").write_text(json.dumps(t, indent=1))
     keep_eval(ev, dst / f"eval{suffix}.json")
-    for f, name in ((train / "training.png", "training.png"), (ev / "rom_eval.png", f"rom_eval{suffix}.png")):
+    for f, name in ((train / "training.png", "training.png"), (ev / "rom_eval.png", f"rom_eval{suffix}.png"),
+                    (ev / "rom_latent.png", f"rom_latent{suffix}.png")):
         if f.exists():
             shutil.copy(f, dst / name)
 

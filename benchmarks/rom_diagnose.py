@@ -13,7 +13,7 @@
     python benchmarks/rom_diagnose.py --tag gravity_l4_s02 damping g26 [--transfers pic,apic,pic:2]
     python benchmarks/rom_diagnose.py --tag gravity_lf100_p480_e85 accounting g26 [--tangent current] [--dt-scale 0.5]
     python benchmarks/rom_diagnose.py --tag poke_l6_p480_e85 poke k01 [--samples 50,all] [--hold 0.5]
-        [--forced deepest] [--constrain-kinematic] [--no-poke]
+        [--forced deepest] [--constrain-kinematic] [--no-poke] [--rcond 1e-2]
 
 * ``reconstruction``: encoder + g on every snapshot of a run: E, E_displacement, E_F (relative to F - I)
   and E_v of the manifold's own tangent velocities, from the encoder's latents (finite differences in time)
@@ -50,7 +50,8 @@
   manifold's error there (the encoder's latent, and the best latent, Gauss-Newton on all points) and the
   body's rms error, at the snapshots of the poke; then reduced rollouts (Lagrangian + linear, each
   ``--samples``) over ``--hold`` seconds: the poked points' mean displacement against the full-order one.
-  ``--forced deepest`` forces the 5 points deepest inside the box instead of the 5 lowest indices;
+  Also the latent's largest excursion from its start, beside the encoder's on the full-order snapshots
+  (``--rcond``: the velocity least squares truncated there). ``--forced deepest`` forces the 5 points deepest inside the box instead of the 5 lowest indices;
   ``--constrain-kinematic`` fits the forced samples' rows first while their boundary acts (a
   lexicographic least squares: the free rows only in the forced rows' null space, SVD truncated at
   ``--rcond``, default 1e-3). Both are studies, not options of the stepper.
@@ -545,6 +546,11 @@ def poke(a, w, params, norm, snap):
     from mpmlab.rom.evaluate import build_full_order, run_config
     from mpmlab.rom.stepper import reduced_stepper
 
+    if a.rcond and not a.constrain_kinematic:     # the velocity least squares truncated (as ``rollout``)
+        def truncated(J, r):
+            U, S, Vt = jnp.linalg.svd(J, full_matrices=False)
+            return Vt.T @ (jnp.where(S > a.rcond * S[0], 1.0 / S, 0.0) * (U.T @ r))
+        Mf._lstsq = truncated
     interval = float(snap.time[1] - snap.time[0])
     for run in a.runs:
         k = list(snap.names).index(run)
@@ -583,8 +589,13 @@ def poke(a, w, params, norm, snap):
             xr = np.stack([rom._positions(np.asarray(z))[0] for z in out["z"]])
             c = X.mean(0)
             e = np.sqrt(np.sum((xr - x[:frames + 1]) ** 2) / np.sum((x[:frames + 1] - c) ** 2))
-            print(f"  reduced, M = {m} (forced {a.forced}{', constrained' if a.constrain_kinematic else ''}): "
-                  f"E {e:.2%} over {a.hold:g} s")
+            zs = np.asarray(out["z"])
+            ze = encoded(params, norm, x[:frames + 1])
+            far = lambda q: np.linalg.norm(q - q[0], axis=1)                                  # noqa: E731
+            print(f"  reduced, M = {m} (forced {a.forced}{', constrained' if a.constrain_kinematic else ''}"
+                  f"{f', rcond {a.rcond:g}' if a.rcond and not a.constrain_kinematic else ''}): E {e:.2%} over {a.hold:g} s; "
+                  f"latent's largest excursion from its start {far(zs).max():.2f} (the encoder's of the full-order "
+                  f"snapshots: {far(ze).max():.2f}), at the end {far(zs)[-1]:.2f} ({far(ze)[-1]:.2f})")
             for f in list(range(0, min(frames, 72) + 1, 12)) + list(range(144, frames + 1, 144)):
                 print(f"    t {snap.time[f]:.3f} s: poked points {u(x[f][None])[0]:.2f} mm full-order, "
                       f"{u(xr[f][None])[0]:.2f} mm reduced; body rms error {rms(xr[f] - x[f]):.3f} mm, reduced body "

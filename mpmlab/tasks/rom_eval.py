@@ -255,7 +255,7 @@ def _plot_latent(path: Path, s: dict) -> None:
                 [])[:4]
     if not rows:
         return
-    fig, axes = plt.subplots(1, len(rows), figsize=(3.6 * len(rows), 3.4), squeeze=False)
+    fig, axes = plt.subplots(1, len(rows), figsize=(max(5.5, 3.6 * len(rows)), 3.8), squeeze=False)
     for ax, r in zip(axes[0], rows):
         p, share = latent_pca(r["z"])
         every = max(1, round(r["steps"] / max(1, len(p) - 1)))
@@ -268,6 +268,6 @@ def _plot_latent(path: Path, s: dict) -> None:
         ax.set_xlabel(f"PC 1 ({100 * share[0]:.0f} %)", fontsize=7)
         ax.set_ylabel(f"PC 2 ({100 * share[1]:.0f} %)", fontsize=7)
         ax.legend(fontsize=6)
-    fig.suptitle(f"rom_eval {s['study']}: {rows[0]['scheme']}, latent on its principal components (Fig. 14)", fontsize=9)
+    fig.suptitle(f"rom_eval {s['study']}: {rows[0]['scheme']}\nthe latent on its principal components (Fig. 14)", fontsize=8)
     fig.tight_layout()
     save_figure(fig, path, "rom_eval")
