@@ -89,6 +89,19 @@ def setup(tag: str):
     return w, N.to_jax(w.params, jnp.float64), N.to_jax(w.norm, jnp.float64), snap
 
 
+def truncate_least_squares(rcond):
+    """Make the reduced model's least squares (``mpmlab.rom.manifold._lstsq``) drop singular values below
+    ``rcond`` of the largest (a study, not an option of the stepper)."""
+    import jax.numpy as jnp
+
+    from mpmlab.rom import manifold as Mf
+
+    def truncated(J, r):
+        U, S, Vt = jnp.linalg.svd(J, full_matrices=False)
+        return Vt.T @ (jnp.where(S > rcond * S[0], 1.0 / S, 0.0) * (U.T @ r))
+    Mf._lstsq = truncated
+
+
 def free_tenth(X):
     """Boolean [N]: the tenth of the points farthest along the body's long axis (the free end)."""
     along = X[:, int(np.argmax(np.ptp(X, 0)))]
@@ -164,10 +177,7 @@ def rollout(a, w, params, norm, snap):
     from mpmlab.rom.stepper import reduced_stepper
 
     if a.rcond:
-        def truncated(J, r):
-            U, S, Vt = jnp.linalg.svd(J, full_matrices=False)
-            return Vt.T @ (jnp.where(S > a.rcond * S[0], 1.0 / S, 0.0) * (U.T @ r))
-        Mf._lstsq = truncated
+        truncate_least_squares(a.rcond)
     T = snap.x.shape[1]
     interval = float(snap.time[1] - snap.time[0])
     for run in a.runs:
@@ -547,10 +557,7 @@ def poke(a, w, params, norm, snap):
     from mpmlab.rom.stepper import reduced_stepper
 
     if a.rcond and not a.constrain_kinematic:     # the velocity least squares truncated (as ``rollout``)
-        def truncated(J, r):
-            U, S, Vt = jnp.linalg.svd(J, full_matrices=False)
-            return Vt.T @ (jnp.where(S > a.rcond * S[0], 1.0 / S, 0.0) * (U.T @ r))
-        Mf._lstsq = truncated
+        truncate_least_squares(a.rcond)
     interval = float(snap.time[1] - snap.time[0])
     for run in a.runs:
         k = list(snap.names).index(run)

@@ -250,10 +250,11 @@ def _plot_latent(path: Path, s: dict) -> None:
 
     from ..rom.evaluate import latent_pca
 
-    rows = next(([r for r in s["rows"] if r["scheme"] == sch["scheme"] and r["status"] == "ok" and r.get("z")]
-                 for sch in s["schemes"] if any(r["scheme"] == sch["scheme"] and r["status"] == "ok" for r in s["rows"])),
-                [])[:4]
-    if not rows:
+    for sch in s["schemes"]:
+        rows = [r for r in s["rows"] if r["scheme"] == sch["scheme"] and r["status"] == "ok" and r.get("z")][:4]
+        if rows:
+            break
+    else:
         return
     fig, axes = plt.subplots(1, len(rows), figsize=(max(5.5, 3.6 * len(rows)), 3.8), squeeze=False)
     for ax, r in zip(axes[0], rows):
