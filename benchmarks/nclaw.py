@@ -131,7 +131,8 @@ def checkpoint_epoch(path: Path) -> int:
 
 
 def evaluate(material: str, backend: str, weights: Path | None, label: str, cases: list[str], precision: str,
-             law_params: dict | None = None, tag: str = "", partners: dict | None = None, init_seed: int = 0):
+             law_params: dict | None = None, tag: str = "", partners: dict | None = None, init_seed: int = 0,
+             learned_cfl_limit: float | None = None):
     run = RES / "eval" / f"{material}_{backend}_{label}{tag}"
     summary = run / "summary.json"
     if summary.exists():
@@ -145,6 +146,8 @@ def evaluate(material: str, backend: str, weights: Path | None, label: str, case
         args.append(f"task.init_seed={init_seed}")
     for k, v in (partners or {}).items():
         args.append(f"+task.partner_weights.{k}={v}")
+    if learned_cfl_limit is not None:
+        args.append(f"task.learned_cfl_limit={learned_cfl_limit}")
     for k, v in (law_params or {}).items():
         args.append(f"+task.law_params.{k}={v!r}")
     rc = mpmlab(args)
@@ -155,7 +158,7 @@ def evaluate(material: str, backend: str, weights: Path | None, label: str, case
 EXTRAS = {"jelly": ("contact", "pool"), "plasticine": ("melting",), "water": ("incline",)}
 
 
-def extras(material: str, backend: str, weights: Path, precision: str) -> None:
+def extras(material: str, backend: str, weights: Path, precision: str, learned_cfl_limit: float | None = None) -> None:
     """The material's qualitative cases (``EXTRAS``) once its training (and each partner's: SAND's for
     the melting) has finished; their metric and wall times go to the report's "Figs. 3-4" table."""
     from mpmlab.nclaw.scenes import eval_cases
@@ -171,7 +174,7 @@ def extras(material: str, backend: str, weights: Path, precision: str) -> None:
             partners[p] = RES / "train" / f"{p}_{backend}" / "nclaw_weights.safetensors"
     if cases:
         evaluate(material, backend, weights, "ours", [c.name for c in cases], precision, tag="_extras",
-                 partners=partners)
+                 partners=partners, learned_cfl_limit=learned_cfl_limit)
 
 
 def fmt(v):
@@ -270,6 +273,9 @@ def main():
     ap.add_argument("--baselines", action="store_true", help="also the labeled and sys-id baselines (NCLaw Tab. 1)")
     ap.add_argument("--no-extras", dest="extras", action="store_false",
                     help="skip the qualitative cases (contact, pool, melting, incline: NCLaw Figs. 3-4)")
+    ap.add_argument("--learned-cfl-limit", type=float, default=None,
+                    help="the qualitative cases' cfl_limit for the learned law (task.learned_cfl_limit): NCLaw runs "
+                         "them at its dt whatever the learned tangent's wave speed (nclaw.md, 'Figs. 3-4')")
     ap.add_argument("--seed", type=int, default=0, help="the networks' initial-weight seed (material.options.seed); "
                                                         "give another seed its own --results folder")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/nclaw.md from the results")
@@ -305,7 +311,7 @@ def main():
             evaluate(m, backend, weights, "ours", cases, a.precision)
             evaluate(m, backend, None, "ours-init", ["reconstruction"], a.precision, init_seed=SEED)
             if a.extras:
-                extras(m, backend, weights, a.precision)
+                extras(m, backend, weights, a.precision, a.learned_cfl_limit)
             if a.baselines:
                 lab = train(m, backend, 1.0, a.epochs, deadline - time.time(), a.precision, "labeled")
                 if lab is not None and lab.get("status") == "ok":
