@@ -141,6 +141,19 @@ def test_poke_study():
     assert s.snapshots == 432 and s.interval == 1 / 144
 
 
+def test_the_slow_poke_is_the_poke_at_4_8_mm_per_s():
+    from mpmlab.config import compose
+
+    fast, slow = S.study("poke"), S.study("poke_slow")
+    assert slow.train == fast.train and slow.test == fast.test
+    np.testing.assert_array_equal(slow.param_array(), fast.param_array())
+    # both the run's own overrides and the sweep (the experiment's vars merged with the swept theta)
+    assert compose(list(slow.runs[1].overrides)).scene.vars.speed == 0.0048
+    assert compose(list(fast.runs[1].overrides)).scene.vars.speed == 0.048
+    swept = compose(["experiment=rom_snapshots_poke_slow", "scene.vars={theta:0.5}"]).scene.vars
+    assert swept.speed == 0.0048 and swept.theta == 0.5
+
+
 def test_continual_pokes_are_seeded():
     a, b = S.continual_pokes(0), S.continual_pokes(1)
     assert len(a) == 10 and [p["t_start"] for p in a] == [3.0 * i for i in range(10)]
