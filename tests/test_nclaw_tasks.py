@@ -229,13 +229,15 @@ def test_labeled_baseline_and_eval_task(dataset, tmp_path, capsys):
     assert s["state_range"]["frames"] == 20 and s["state_range"]["inverted"] == 0
     ev = tmp_path / "eval"
     mpmlab_cli(["task=nclaw_eval", "task.material=jelly", f"task.weights={weights}", "precision=fp64",
-                "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], capsys)
+                "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200, tags: [qualitative]}]",
+                f"hydra.run.dir={ev}"], capsys)
     e = json.loads((ev / "summary.json").read_text())
     mse = e["cases"]["recon"]["mse"]
     assert e["cases"]["recon"]["status"] == "ok" and mse <= 1e-6, mse
     # the learned law's states every 50 steps (0, 50, ..., 200), inside the range of its training scene
     assert e["cases"]["recon"]["state_range"]["frames"] == 5 and "beyond_training" not in e["cases"]["recon"]
     assert (ev / "eval.md").read_text().count("| recon |") == 2
+    assert (ev / "recon_frames.png").stat().st_size > 0     # a qualitative case is shown, truth beside learned
     xs = {}
     for name, extra in (("truth", ["material=jelly"]), ("learned", ["material=nclaw", f"+material.options.weights_file={weights}"])):
         mpmlab_cli(["scene=nclaw_square_2d", *extra, "precision=fp64", "scene.frame_every=5", "output.recording=false",
@@ -257,7 +259,8 @@ def test_sysid_baseline(dataset, tmp_path, capsys):
     assert E["relative_error"] < 0.05, E
     ev = tmp_path / "eval"
     mpmlab_cli(["task=nclaw_eval", "task.material=jelly", f"+task.law_params.E={E['recovered']}", "precision=fp64",
-                "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200}]", f"hydra.run.dir={ev}"], capsys)
+                "task.cases=[{name: recon, scene: nclaw_square_2d, steps: 200, tags: [qualitative]}]",
+                f"hydra.run.dir={ev}"], capsys)
     e = json.loads((ev / "summary.json").read_text())
     assert e["label"] == "sys-id" and e["cases"]["recon"]["mse"] <= 1e-6, e["cases"]
 

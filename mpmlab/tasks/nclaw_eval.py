@@ -14,8 +14,8 @@ run directory or from ``task.truth_dir``, so ours, ours-init and other weights s
 Outputs: ``summary.json`` (per case: the metric, the paper's value where Tabs. 1-2 give one, wall
 times, particles, steps, status; for a learned law its ``state_range`` every 50 steps and, where the
 weight file records its training's range, ``beyond_training``: where the rollout left it, also logged
-as a warning, since the metric then measures an extrapolation), ``eval.md`` (the table), ``eval.png`` (MSE per frame) and the
-ground-truth cache. A learned rollout that diverges is reported as such; the other cases still run.
+as a warning, since the metric then measures an extrapolation), ``eval.md`` (the table), ``eval.png`` (MSE per frame), ``<case>_frames.png`` for the qualitative
+cases (truth and learned particles side by side at four frames) and the ground-truth cache. A learned rollout that diverges is reported as such; the other cases still run.
 """
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ class NclawEvalConfig(TaskConfig):
     #: initialisation (NCLaw's "ours-init")
     weights: str = ""
     #: case names of mpmlab.nclaw.scenes.eval_cases(material) ("all": every one), or mappings
-    #: {name, scene, steps, overrides: [...]} for scenes of your own
+    #: {name, scene, steps, overrides: [...], tags: [qualitative]} for scenes of your own
     cases: List[Any] = field(default_factory=lambda: list(DEFAULT_CASES))
     #: the learned law runs at the case's dt (its plastic step F <- F + alpha R T is per time step): its tangent at
     #: F = I may be stiffer than the truth's, so its run's cfl_limit is raised to at least this (explicit
@@ -118,7 +118,7 @@ def resolve_cases(material: str, wanted) -> list:
                 raise ConfigError(f"task.cases[{i}]: a custom case needs name, scene and steps (missing {missing}).")
             out.append(EvalCase(str(c["name"]), str(c["scene"]), tuple(c.get("overrides", ())), int(c["steps"]),
                                 str(c.get("description", "custom case")), material,
-                                frame_every=int(c.get("frame_every", 5))))
+                                frame_every=int(c.get("frame_every", 5)), tags=tuple(c.get("tags", ()))))
         else:
             raise ConfigError(f"task.cases[{i}] = {c!r}: give a case name or a mapping {{name, scene, steps}}.")
     if not out:
@@ -228,6 +228,9 @@ def run(cfg, ctx) -> dict:
             per_frame = np.mean(d * d, axis=(1, 2))
             entry.update(status="ok", mse=case.mse(xl, xt), learned_wall_s=t_learned)
             curves[case.name] = (np.arange(len(per_frame)) * stride * every, per_frame)
+            if "qualitative" in case.tags and cfg.output.plots:      # no number in the paper: show it
+                _frames_plot(out / f"{case.name}_frames.png", xt, xl, every,
+                             f"{case.name}: truth (top) and {label} (bottom), {cfg.backend.name}")
         if tracker is not None and tracker.range is not None:
             entry["state_range"] = tracker.range
             beyond = beyond_training(tracker.range, trained)
@@ -294,6 +297,38 @@ def _markdown(s: dict) -> str:
         lines.append(f"| {k} | {r['particles'] if r['particles'] is not None else '–'} | {r['steps']} | {r['status']} | "
                      f"{'–' if tt is None else f'{tt:.1f}'} | {'–' if tl is None else f'{tl:.1f}'} | {beyond} |")
     return "\n".join(lines) + "\n"
+
+
+def _frames_plot(path: Path, xt: np.ndarray, xl: np.ndarray, every: int, title: str, columns: int = 4,
+                 max_points: int = 6000) -> None:
+    """A qualitative case side by side: the truth's and the learned law's particles at ``columns``
+    evenly spaced frames, seen along z (x right, y up: NCLaw's scenes have gravity along -y); at most
+    ``max_points`` particles (the same ones in every panel)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    T, N = xt.shape[0], xt.shape[1]
+    frames = np.unique(np.linspace(0, T - 1, columns).round().astype(int))
+    pick = np.random.default_rng(0).choice(N, min(N, max_points), replace=False)
+    both = np.concatenate([xt[frames][:, pick], xl[frames][:, pick]]).reshape(-1, xt.shape[2])
+    both = both[np.all(np.isfinite(both), axis=1)]
+    lo, hi = both[:, :2].min(0), both[:, :2].max(0)
+    pad = 0.05 * float((hi - lo).max())
+    fig, axes = plt.subplots(2, len(frames), figsize=(2.6 * len(frames), 5.4), squeeze=False)
+    for row, (x, name) in enumerate(((xt, "truth"), (xl, "learned"))):
+        for col, f in enumerate(frames):
+            ax = axes[row, col]
+            p = x[f][pick]
+            colour = {"c": p[:, 2], "cmap": "viridis"} if p.shape[1] > 2 else {"c": "k"}    # 3D: depth
+            ax.scatter(p[:, 0], p[:, 1], s=0.3, linewidths=0, **colour)
+            ax.set_xlim(lo[0] - pad, hi[0] + pad); ax.set_ylim(lo[1] - pad, hi[1] + pad)
+            ax.set_aspect("equal"); ax.set_xticks([]); ax.set_yticks([])
+            ax.set_title(f"{name}, step {f * every}", fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path, title)
 
 
 def _plot(path: Path, curves: dict, title: str) -> None:
