@@ -256,18 +256,20 @@ def report() -> None:
             rows.append([d.parent.name, e["study"], e["fom"].get("rom_backend", "jax"), t["latent"], t["batch"],
                          t["epochs"], t["lambda_F"],
                          pct(rec.get("test", {}).get("E")), f"{s['scheme']}, {e.get('tangent', 'current')}",
-                         pct(s["E"]), pct(s["E_displacement"]),
+                         pct(s["E"]), pct(s.get("E_corner")), pct(s["E_displacement"]),
                          pct(s["E_v"]), pct(s["E_F"]), f"{s['wall_s_per_simulated_s']:.3g}",
                          f"{e['fom']['wall_s_per_simulated_s']:.3g}", f"{s['diverged']}/{s['runs']}"])
     body = ["Errors in % on the study's test runs, pooled over runs, snapshots and points (`mpmlab.rom.evaluate`): "
-            "E about the initial centroid (the paper's measure; its origin is not stated in the paper), and relative "
-            "to the displacement, the velocity and F - I. The scheme ends with the velocity fit's tangent (`next`: "
+            "E about the initial centroid (the paper's measure; its origin is not stated in the paper), E about the scene "
+            "domain's lower corner (`E corner`, evaluations from session 34 on; section \"The error's origin\"), and "
+            "relative to the displacement, the velocity and F - I. The scheme ends with the velocity fit's tangent (`next`: "
             "dg/dx_hat at the new latent, the default since session 23; `current`: the paper's explicit one, every "
             "evaluation before it). `recon.` is the encoder + g reconstruction of the test "
             "snapshots (no time stepping). Wall times per simulated second, ROM (its backend) and full-order model "
             "(JAX, PIC) in the same process. Regenerate: `python benchmarks/rom.py --study ... --tag ...` (resumes), "
             "`--report` rewrites this table.", "",
-            *md_table(["tag", "study", "ROM backend", "latent", "batch", "epochs", "λ_F", "recon. E", "scheme", "E", "E disp.", "E_v",
+            *md_table(["tag", "study", "ROM backend", "latent", "batch", "epochs", "λ_F", "recon. E", "scheme", "E",
+                       "E corner", "E disp.", "E_v",
                        "E_F", "ROM s/s", "FOM s/s", "diverged"], rows), "",
             *superres_report(), *fig78_report(), f"Machine: {json.dumps(machine_info(load=True))}", ""]
     write_readme_section(MD, "rom-runs", "Runs (train + evaluate)", "\n".join(body))

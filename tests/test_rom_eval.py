@@ -165,9 +165,14 @@ def test_error_measures_of_a_uniform_offset():
     x = X[None] + z[:, None, :] - delta
     v = np.broadcast_to(zdot[:, None, :], x.shape)
     F = np.broadcast_to(np.eye(2), (2, 30, 2, 2))
-    per_frame, sums = ev._sums(N.to_jax(params), N.to_jax(norm), X, z, zdot, x, v, F, X.mean(0))
+    corner = np.array([-0.5, -1.0])
+    per_frame, sums = ev._sums(N.to_jax(params), N.to_jax(norm), X, z, zdot, x, v, F, X.mean(0), corner)
     err = ev.errors_of(sums)
     assert err["E"] == pytest.approx(0.005 * math.sqrt(60) / math.sqrt(np.sum((x - X.mean(0)) ** 2)), rel=1e-9)
+    # the same error about the domain's corner: a larger denominator (the body sits away from it)
+    assert err["E_corner"] == pytest.approx(0.005 * math.sqrt(60) / math.sqrt(np.sum((x - corner) ** 2)), rel=1e-9)
+    assert err["E_corner"] < err["E"]
+    assert ev.errors_of(ev._sums(N.to_jax(params), N.to_jax(norm), X, z, zdot, x, v, F, X.mean(0))[1])["E_corner"] is None
     assert err["E_v"] == pytest.approx(0.0, abs=1e-12)
     assert err["E_F"] is None                                       # F = I: no deformation to be relative to
     assert per_frame["x"] == pytest.approx([30 * 0.005 ** 2] * 2, rel=1e-9)
