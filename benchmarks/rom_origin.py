@@ -25,7 +25,8 @@ RELEASE_ORIGIN = 5.0          # m per axis: the default ``offset`` of the releas
 
 
 def denominators(data: str, study: str, runs: list[str]) -> dict | None:
-    """{run: (sum |x - corner|^2, sum |x - 5 m|^2)} over the run's snapshots and points (None: no snapshots)."""
+    """{run: (sum |x - corner|^2, sum |x - 5 m|^2, sum |x - c|^2)} over the run's snapshots and points (None:
+    no snapshots)."""
     from mpmlab.rom.evaluate import domain_corner, run_config
     from mpmlab.rom.snapshots import load_snapshots, study as get_study
 
@@ -38,7 +39,7 @@ def denominators(data: str, study: str, runs: list[str]) -> dict | None:
     for k, name in enumerate(snap.names):
         x = np.asarray(snap.x[k], float)
         out[name] = (float(np.sum((x - domain_corner(run_config(snap, k))) ** 2)),
-                     float(np.sum((x - RELEASE_ORIGIN) ** 2)))
+                     float(np.sum((x - RELEASE_ORIGIN) ** 2)), float(np.sum((x - x[0].mean(axis=0)) ** 2)))
     return out
 
 
@@ -61,6 +62,11 @@ def main() -> None:
                 continue
             num = sum(r["sums"]["x"] for r in mine)
             c = sum(r["sums"]["x_c"] for r in mine)
+            again = sum(den[r["run"]][2] for r in mine)
+            if abs(again - c) > 1e-6 * c:          # the snapshots on disk are not the ones it was evaluated on
+                log(f"{path.parent.name}/{path.name}: its centroid sum {c:.6g} is not the snapshots' {again:.6g} "
+                    f"(made from another version of the scene); skipped")
+                continue
             o = sum(den[r["run"]][0] for r in mine)
             r5 = sum(den[r["run"]][1] for r in mine)
             rows.append([path.parent.name + (f" ({path.stem[5:]})" if path.stem != "eval" else ""), e["study"],
