@@ -311,7 +311,10 @@ class AbstractConstitutiveLaw(_Pluggable, ABC):
         (source, how)}``: ``how`` = ``"cols"`` (a 2D [r, c] source as c vectors of length r, view[j] =
         source[:, j]), ``"rows"`` (r vectors of length c) or ``"whole"`` (a 1D source as one vector). They
         are members of the Warp ``Weights`` struct next to the sources, rebuilt whenever the struct is
-        built from arrays, and take no gradient (the law's adjoint writes the sources'). None by default."""
+        built from arrays, and take no gradient (the law's adjoint writes the sources'). ``"grad_rows"``
+        is no copy: the 2D source's *gradient* array as r row vectors of length c (an alias, empty when the
+        source takes no gradient), which a hand-written adjoint accumulates into a row at a time (one
+        vector add instead of c scalar ones). None by default."""
         return {}
 
     def initial_weights(self, dim: int) -> dict[str, np.ndarray]:

@@ -75,7 +75,7 @@ def law_types(law, dim: int, precision: str) -> SimpleNamespace:
     views = {}
     for v, (src, how) in law.weight_views(dim).items():
         s = wshapes[src]
-        n = {"cols": lambda: s[0], "rows": lambda: s[-1], "whole": lambda: s[0]}[how]()
+        n = {"cols": lambda: s[0], "rows": lambda: s[-1], "grad_rows": lambda: s[-1], "whole": lambda: s[0]}[how]()
         if (len(s) != 1) != (how != "whole"):
             raise ValueError(f"law '{law.name}': weight view '{v}' ({how}) of '{src}' {s}: cols/rows take a 2D array, "
                              f"whole a 1D one.")
@@ -100,6 +100,17 @@ def law_types(law, dim: int, precision: str) -> SimpleNamespace:
             setattr(s, n, arrays[n])
         return s
 
+    def grad_rows(a, vt):
+        """``a.grad`` (a contiguous 2D [r, c] array) seen as r vectors of type ``vt`` (no copy); an empty
+        array when ``a`` takes no gradient. It holds no reference: ``a`` (and so its gradient) must outlive
+        the struct, as the controls of a gradient path do."""
+        g = a.grad if a.requires_grad else None
+        if g is None:
+            return wp.empty(0, dtype=vt, device=a.device)
+        if not g.is_contiguous or g.ndim != 2:
+            raise ValueError(f"a grad_rows view needs a contiguous 2D gradient array; got shape {g.shape}")
+        return wp.array(ptr=g.ptr, dtype=vt, shape=(g.shape[0],), device=g.device)
+
     def weights(arrays: dict):
         """A ``Weights`` instance over ``{name: wp.array}``."""
         w = Weights()
@@ -107,6 +118,9 @@ def law_types(law, dim: int, precision: str) -> SimpleNamespace:
             setattr(w, k, arrays[k])
         for v, (src, how, vt) in views.items():       # copies, laid out as the view says (no gradient)
             a = arrays[src]
+            if how == "grad_rows":                     # an alias of the source's gradient, not a copy
+                setattr(w, v, grad_rows(a, vt))
+                continue
             m = a.numpy()
             m = m.T if how == "cols" else (m[None] if how == "whole" else m)
             setattr(w, v, wp.array(np.ascontiguousarray(m), dtype=vt, device=a.device))

@@ -131,11 +131,13 @@ class Law(AbstractConstitutiveLaw):
 
     def weight_views(self, dim):
         """The Warp form's vector copies (``warp.py``): each W as columns (the forward's a += W[:, j] x_j)
-        and as rows (the adjoint's g += W[i, :] g_i), each bias as one vector."""
+        and as rows (the adjoint's g += W[i, :] g_i), each bias as one vector; and each W's gradient as
+        rows (the adjoint's dW[i, :] += g_i x, a vector add per row)."""
         out = {}
         for net in NETS:
             for k in ("W1", "W2", "W3"):
-                out.update({f"{net}_{k}c": (f"{net}_{k}", "cols"), f"{net}_{k}r": (f"{net}_{k}", "rows")})
+                out.update({f"{net}_{k}c": (f"{net}_{k}", "cols"), f"{net}_{k}r": (f"{net}_{k}", "rows"),
+                            f"{net}_{k}g": (f"{net}_{k}", "grad_rows")})
             if self.no_undeformed:
                 out.update({f"{net}_{k}v": (f"{net}_{k}", "whole") for k in ("b1", "b2", "b3")})
         return out

@@ -14,7 +14,7 @@ each, on fixed-size Warp vectors of the hidden width (``wp.types.vector(64)``):
 * the MLP has a hand-written adjoint (``wp.func_grad``): recompute the activations, back-propagate
   with the row copies (``g += W[i, :] * g_i``, again SIMD), the derivative of the GELU actually
   evaluated (fp32: of the rational erf), and accumulate the weight gradients with ``wp.atomic_add``
-  into the sources' gradient arrays. Warp's own adjoint of a dynamic loop that accumulates into a
+  into the sources' gradient arrays, a row vector at a time (the ``grad_rows`` views). Warp's own adjoint of a dynamic loop that accumulates into a
   scalar is wrong in Warp 1.19 (0.7 % on mlp_elastic's dtau/dF), so the automatic one is not used.
 * one SVD per network evaluation: the singular values fed to the network are those of the SVD that
   also gives R = U V^T, with the derivative ds_i = (U^T dF V)_ii (``sv``);
@@ -148,16 +148,20 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
 
     def backprop(vg, n_out: int, vx, n_x: int):
         """The adjoint of a layer a = W x (+ b), given g = d/da: returns W^T g, summed over the rows
-        W[i, :] (``vx`` vectors, SIMD), and accumulates G += g x^T into the weights' gradient."""
+        W[i, :] (``vx`` vectors, SIMD), and accumulates dW += g x^T into the weights' gradient a row at a
+        time (``Gr``: the gradient's rows, the ``grad_rows`` view; empty when W takes no gradient). One
+        vector add per row instead of n_x scalar ones: 7x faster for a 64 x 64 layer at 1,000 particles
+        (0.16 against 1.15 ms on one CPU thread, measured 2026-12-07)."""
 
         @wp.func
-        def back(g: vg, Wr: wp.array(dtype=vx), x: vx, G: wp.array2d(dtype=scalar)):
+        def back(g: vg, Wr: wp.array(dtype=vx), x: vx, Gr: wp.array(dtype=vx)):
             gx = vx()
+            accumulate = Gr.shape[0] > 0
             for i in range(n_out):
                 gi = g[i]
                 gx += Wr[i] * gi
-                for j in range(n_x):
-                    wp.atomic_add(G, i, j, gi * x[j])
+                if accumulate:
+                    wp.atomic_add(Gr, i, gi * x)
             return gx
 
         return back
@@ -215,18 +219,18 @@ def make(law, dim: int, precision: str) -> SimpleNamespace:
                 W1r = w.e_W1r
                 W2r = w.e_W2r
                 W3r = w.e_W3r
-                G1 = wp.adjoint[w].e_W1
-                G2 = wp.adjoint[w].e_W2
-                G3 = wp.adjoint[w].e_W3
+                G1 = w.e_W1g
+                G2 = w.e_W2g
+                G3 = w.e_W3g
             else:
                 W1c = w.p_W1c
                 W2c = w.p_W2c
                 W1r = w.p_W1r
                 W2r = w.p_W2r
                 W3r = w.p_W3r
-                G1 = wp.adjoint[w].p_W1
-                G2 = wp.adjoint[w].p_W2
-                G3 = wp.adjoint[w].p_W3
+                G1 = w.p_W1g
+                G2 = w.p_W2g
+                G3 = w.p_W3g
             if wp.static(biases):
                 if wp.static(elastic):
                     B1 = wp.adjoint[w].e_b1
