@@ -126,6 +126,7 @@ def test_warp_gradient_at_rest_is_finite_and_matches_jax():
     from mpmlab.backends.jax.laws import law_functions
     from mpmlab.backends.warp.kernels import law_kernels
 
+    jax.config.update("jax_enable_x64", True)       # the comparison is fp64 (run alone, no other test sets it)
     dim = 2
     law = Law()
     w = trained_like(law, dim)
