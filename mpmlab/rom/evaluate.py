@@ -9,7 +9,7 @@ Errors, pooled over test runs, snapshots (the initial one included) and points:
   on it, so it is fixed here and the displacement-relative error is given beside it;
 * ``E_corner``: the same about the scene domain's lower corner instead of the centroid. The paper's
   numbers are consistent with an origin of that kind (a few body sizes away), not with the centroid
-  (``benchmarks/rom.md``, "The error's origin"); on mpmlab's ROM scenes it is 0.22-0.32 x ``E``;
+  (``benchmarks/rom.md``, "The error's origin"); on the paper's scenes here (gravity, torsion, poke) it is 0.22-0.32 x ``E``;
 * ``E_displacement``: sqrt(sum |x_ROM - x_FOM|^2 / sum |x_FOM - X|^2);
 * ``E_v``: sqrt(sum |v_ROM - v_FOM|^2 / sum |v_FOM|^2);
 * ``E_F``: sqrt(sum |F_ROM - F_FOM|_F^2 / sum |F_FOM - I|_F^2) (relative to the deformation, not to |F|,

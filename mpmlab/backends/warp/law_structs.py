@@ -116,7 +116,7 @@ def law_types(law, dim: int, precision: str) -> SimpleNamespace:
         w = Weights()
         for k in wshapes:
             setattr(w, k, arrays[k])
-        for v, (src, how, vt) in views.items():       # copies, laid out as the view says (no gradient)
+        for v, (src, how, vt) in views.items():       # copies laid out as the view says, or a gradient alias
             a = arrays[src]
             if how == "grad_rows":                     # an alias of the source's gradient, not a copy
                 setattr(w, v, grad_rows(a, vt))
