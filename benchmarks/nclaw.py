@@ -32,6 +32,7 @@ RAW = OUT / "nclaw"
 MATERIALS = ("jelly", "sand", "plasticine", "water")
 #: the networks' Xavier seed of the trainings and of the untrained "ours-init" row (--seed)
 SEED = 0
+VELOCITY_WEIGHT = 0.0     # --velocity-weight: task.velocity_weight of the teacher-forced trainings
 #: a training whose checkpoint has not changed for this long is killed and resumed (``watched``)
 STALL_S = 900.0
 #: Tab. 1 labeled and sys-id reconstruction
@@ -105,6 +106,7 @@ def train(material: str, backend: str, fraction: float, epochs: int, budget_s: f
             f"material={material if method == 'sysid' else 'nclaw'}", f"backend={backend}",
             "transfer=mls", f"precision={precision}", f"task.dataset={data}", f"task.epochs={epochs}",
             *([f"material.options.seed={SEED}"] if method != "sysid" else []),
+            *([f"task.velocity_weight={VELOCITY_WEIGHT!r}"] if VELOCITY_WEIGHT and method == "teacher" else []),
             f"task.segment_fraction={fraction}", "output.overwrite=true", f"hydra.run.dir={run}"]
     ckpt = run / ("train_checkpoint.pkl" if backend == "jax" else "train_checkpoint.pt")
     rc = mpmlab(args) if method == "labeled" else watched(args, ckpt, budget_s, STALL_S)
@@ -278,12 +280,16 @@ def main():
                          "them at its dt whatever the learned tangent's wave speed (nclaw.md, 'Figs. 3-4')")
     ap.add_argument("--seed", type=int, default=0, help="the networks' initial-weight seed (material.options.seed); "
                                                         "give another seed its own --results folder")
+    ap.add_argument("--velocity-weight", type=float, default=0.0,
+                    help="weight [s^2] of the velocity term of the training loss (task.velocity_weight; NCLaw Tab. 7, "
+                         "whose weight the paper does not give; 0: the release's position-only loss); give it its own "
+                         "--results folder")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/nclaw.md from the results")
     ap.add_argument("--results", default=None, help="results folder (default benchmarks/results/nclaw); with it "
                                                     "the Markdown goes to <results>/nclaw.md")
     a = ap.parse_args()
-    global RES, MD, SEED
-    SEED = a.seed
+    global RES, MD, SEED, VELOCITY_WEIGHT
+    SEED, VELOCITY_WEIGHT = a.seed, a.velocity_weight
     if a.results:
         RES = Path(a.results).resolve()
         MD = RES / "nclaw.md"
