@@ -38,6 +38,14 @@ with H_o the Hessian of w_o (the shape function's ``hessian``: the quadratic B-s
 is the shape function's (``kernels.stencil_funcs``). Where the scheme reads D_p^-1 (``Dinv``) and it
 varies with the position (uGIMP), its derivative is Warp's generated adjoint of the kernel body: in P2G
 of x_p, in G2P of x_p + dt v_pic (``dinv_moved``), whose v_pic adjoint joins the gather's (``adj_gather``).
+
+Both adjoints evaluate their stencil sums separably (``_separable``): every sum above is sum_o f(o) y_o
+with f a product of per-axis factors (w, o w, w', o w', w''), so it is summed one axis at a time, as
+G2P's forward gathers, instead of forming w_o, g_o, H_o and their outer products at each node; G2P's
+transpose at the nodes factors the same way. Warp's CPU code is scalar, so the flops are the cost:
+the 3D P2G adjoint went from 4.2x to 2.3x its forward, and a node's values are read component by
+component (a runtime-indexed loop over a vector's components kept it in memory: 1.8x slower).
+Measured by ``benchmarks/_adjoint_split_warp.py`` (``benchmarks/README.md``, issue 17).
 """
 
 from functools import lru_cache
@@ -82,47 +90,9 @@ def _p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool, shape):
     ext_grad = has_ext and f_grad and not f_affine      # f_grad's node term carries w fext
     ext_affine = has_ext and f_affine                   # f_affine's node term carries w fext
     any_grad = m_grad or f_grad
-    has_f = ext_grad or f_affine or ext_alone         # a force term whose weight sum w a_f is needed
     carries_C = tr.carries_C
 
-    @wp.func
-    def node(w: scalar, gw: vec, H: mat, o: vec, a4: gvec, af: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat,
-             m: scalar, fext: vec, fxd: vec, dx: scalar):
-        """One node's share: (w a_q, w a_q o^T, a_q g^T, w a_m, w a_f o^T, w a_f [ext], a_f g^T, adj fx)."""
-        aq = vec()
-        for d in range(dim):
-            aq[d] = a4[d]
-        am = a4[dim]
-        val = q
-        qo = mat()
-        if wp.static(m_affine):
-            val = q + A @ (o * dx - fxd)
-            qo = wp.outer(w * aq, o)
-        afx = (wp.dot(aq, val) + am * m) * gw
-        dT = mat()
-        if wp.static(m_grad):
-            dT = wp.outer(aq, gw)
-            afx = afx + H @ (wp.transpose(Tg) @ aq)
-        fo = mat()
-        f = vec()
-        dFg = mat()
-        if wp.static(f_grad):
-            dFg = wp.outer(af, gw)
-            afx = afx + H @ (wp.transpose(Fg) @ af)
-            if wp.static(ext_grad):
-                f = w * af
-                afx = afx + wp.dot(af, fext) * gw
-        if wp.static(f_affine):
-            fv = Fm @ (o * dx - fxd)
-            if wp.static(ext_affine):
-                fv = fv + fext
-            fo = wp.outer(w * af, o)
-            f = w * af
-            afx = afx + wp.dot(af, fv) * gw
-        if wp.static(ext_alone):
-            f = w * af
-            afx = afx + wp.dot(af, fext) * gw
-        return w * aq, qo, dT, w * am, fo, f, dFg, afx
+    SEP = _separable(dim, precision, shape, "p2g", split, m_affine or f_affine, any_grad)
 
     @wp.func
     def pairing(x: vec, q: vec, A: mat, Tg: mat, Fm: mat, Fg: mat, m: scalar, fext: vec, lp: scalar, origin: vec,
@@ -143,75 +113,49 @@ def _p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool, shape):
         nb = int(0)
         for d in range(dim):
             nb = nb + base[d] * strides[d]
-        s_q = vec()
-        s_qo = mat()
-        s_T = mat()
-        s_m = scalar(0.0)
-        s_fo = mat()
-        s_f = vec()
-        s_Fg = mat()
-        afx = vec()
-        af = vec()
-        H = mat()
-        if wp.static(dim == 3):
-            for i in range(NW):
-                for j in range(NW):
-                    nij = nb + i * strides[0] + j * strides[1]
-                    wxy = W[i, 0] * W[j, 1]
-                    for k in range(NW):
-                        w = wxy * W[k, 2]
-                        gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
-                        if wp.static(any_grad):
-                            hxy = DW[i, 0] * DW[j, 1] * W[k, 2]
-                            hxz = DW[i, 0] * W[j, 1] * DW[k, 2]
-                            hyz = W[i, 0] * DW[j, 1] * DW[k, 2]
-                            H = mat(DD[i, 0] * W[j, 1] * W[k, 2], hxy, hxz,
-                                    hxy, W[i, 0] * DD[j, 1] * W[k, 2], hyz,
-                                    hxz, hyz, wxy * DD[k, 2])
-                        if wp.static(split):
-                            af = adj_f[nij + k]
-                        o = vec(OFFS[i], OFFS[j], OFFS[k])
-                        a, b, c, e, f, g, h, r = node(w, gw, H, o, adj_mm[nij + k], af, q, A, Tg, Fm, Fg, m, fext,
-                                                      fxd, dx)
-                        s_q = s_q + a
-                        s_m = s_m + e
-                        afx = afx + r
-                        if wp.static(m_affine):
-                            s_qo = s_qo + b
-                        if wp.static(m_grad):
-                            s_T = s_T + c
-                        if wp.static(f_affine):
-                            s_fo = s_fo + f
-                        if wp.static(has_f):
-                            s_f = s_f + g
-                        if wp.static(f_grad):
-                            s_Fg = s_Fg + h
-        else:
-            for i in range(NW):
-                ni = nb + i * strides[0]
-                for j in range(NW):
-                    w = W[i, 0] * W[j, 1]
-                    gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
-                    if wp.static(any_grad):
-                        hxy = DW[i, 0] * DW[j, 1]
-                        H = mat(DD[i, 0] * W[j, 1], hxy, hxy, W[i, 0] * DD[j, 1])
-                    if wp.static(split):
-                        af = adj_f[ni + j]
-                    o = vec(OFFS[i], OFFS[j])
-                    a, b, c, e, f, g, h, r = node(w, gw, H, o, adj_mm[ni + j], af, q, A, Tg, Fm, Fg, m, fext, fxd, dx)
-                    s_q = s_q + a
-                    s_m = s_m + e
-                    afx = afx + r
-                    if wp.static(m_affine):
-                        s_qo = s_qo + b
-                    if wp.static(m_grad):
-                        s_T = s_T + c
-                    if wp.static(f_affine):
-                        s_fo = s_fo + f
-                    if wp.static(has_f):
-                        s_f = s_f + g
-                    if wp.static(f_grad):
-                        s_Fg = s_Fg + h
+        Sw, Swo, Sg, Sgo0, Sgo1, Sgo2, SH0, SH1, SH2 = SEP.sums(W, DW, DD, nb, strides, adj_mm, adj_f, adj_f, adj_f,
+                                                               vec(), vec(), mat(), mat())
+        # the sums of the node-wise code: s_q = sum w a_q, s_qo = sum w a_q o^T, s_T = sum a_q g^T, ...
+        s_q = SEP.headv(Sw)
+        s_m = Sw[dim]
+        s_qo = SEP.head(Swo)
+        s_T = SEP.head(Sg)
+        s_f = SEP.tailv(Sw)
+        s_fo = SEP.tail(Swo)
+        s_Fg = SEP.tail(Sg)
+        # adj fx_d = sum g_d (a_q . val + a_m m) + sum (H Tg^T a_q)_d (+ the force terms), val = q + A (o dx - fx dx)
+        qc = q
+        if wp.static(m_affine):
+            qc = q - A @ fxd
+        afx = wp.transpose(s_T) @ qc + m * SEP.mrow(Sg)
+        if wp.static(m_affine):
+            if wp.static(dim == 3):
+                afx = afx + dx * vec(wp.ddot(A, SEP.head(Sgo0)), wp.ddot(A, SEP.head(Sgo1)), wp.ddot(A, SEP.head(Sgo2)))
+            else:
+                afx = afx + dx * vec(wp.ddot(A, SEP.head(Sgo0)), wp.ddot(A, SEP.head(Sgo1)))
+        if wp.static(m_grad):
+            if wp.static(dim == 3):
+                afx = afx + vec(wp.ddot(Tg, SEP.head(SH0)), wp.ddot(Tg, SEP.head(SH1)), wp.ddot(Tg, SEP.head(SH2)))
+            else:
+                afx = afx + vec(wp.ddot(Tg, SEP.head(SH0)), wp.ddot(Tg, SEP.head(SH1)))
+        if wp.static(f_grad):
+            if wp.static(dim == 3):
+                afx = afx + vec(wp.ddot(Fg, SEP.tail(SH0)), wp.ddot(Fg, SEP.tail(SH1)), wp.ddot(Fg, SEP.tail(SH2)))
+            else:
+                afx = afx + vec(wp.ddot(Fg, SEP.tail(SH0)), wp.ddot(Fg, SEP.tail(SH1)))
+        fc = vec()                       # the force's node value without its o-term (f_affine: Fm (o dx - fx dx))
+        if wp.static(ext_grad or ext_alone):
+            fc = fext
+        if wp.static(f_affine):
+            fc = -(Fm @ fxd)
+            if wp.static(ext_affine):
+                fc = fc + fext
+            if wp.static(dim == 3):
+                afx = afx + dx * vec(wp.ddot(Fm, SEP.tail(Sgo0)), wp.ddot(Fm, SEP.tail(Sgo1)), wp.ddot(Fm, SEP.tail(Sgo2)))
+            else:
+                afx = afx + dx * vec(wp.ddot(Fm, SEP.tail(Sgo0)), wp.ddot(Fm, SEP.tail(Sgo1)))
+        if wp.static(ext_grad or ext_alone or f_affine):
+            afx = afx + wp.transpose(s_Fg) @ fc
         # the fx inside A (o - fx) dx: -dx A^T sum_o w_o a_q (likewise Fm)
         if wp.static(m_affine):
             afx = afx - dx * (wp.transpose(A) @ s_q)
@@ -261,6 +205,290 @@ def _p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool, shape):
         out[p] = pairing(x[p], q, A, Tg, Fm, Fg, m, fext, lpv, origin, dx, strides, adj_mm, adj_f)
 
     return SimpleNamespace(adjoint=adjoint)
+
+
+# ---- separable stencil sums, shared by both adjoints ---------------------------------------------------
+@lru_cache(maxsize=None)
+def _separable(dim: int, precision: str, shape, kind: str, second: bool, need_o: bool, need_h: bool):
+    """The sums both adjoints reduce over the width^D stencil, sum_o f(o) y_o, with y_o a node's values
+    and f a product of one per-axis factor of the kinds W (w), O (o w), D (w'), X (o w'), H (w'') --
+    separable (tensor-product weights), so summed over the last axis first, then the next, as G2P's
+    forward gathers, instead of forming w_o, g_o = grad w_o, H_o and their outer products at each node.
+
+    ``kind`` "p2g": y_o = (a_q, a_m[, a_f]) from the node adjoints (src0 = adj mm, src1 = adj f, ``second``:
+    split force); "g2p": y_o = (v_o[, v_old_o]) from the grid velocities (``second``: FLIP), and every
+    node also gets G2P's transpose, w_o (a_vp + aB o) + aG g_o added to dst0 (and w_o a_vo to dst1).
+
+    ``sums`` returns the families (NY = len(y); NY x D matrices, column e): Sw = sum w y (a vector; "p2g"),
+    Swo[e] = sum w o_e y ("p2g", ``need_o``), Sg[e] = sum g_e y, Sgo_d[e] = sum g_d o_e y (``need_o``),
+    SH_d[e] = sum H_de y (``need_h``); unused ones are zero. ``head`` / ``tail`` / ``mrow`` cut a family's
+    rows of y's first part (D x D), its second part (D x D) and, for "p2g", the mass row; ``headv`` /
+    ``tailv`` the same of a vector."""
+    T = warp_types(dim, precision)
+    S = K._stencil_funcs(dim, precision, shape)
+    NW, OFFS = S.width, S.OFFS
+    scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
+    p2g = kind == "p2g"
+    need_w = p2g
+    src_t = K.grid_vec_type(dim, precision) if p2g else vec
+    n0 = dim + 1 if p2g else dim                       # where y's second part starts
+    NY = n0 + (dim if second else 0)
+    yvec = wp.types.vector(NY, scalar)
+    kmat = wp.types.matrix((NY, dim), scalar)
+    wmat = S.wmat
+
+    @wp.func
+    def load(src0: wp.array(dtype=src_t), src1: wp.array(dtype=vec), n: int):
+        """y_n, component by component (a runtime index would keep the vectors in memory: 1.8x slower)."""
+        a = src0[n]
+        if wp.static(second):
+            f = src1[n]
+            if wp.static(dim == 3 and p2g):
+                return yvec(a[0], a[1], a[2], a[3], f[0], f[1], f[2])
+            elif wp.static(dim == 3):
+                return yvec(a[0], a[1], a[2], f[0], f[1], f[2])
+            elif wp.static(p2g):
+                return yvec(a[0], a[1], a[2], f[0], f[1])
+            else:
+                return yvec(a[0], a[1], f[0], f[1])
+        else:
+            if wp.static(dim == 3 and p2g):
+                return yvec(a[0], a[1], a[2], a[3])
+            elif wp.static(dim == 3):
+                return yvec(a[0], a[1], a[2])
+            elif wp.static(p2g):
+                return yvec(a[0], a[1], a[2])
+            else:
+                return yvec(a[0], a[1])
+
+    @wp.func
+    def column(M: mat, e: int):
+        if wp.static(dim == 3):
+            return vec(M[0, e], M[1, e], M[2, e])
+        else:
+            return vec(M[0, e], M[1, e])
+
+    # G2P's transpose at a node, ag_o = w_o (a_vp + aB o) + aG g_o, is separable too: with per-axis
+    # e_d(k) = o_k W_k aB[:, d] + W'_k aG[:, d] and A(i) = W_i a_vp + e_0(i), in 3D
+    # ag_ijk = W_k (W_j A(i) + W_i e_1(j)) + W_i W_j e_2(k): two vector FMAs per node instead of ~40 flops.
+    emat = wp.types.matrix((NW, dim), scalar)
+
+    @wp.func
+    def axis_terms(W: wmat, DW: wmat, d: int, aB: mat, aG: mat):
+        """e_d(k) for k = 0 .. width-1 (rows)."""
+        E = emat()
+        b = column(aB, d)
+        g = column(aG, d)
+        for k in range(NW):
+            e = vec()
+            if wp.static(need_o):
+                e = e + (OFFS[k] * W[k, d]) * b
+            if wp.static(need_h):
+                e = e + DW[k, d] * g
+            for c in range(dim):
+                E[k, c] = e[c]
+        return E
+
+    @wp.func
+    def row(E: emat, k: int):
+        if wp.static(dim == 3):
+            return vec(E[k, 0], E[k, 1], E[k, 2])
+        else:
+            return vec(E[k, 0], E[k, 1])
+
+    @wp.func
+    def scatter(dst0: wp.array(dtype=vec), dst1: wp.array(dtype=vec), n: int, ag: vec, w: scalar, a_vo: vec):
+        """Adds at node n (atomic on CUDA; the CPU gradient path is single-threaded)."""
+        wp.atomic_add(dst0, n, ag)
+        if wp.static(second):
+            wp.atomic_add(dst1, n, w * a_vo)
+
+    @wp.func
+    def kcols(a: yvec, b: yvec, c: yvec):
+        """The NY x D matrix of columns a, b (, c)."""
+        M = kmat()
+        for r in range(NY):
+            M[r, 0] = a[r]
+            M[r, 1] = b[r]
+            if wp.static(dim == 3):
+                M[r, 2] = c[r]
+        return M
+
+    @wp.func
+    def sums(W: wmat, DW: wmat, DD: wmat, nb: int, strides: ivec, src0: wp.array(dtype=src_t),
+             src1: wp.array(dtype=vec), dst0: wp.array(dtype=vec), dst1: wp.array(dtype=vec), a_vp: vec, a_vo: vec,
+             aB: mat, aG: mat):
+        z = yvec()
+        Sw = yvec()
+        Swo = kmat()
+        Sg = kmat()
+        Sgo0 = kmat()
+        Sgo1 = kmat()
+        Sgo2 = kmat()
+        SH0 = kmat()
+        SH1 = kmat()
+        SH2 = kmat()
+        E0 = emat()
+        E1 = emat()
+        E2 = emat()
+        if wp.static(not p2g):
+            E0 = axis_terms(W, DW, 0, aB, aG)
+            E1 = axis_terms(W, DW, 1, aB, aG)
+            if wp.static(dim == 3):
+                E2 = axis_terms(W, DW, 2, aB, aG)
+        if wp.static(dim == 3):
+            for i in range(NW):
+                tWW = yvec()
+                tOW = yvec()
+                tWO = yvec()
+                tDW = yvec()
+                tWD = yvec()
+                tXW = yvec()
+                tWX = yvec()
+                tDO = yvec()
+                tOD = yvec()
+                tHW = yvec()
+                tWH = yvec()
+                tDD = yvec()
+                for j in range(NW):
+                    nij = nb + i * strides[0] + j * strides[1]
+                    pW = yvec()
+                    pO = yvec()
+                    pD = yvec()
+                    pX = yvec()
+                    pH = yvec()
+                    for k in range(NW):                               # axis 2
+                        y = load(src0, src1, nij + k)
+                        pW = pW + W[k, 2] * y
+                        pD = pD + DW[k, 2] * y
+                        if wp.static(need_o):
+                            pO = pO + (OFFS[k] * W[k, 2]) * y
+                            pX = pX + (OFFS[k] * DW[k, 2]) * y
+                        if wp.static(need_h):
+                            pH = pH + DD[k, 2] * y
+                    w1 = W[j, 1]                                      # axis 1
+                    d1 = DW[j, 1]
+                    tWW = tWW + w1 * pW
+                    tDW = tDW + d1 * pW
+                    tWD = tWD + w1 * pD
+                    if wp.static(need_o):
+                        o1 = OFFS[j] * w1
+                        tOW = tOW + o1 * pW
+                        tWO = tWO + w1 * pO
+                        tXW = tXW + (OFFS[j] * d1) * pW
+                        tWX = tWX + w1 * pX
+                        tDO = tDO + d1 * pO
+                        tOD = tOD + o1 * pD
+                    if wp.static(need_h):
+                        tHW = tHW + DD[j, 1] * pW
+                        tWH = tWH + w1 * pH
+                        tDD = tDD + d1 * pD
+                w0 = W[i, 0]                                          # axis 0
+                d0 = DW[i, 0]
+                if wp.static(need_w):
+                    Sw = Sw + w0 * tWW
+                Sg = Sg + kcols(d0 * tWW, w0 * tDW, w0 * tWD)
+                if wp.static(need_o):
+                    o0 = OFFS[i] * w0
+                    if wp.static(need_w):
+                        Swo = Swo + kcols(o0 * tWW, w0 * tOW, w0 * tWO)
+                    Sgo0 = Sgo0 + kcols((OFFS[i] * d0) * tWW, d0 * tOW, d0 * tWO)
+                    Sgo1 = Sgo1 + kcols(o0 * tDW, w0 * tXW, w0 * tDO)
+                    Sgo2 = Sgo2 + kcols(o0 * tWD, w0 * tOD, w0 * tWX)
+                if wp.static(need_h):
+                    SH0 = SH0 + kcols(DD[i, 0] * tWW, d0 * tDW, d0 * tWD)
+                    SH1 = SH1 + kcols(d0 * tDW, w0 * tHW, w0 * tDD)
+                    SH2 = SH2 + kcols(d0 * tWD, w0 * tDD, w0 * tWH)
+        else:
+            for i in range(NW):
+                ni = nb + i * strides[0]
+                pW = yvec()
+                pO = yvec()
+                pD = yvec()
+                pX = yvec()
+                pH = yvec()
+                for j in range(NW):                                   # axis 1
+                    y = load(src0, src1, ni + j)
+                    pW = pW + W[j, 1] * y
+                    pD = pD + DW[j, 1] * y
+                    if wp.static(need_o):
+                        pO = pO + (OFFS[j] * W[j, 1]) * y
+                        pX = pX + (OFFS[j] * DW[j, 1]) * y
+                    if wp.static(need_h):
+                        pH = pH + DD[j, 1] * y
+                w0 = W[i, 0]                                          # axis 0
+                d0 = DW[i, 0]
+                if wp.static(need_w):
+                    Sw = Sw + w0 * pW
+                Sg = Sg + kcols(d0 * pW, w0 * pD, z)
+                if wp.static(need_o):
+                    o0 = OFFS[i] * w0
+                    if wp.static(need_w):
+                        Swo = Swo + kcols(o0 * pW, w0 * pO, z)
+                    Sgo0 = Sgo0 + kcols((OFFS[i] * d0) * pW, d0 * pO, z)
+                    Sgo1 = Sgo1 + kcols(o0 * pD, w0 * pX, z)
+                if wp.static(need_h):
+                    SH0 = SH0 + kcols(DD[i, 0] * pW, d0 * pD, z)
+                    SH1 = SH1 + kcols(d0 * pD, w0 * pH, z)
+        if wp.static(not p2g):          # G2P's transpose, after the reductions: no store between their loads
+            if wp.static(dim == 3):
+                for i in range(NW):
+                    Ai = W[i, 0] * a_vp + row(E0, i)
+                    for j in range(NW):
+                        nij = nb + i * strides[0] + j * strides[1]
+                        Bij = W[j, 1] * Ai + W[i, 0] * row(E1, j)
+                        wij = W[i, 0] * W[j, 1]
+                        for k in range(NW):
+                            scatter(dst0, dst1, nij + k, W[k, 2] * Bij + wij * row(E2, k), wij * W[k, 2], a_vo)
+            else:
+                for i in range(NW):
+                    ni = nb + i * strides[0]
+                    Ai = W[i, 0] * a_vp + row(E0, i)
+                    for j in range(NW):
+                        scatter(dst0, dst1, ni + j, W[j, 1] * Ai + W[i, 0] * row(E1, j), W[i, 0] * W[j, 1], a_vo)
+        return Sw, Swo, Sg, Sgo0, Sgo1, Sgo2, SH0, SH1, SH2
+
+    @wp.func
+    def headv(y: yvec):
+        r = vec()
+        for c in range(dim):
+            r[c] = y[c]
+        return r
+
+    @wp.func
+    def tailv(y: yvec):
+        r = vec()
+        if wp.static(second):
+            for c in range(dim):
+                r[c] = y[n0 + c]
+        return r
+
+    @wp.func
+    def head(M: kmat):
+        r = mat()
+        for a in range(dim):
+            for b in range(dim):
+                r[a, b] = M[a, b]
+        return r
+
+    @wp.func
+    def tail(M: kmat):
+        r = mat()
+        if wp.static(second):
+            for a in range(dim):
+                for b in range(dim):
+                    r[a, b] = M[n0 + a, b]
+        return r
+
+    @wp.func
+    def mrow(M: kmat):
+        r = vec()
+        if wp.static(p2g):
+            for b in range(dim):
+                r[b] = M[dim, b]
+        return r
+
+    return SimpleNamespace(sums=sums, head=head, tail=tail, headv=headv, tailv=tailv, mrow=mrow)
 
 
 class RecordedP2G:
@@ -322,6 +550,7 @@ def _g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape):
     NC = 2 + 2 * dim
     pmat = wp.types.matrix((dim, NC), scalar)         # packed moments
     impl = law.implementation("warp", "law")(law, dim, precision)
+    SEP = _separable(dim, precision, shape, "g2p", flip, apic, need_grad)
 
     @wp.func
     def cols(a: vec, b: vec, c: vec):
@@ -392,26 +621,6 @@ def _g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape):
                     M = gather_node(M, W[i, 0] * W[j, 1], gw, vec(OFFS[i], OFFS[j]), grid_v[ni + j], go)
         return M
 
-    @wp.func
-    def scatter_node(adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec), node: int, w: scalar, gw: vec,
-                     H: mat, o: vec, g: vec, go: vec, a_vp: vec, a_vo: vec, aB: mat, aG: mat):
-        """Adds the node's adjoints (adds: atomic on CUDA) and returns its share of adj fx."""
-        ag = w * a_vp
-        s = wp.dot(a_vp, g)
-        if wp.static(apic):
-            Bo = aB @ o
-            ag = ag + w * Bo
-            s = s + wp.dot(g, Bo)
-        afx = s * gw
-        if wp.static(need_grad):
-            ag = ag + aG @ gw
-            afx = afx + H @ (wp.transpose(aG) @ g)
-        wp.atomic_add(adj_gv, node, ag)
-        if wp.static(flip):
-            wp.atomic_add(adj_gvo, node, w * a_vo)
-            afx = afx + wp.dot(a_vo, go) * gw
-        return afx
-
     @wp.func_grad(gather)
     def adj_gather(x: vec, lp: scalar, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
                    grid_v_old: wp.array(dtype=vec), adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec),
@@ -431,39 +640,23 @@ def _g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape):
             aB = cols(col(adj_ret, 2), col(adj_ret, 3), col(adj_ret, 1 + dim))
         if wp.static(need_grad):
             aG = cols(col(adj_ret, 2 + dim), col(adj_ret, 3 + dim), col(adj_ret, 1 + 2 * dim))
-        afx = vec()
-        go = vec()
-        H = mat()
-        if wp.static(dim == 3):
-            for i in range(NW):
-                for j in range(NW):
-                    nij = nb + i * strides[0] + j * strides[1]
-                    wxy = W[i, 0] * W[j, 1]
-                    for k in range(NW):
-                        gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
-                        if wp.static(need_grad):
-                            hxy = DW[i, 0] * DW[j, 1] * W[k, 2]
-                            hxz = DW[i, 0] * W[j, 1] * DW[k, 2]
-                            hyz = W[i, 0] * DW[j, 1] * DW[k, 2]
-                            H = mat(DD[i, 0] * W[j, 1] * W[k, 2], hxy, hxz,
-                                    hxy, W[i, 0] * DD[j, 1] * W[k, 2], hyz,
-                                    hxz, hyz, wxy * DD[k, 2])
-                        if wp.static(flip):
-                            go = grid_v_old[nij + k]
-                        afx = afx + scatter_node(adj_gv, adj_gvo, nij + k, wxy * W[k, 2], gw, H,
-                                                 vec(OFFS[i], OFFS[j], OFFS[k]), grid_v[nij + k], go, a_vp, a_vo, aB, aG)
-        else:
-            for i in range(NW):
-                ni = nb + i * strides[0]
-                for j in range(NW):
-                    gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
-                    if wp.static(need_grad):
-                        hxy = DW[i, 0] * DW[j, 1]
-                        H = mat(DD[i, 0] * W[j, 1], hxy, hxy, W[i, 0] * DD[j, 1])
-                    if wp.static(flip):
-                        go = grid_v_old[ni + j]
-                    afx = afx + scatter_node(adj_gv, adj_gvo, ni + j, W[i, 0] * W[j, 1], gw, H, vec(OFFS[i], OFFS[j]),
-                                             grid_v[ni + j], go, a_vp, a_vo, aB, aG)
+        # G2P's transpose: each node gets w (a_vp + aB o) + aG g (+ w a_vo), and x gets, through the weights,
+        # adj fx_d = sum_o g_d a_vp . v_o + g_d v_o . (aB o) + (H aG^T v_o)_d (+ g_d a_vo . v_old_o): separable sums
+        Sw_, Swo_, Sg, Sgo0, Sgo1, Sgo2, SH0, SH1, SH2 = SEP.sums(W, DW, DD, nb, strides, grid_v, grid_v_old, adj_gv,
+                                                                   adj_gvo, a_vp, a_vo, aB, aG)   # Sw, Swo: P2G's
+        afx = wp.transpose(SEP.head(Sg)) @ a_vp
+        if wp.static(apic):
+            if wp.static(dim == 3):
+                afx = afx + vec(wp.ddot(aB, SEP.head(Sgo0)), wp.ddot(aB, SEP.head(Sgo1)), wp.ddot(aB, SEP.head(Sgo2)))
+            else:
+                afx = afx + vec(wp.ddot(aB, SEP.head(Sgo0)), wp.ddot(aB, SEP.head(Sgo1)))
+        if wp.static(need_grad):
+            if wp.static(dim == 3):
+                afx = afx + vec(wp.ddot(aG, SEP.head(SH0)), wp.ddot(aG, SEP.head(SH1)), wp.ddot(aG, SEP.head(SH2)))
+            else:
+                afx = afx + vec(wp.ddot(aG, SEP.head(SH0)), wp.ddot(aG, SEP.head(SH1)))
+        if wp.static(flip):
+            afx = afx + wp.transpose(SEP.tail(Sg)) @ a_vo
         wp.adjoint[x] += inv_dx * afx
 
     @wp.kernel(module="unique", module_options=K.law_module_options(impl))
