@@ -6,8 +6,8 @@ and ``task=rom_eval`` of one configuration per ``--tag`` -> ``benchmarks/rom.md`
     python benchmarks/rom.py --report                 # only rewrite the table from what is on disk
 
 Stages, each a separate ``mpmlab`` process (a killed invocation loses at most the current epoch): (1) the
-study's snapshots, ``mpmlab -m experiment=rom_snapshots_<study> scene.resolution=<res>`` (PIC, as the
-ROM; skipped when present and made from the same scene and study); (2) ``task=rom_train`` in ``benchmarks/results/rom/<tag>/train`` (committed:
+study's snapshots, one ``mpmlab experiment=rom_snapshots_<study> <run> scene.resolution=<res>`` per full-order
+run (PIC, as the ROM; a run already made from the same scene and study is skipped, so this stage resumes too); (2) ``task=rom_train`` in ``benchmarks/results/rom/<tag>/train`` (committed:
 checkpointed every epoch, ``--budget-min`` stops it, a rerun resumes, also from a fresh clone); (3)
 ``task=rom_eval`` on the test runs, every quadrature x projection and the sample counts given, once
 the training is complete. Snapshots and evaluation runs live in ``benchmarks/out/rom`` (not committed). The paper's own studies (gravity, torsion, poke, tower)
@@ -51,18 +51,38 @@ def snapshot_key(study: str) -> str:
 
 
 def snapshots(study: str, resolution: str, precision: str) -> Path:
+    """The study's snapshots in ``benchmarks/out/rom/data/<study>_<resolution>_<precision>``, one full-order
+    run per folder (``<run name>/``, as ``mpmlab.rom.snapshots.run_study`` lays them out), each its own
+    ``mpmlab experiment=rom_snapshots_<study> <the run's overrides>`` process: a killed invocation loses
+    at most the run in progress, and the next one makes only the runs without a summary (the tower's 20
+    runs take over an hour on 2 cores). ``key`` records what they are made from (``snapshot_key``); a
+    folder made from another version, or without a key (a Hydra sweep of an earlier version, unfinished),
+    is made again from scratch."""
+    from mpmlab.rom import snapshots as S
+
     data = RAW / "data" / f"{study}_{resolution}_{precision}"
     done = data / "complete"
     key = snapshot_key(study)
-    if not done.exists() or done.read_text().split() != ["ok", key]:
-        if data.exists():
-            log(f"{data}: made from another version of the {study} scene or study; making the snapshots again")
-            shutil.rmtree(data)
-        rc = mpmlab(["-m", f"experiment=rom_snapshots_{study}", f"scene.resolution={resolution}", "backend=jax",
-                     f"precision={precision}", "output.overwrite=true", f"hydra.sweep.dir={data}"])
+    if done.exists() and done.read_text().split() == ["ok", key]:
+        return data
+    stamp = data / "key"
+    if data.exists() and not (stamp.exists() and stamp.read_text().strip() == key):
+        log(f"{data}: made from another version of the {study} scene or study (or unfinished by an earlier "
+            f"version of this script); making the snapshots again")
+        shutil.rmtree(data)
+    data.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(key + "\n")
+    s = S.study(study)
+    for i, r in enumerate(s.runs):
+        out = data / r.name
+        if (out / "summary.json").exists():
+            continue
+        log(f"{study}: full-order run {i + 1} of {len(s.runs)} ({r.name})")
+        rc = mpmlab([f"experiment=rom_snapshots_{study}", *r.overrides, f"scene.resolution={resolution}", "backend=jax",
+                     f"precision={precision}", "output.overwrite=true", f"hydra.run.dir={out}"])
         if rc != 0:
-            raise SystemExit(f"snapshots of {study} failed (exit {rc})")
-        done.write_text(f"ok {key}\n")
+            raise SystemExit(f"snapshots of {study}, run {r.name}, failed (exit {rc})")
+    done.write_text(f"ok {key}\n")
     return data
 
 
