@@ -33,6 +33,7 @@ MATERIALS = ("jelly", "sand", "plasticine", "water")
 #: the networks' Xavier seed of the trainings and of the untrained "ours-init" row (--seed)
 SEED = 0
 VELOCITY_WEIGHT = 0.0     # --velocity-weight: task.velocity_weight of the teacher-forced trainings
+RESET: tuple = ()         # --reset: task.teacher.reset of the teacher-forced trainings (empty: the task's default)
 #: a training whose checkpoint has not changed for this long is killed and resumed (``watched``)
 STALL_S = 900.0
 #: Tab. 1 labeled and sys-id reconstruction
@@ -107,6 +108,7 @@ def train(material: str, backend: str, fraction: float, epochs: int, budget_s: f
             "transfer=mls", f"precision={precision}", f"task.dataset={data}", f"task.epochs={epochs}",
             *([f"material.options.seed={SEED}"] if method != "sysid" else []),
             *([f"task.velocity_weight={VELOCITY_WEIGHT!r}"] if VELOCITY_WEIGHT and method == "teacher" else []),
+            *([f"task.teacher.reset=[{','.join(RESET)}]"] if RESET and method == "teacher" else []),
             f"task.segment_fraction={fraction}", "output.overwrite=true", f"hydra.run.dir={run}"]
     ckpt = run / ("train_checkpoint.pkl" if backend == "jax" else "train_checkpoint.pt")
     rc = mpmlab(args) if method == "labeled" else watched(args, ckpt, budget_s, STALL_S)
@@ -284,12 +286,15 @@ def main():
                     help="weight [s^2] of the velocity term of the training loss (task.velocity_weight; NCLaw Tab. 7, "
                          "whose weight the paper does not give; 0: the release's position-only loss); give it its own "
                          "--results folder")
+    ap.add_argument("--reset", default="", help="what teacher forcing resets at each segment: 'x,v' (kinematics only, "
+                                                "the paper's text; C and the law state carry over) or 'x,v,C,F' (the "
+                                                "release, the task's default); give it its own --results folder")
     ap.add_argument("--report", action="store_true", help="only rewrite benchmarks/nclaw.md from the results")
     ap.add_argument("--results", default=None, help="results folder (default benchmarks/results/nclaw); with it "
                                                     "the Markdown goes to <results>/nclaw.md")
     a = ap.parse_args()
-    global RES, MD, SEED, VELOCITY_WEIGHT
-    SEED, VELOCITY_WEIGHT = a.seed, a.velocity_weight
+    global RES, MD, SEED, VELOCITY_WEIGHT, RESET
+    SEED, VELOCITY_WEIGHT, RESET = a.seed, a.velocity_weight, tuple(csv(a.reset))
     if a.results:
         RES = Path(a.results).resolve()
         MD = RES / "nclaw.md"

@@ -64,12 +64,11 @@ def measure(size: float, samples: int, repeats: int, backends: list[str]) -> dic
     row = {"size": size, "particles": int(scene.particles().count), "grid": list(scene.grid_shape),
            "samples": samples, "dt": float(scene.dt)}
     log(f"size {size}: {row['particles']} particles, grid {row['grid']}")
-    fom = {}
+    fom, fom_w = {}, {}
     for b in backends:
         st = build_stepper(scene, b, "pic", "fp32")
         s = st.init()
-        if b == "jax":
-            fom[b] = st
+        (fom if b == "jax" else fom_w)[b] = st
         step = lambda st=st, s=s: st._block(st._advance(s, 1))
         row[f"fom_{b}_s"] = timed(step, repeats)
         log(f"  full-order step, {b}: {row[f'fom_{b}_s'] * 1e3:.1f} ms")
@@ -94,6 +93,18 @@ def measure(size: float, samples: int, repeats: int, backends: list[str]) -> dic
         row[f"mpm_{nodes}_s"] = timed(lambda: jax.block_until_ready(mpm(st, prm, windows)), repeats)
         row["quadrature_points"] = int(x.shape[0])
         log(f"  its MPM part, {nodes} nodes: {row[f'mpm_{nodes}_s'] * 1e3:.2f} ms ({x.shape[0]} points)")
+    if "warp" in fom_w:
+        # Warp's Eulerian quadrature runs its MPM part on the scene's grid (no compact node set there): the
+        # reduced step (torch networks + a Warp step of the quadrature's pseudo-particles) and that Warp step
+        # alone, to see what the grid's size costs it
+        from mpmlab.rom.stepper_warp import WarpReducedStepper
+
+        rom = WarpReducedStepper(fom_w["warp"], w, samples=samples, quadrature="eulerian", projection="linear")
+        s0 = rom.init()
+        row["rom_warp_scene_s"] = timed(lambda: rom.step(s0), repeats)
+        log(f"  reduced step, Warp (scene grid): {row['rom_warp_scene_s'] * 1e3:.2f} ms")
+        row["mpm_warp_scene_s"] = timed(lambda: rom._pseudo._step_into(rom._q_in, rom._q_out), repeats)
+        log(f"  its MPM part, Warp (scene grid): {row['mpm_warp_scene_s'] * 1e3:.2f} ms")
     return row
 
 
@@ -109,17 +120,26 @@ def report(res: dict) -> None:
             f"full-order PIC step per backend, all in the same run; medians of {res['repeats']} calls. Issue "
             f"16's target: the reduced step within 1.5x from 50k to 800k particles.", ""]
     fb = [b for b in ("jax", "warp") if f"fom_{b}_s" in first]
+    wr = "rom_warp_scene_s" in first
     head = ["size", "particles", "grid", "reduced, compact nodes [ms]", "x the smallest", "reduced, scene grid [ms]",
-            "x the smallest", "its MPM part, compact / scene [ms]"] + [f"full-order {b} [ms]" for b in fb]
+            "x the smallest", "its MPM part, compact / scene [ms]"] + [f"full-order {b} [ms]" for b in fb] + \
+        (["reduced, Warp, scene grid [ms]", "x the smallest", "its MPM part [ms]"] if wr else [])
     mpm = lambda r: (f"{r['mpm_compact_s'] * 1e3:.1f} / {r['mpm_scene_s'] * 1e3:.1f}" if "mpm_scene_s" in r else "–")
     body += md_table(head, [[f"{r['size']:g}", f"{r['particles']:,}", "x".join(map(str, r["grid"])),
                              f"{r['rom_compact_s'] * 1e3:.2f}", f"{r['rom_compact_s'] / first['rom_compact_s']:.2f}",
                              f"{r['rom_scene_s'] * 1e3:.2f}", f"{r['rom_scene_s'] / first['rom_scene_s']:.2f}", mpm(r)]
-                            + [f"{r[f'fom_{b}_s'] * 1e3:.1f}" for b in fb] for r in rows])
+                            + [f"{r[f'fom_{b}_s'] * 1e3:.1f}" for b in fb]
+                            + ([f"{r['rom_warp_scene_s'] * 1e3:.1f}", f"{r['rom_warp_scene_s'] / first['rom_warp_scene_s']:.2f}",
+                                f"{r['mpm_warp_scene_s'] * 1e3:.1f}"] if wr and "rom_warp_scene_s" in r else
+                               (["–", "–", "–"] if wr else [])) for r in rows])
     if "quadrature_points" in first:
         body += ["", f"The reduced step's MPM part runs on {first['quadrature_points']:,} points (the quadrature's fixed "
                      f"budget, then the samples); the rest of the step is g, its Jacobians and the inverse map at those "
                      f"points, and the projection."]
+    if wr:
+        body += ["", "Warp's reduced model (torch networks, Warp MPM step) has no compact node set: its Eulerian "
+                     "quadrature's MPM step runs on the scene's grid (last columns, the Warp step of the pseudo-particles "
+                     "alone)."]
     body.append("")
     write_readme_section(MD, "rom-speed", "The reduced step against the body's size (compact node set)", "\n".join(body))
 
