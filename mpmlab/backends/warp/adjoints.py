@@ -44,7 +44,8 @@ with f a product of per-axis factors (w, o w, w', o w', w''), so it is summed on
 G2P's forward gathers, instead of forming w_o, g_o, H_o and their outer products at each node; G2P's
 transpose at the nodes factors the same way. Warp's CPU code is scalar, so the flops are the cost:
 the 3D P2G adjoint went from 4.2x to 2.3x its forward, and a node's values are read component by
-component (a runtime-indexed loop over a vector's components kept it in memory: 1.8x slower).
+component (a runtime-indexed loop over a vector's components kept it in memory: 1.8x slower). G2P's
+adjoint kernel replays G2P's gather with the same sums (``"gather"``), as the forward kernel gathers.
 Measured by ``benchmarks/_adjoint_split_warp.py`` (``benchmarks/README.md``, issue 17).
 """
 
@@ -217,10 +218,11 @@ def _separable(dim: int, precision: str, shape, kind: str, second: bool, need_o:
 
     ``kind`` "p2g": y_o = (a_q, a_m[, a_f]) from the node adjoints (src0 = adj mm, src1 = adj f, ``second``:
     split force); "g2p": y_o = (v_o[, v_old_o]) from the grid velocities (``second``: FLIP), and every
-    node also gets G2P's transpose, w_o (a_vp + aB o) + aG g_o added to dst0 (and w_o a_vo to dst1).
+    node also gets G2P's transpose, w_o (a_vp + aB o) + aG g_o added to dst0 (and w_o a_vo to dst1);
+    "gather": the same y_o, no transpose (G2P's own gather, replayed by its adjoint kernel).
 
-    ``sums`` returns the families (NY = len(y); NY x D matrices, column e): Sw = sum w y (a vector; "p2g"),
-    Swo[e] = sum w o_e y ("p2g", ``need_o``), Sg[e] = sum g_e y, Sgo_d[e] = sum g_d o_e y (``need_o``),
+    ``sums`` returns the families (NY = len(y); NY x D matrices, column e): Sw = sum w y (a vector; "p2g",
+    "gather"), Swo[e] = sum w o_e y ("p2g", "gather"; ``need_o``), Sg[e] = sum g_e y, Sgo_d[e] = sum g_d o_e y (``need_o``),
     SH_d[e] = sum H_de y (``need_h``); unused ones are zero. ``head`` / ``tail`` / ``mrow`` cut a family's
     rows of y's first part (D x D), its second part (D x D) and, for "p2g", the mass row; ``headv`` /
     ``tailv`` the same of a vector."""
@@ -228,8 +230,9 @@ def _separable(dim: int, precision: str, shape, kind: str, second: bool, need_o:
     S = K._stencil_funcs(dim, precision, shape)
     NW, OFFS = S.width, S.OFFS
     scalar, vec, mat, ivec = T.scalar, T.vec, T.mat, T.ivec
-    p2g = kind == "p2g"
-    need_w = p2g
+    p2g = kind == "p2g"                                # y from the node adjoints (else from the grid velocities)
+    need_w = kind in ("p2g", "gather")
+    transpose = kind == "g2p"                          # G2P's transpose at the nodes
     src_t = K.grid_vec_type(dim, precision) if p2g else vec
     n0 = dim + 1 if p2g else dim                       # where y's second part starts
     NY = n0 + (dim if second else 0)
@@ -331,7 +334,7 @@ def _separable(dim: int, precision: str, shape, kind: str, second: bool, need_o:
         E0 = emat()
         E1 = emat()
         E2 = emat()
-        if wp.static(not p2g):
+        if wp.static(transpose):
             E0 = axis_terms(W, DW, 0, aB, aG)
             E1 = axis_terms(W, DW, 1, aB, aG)
             if wp.static(dim == 3):
@@ -430,7 +433,7 @@ def _separable(dim: int, precision: str, shape, kind: str, second: bool, need_o:
                 if wp.static(need_h):
                     SH0 = SH0 + kcols(DD[i, 0] * pW, d0 * pD, z)
                     SH1 = SH1 + kcols(d0 * pD, w0 * pH, z)
-        if wp.static(not p2g):          # G2P's transpose, after the reductions: no store between their loads
+        if wp.static(transpose):          # G2P's transpose, after the reductions: no store between their loads
             if wp.static(dim == 3):
                 for i in range(NW):
                     Ai = W[i, 0] * a_vp + row(E0, i)
@@ -566,60 +569,35 @@ def _g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape):
         else:
             return vec(M[0, j], M[1, j])
 
+    GATHER = _separable(dim, precision, shape, "gather", flip, apic, False)
+
     @wp.func
-    def gather_node(M: pmat, w: scalar, gw: vec, o: vec, g: vec, go: vec):
-        """M += node's share of the moments (v_pic, v_old, B, sum v (grad w)^T), built as columns."""
-        c0 = w * g
-        c1 = vec()
-        if wp.static(flip):
-            c1 = w * go
-        B = mat()
-        if wp.static(apic):
-            B = wp.outer(w * g, o)
-        Gs = mat()
-        if wp.static(need_grad):
-            Gs = wp.outer(g, gw)
+    def pack(vp: vec, vo: vec, B: mat, Gs: mat):
+        """The moments as one matrix: columns v_pic, v_old, B, sum v (grad w)^T."""
         if wp.static(dim == 3):
-            return M + pmat(c0[0], c1[0], B[0, 0], B[0, 1], B[0, 2], Gs[0, 0], Gs[0, 1], Gs[0, 2],
-                            c0[1], c1[1], B[1, 0], B[1, 1], B[1, 2], Gs[1, 0], Gs[1, 1], Gs[1, 2],
-                            c0[2], c1[2], B[2, 0], B[2, 1], B[2, 2], Gs[2, 0], Gs[2, 1], Gs[2, 2])
+            return pmat(vp[0], vo[0], B[0, 0], B[0, 1], B[0, 2], Gs[0, 0], Gs[0, 1], Gs[0, 2],
+                        vp[1], vo[1], B[1, 0], B[1, 1], B[1, 2], Gs[1, 0], Gs[1, 1], Gs[1, 2],
+                        vp[2], vo[2], B[2, 0], B[2, 1], B[2, 2], Gs[2, 0], Gs[2, 1], Gs[2, 2])
         else:
-            return M + pmat(c0[0], c1[0], B[0, 0], B[0, 1], Gs[0, 0], Gs[0, 1],
-                            c0[1], c1[1], B[1, 0], B[1, 1], Gs[1, 0], Gs[1, 1])
+            return pmat(vp[0], vo[0], B[0, 0], B[0, 1], Gs[0, 0], Gs[0, 1],
+                        vp[1], vo[1], B[1, 0], B[1, 1], Gs[1, 0], Gs[1, 1])
 
     @wp.func
     def gather(x: vec, lp: scalar, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
                grid_v_old: wp.array(dtype=vec), adj_gv: wp.array(dtype=vec), adj_gvo: wp.array(dtype=vec)):
+        """G2P's moments (separable sums, as the forward kernel's gather); the adjoint kernel replays it."""
         inv_dx = scalar(1.0) / dx
         base, fx = S.locate(x, origin, inv_dx)
         W, DW = S.weights(fx, lp)
         nb = int(0)
         for d in range(dim):
             nb = nb + base[d] * strides[d]
-        M = pmat()
-        go = vec()
-        gw = vec()
-        if wp.static(dim == 3):
-            for i in range(NW):
-                for j in range(NW):
-                    nij = nb + i * strides[0] + j * strides[1]
-                    wxy = W[i, 0] * W[j, 1]
-                    for k in range(NW):
-                        if wp.static(need_grad):
-                            gw = vec(DW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * DW[j, 1] * W[k, 2], wxy * DW[k, 2])
-                        if wp.static(flip):
-                            go = grid_v_old[nij + k]
-                        M = gather_node(M, wxy * W[k, 2], gw, vec(OFFS[i], OFFS[j], OFFS[k]), grid_v[nij + k], go)
-        else:
-            for i in range(NW):
-                ni = nb + i * strides[0]
-                for j in range(NW):
-                    if wp.static(need_grad):
-                        gw = vec(DW[i, 0] * W[j, 1], W[i, 0] * DW[j, 1])
-                    if wp.static(flip):
-                        go = grid_v_old[ni + j]
-                    M = gather_node(M, W[i, 0] * W[j, 1], gw, vec(OFFS[i], OFFS[j]), grid_v[ni + j], go)
-        return M
+        Sw, Swo, Sg, g0, g1, g2, h0, h1, h2 = GATHER.sums(W, DW, W, nb, strides, grid_v, grid_v_old, adj_gv, adj_gvo,
+                                                          vec(), vec(), mat(), mat())
+        Gs = mat()
+        if wp.static(need_grad):
+            Gs = GATHER.head(Sg)
+        return pack(GATHER.headv(Sw), GATHER.tailv(Sw), GATHER.head(Swo), Gs)
 
     @wp.func_grad(gather)
     def adj_gather(x: vec, lp: scalar, origin: vec, dx: scalar, strides: ivec, grid_v: wp.array(dtype=vec),
