@@ -211,8 +211,8 @@ def _p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool, shape):
 # ---- separable stencil sums, shared by both adjoints ---------------------------------------------------
 @lru_cache(maxsize=None)
 def _separable(dim: int, precision: str, shape, kind: str, second: bool, need_o: bool, need_h: bool):
-    """The sums both adjoints reduce over the width^D stencil, sum_o f(o) y_o, with y_o a node's values
-    and f a product of one per-axis factor of the kinds W (w), O (o w), D (w'), X (o w'), H (w'') --
+    """The stencil sums of both adjoints (and of the gather G2P's adjoint replays), sum_o f(o) y_o, with y_o
+    a node's values and f a product of one per-axis factor of the kinds W (w), O (o w), D (w'), X (o w'), H (w'') --
     separable (tensor-product weights), so summed over the last axis first, then the next, as G2P's
     forward gathers, instead of forming w_o, g_o = grad w_o, H_o and their outer products at each node.
 
@@ -222,8 +222,8 @@ def _separable(dim: int, precision: str, shape, kind: str, second: bool, need_o:
     "gather": the same y_o, no transpose (G2P's own gather, replayed by its adjoint kernel).
 
     ``sums`` returns the families (NY = len(y); NY x D matrices, column e): Sw = sum w y (a vector; "p2g",
-    "gather"), Swo[e] = sum w o_e y ("p2g", "gather"; ``need_o``), Sg[e] = sum g_e y, Sgo_d[e] = sum g_d o_e y (``need_o``),
-    SH_d[e] = sum H_de y (``need_h``); unused ones are zero. ``head`` / ``tail`` / ``mrow`` cut a family's
+    "gather"), Swo[e] = sum w o_e y ("p2g", "gather"; ``need_o``), Sg[e] = sum g_e y, Sgo_d[e] = sum g_d o_e y
+    (``need_o``), SH_d[e] = sum H_de y (``need_h``); unused ones are zero. ``head`` / ``tail`` / ``mrow`` cut a family's
     rows of y's first part (D x D), its second part (D x D) and, for "p2g", the mass row; ``headv`` /
     ``tailv`` the same of a vector."""
     T = warp_types(dim, precision)
