@@ -130,20 +130,11 @@ def _p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool, shape):
             qc = q - A @ fxd
         afx = wp.transpose(s_T) @ qc + m * SEP.mrow(Sg)
         if wp.static(m_affine):
-            if wp.static(dim == 3):
-                afx = afx + dx * vec(wp.ddot(A, SEP.head(Sgo0)), wp.ddot(A, SEP.head(Sgo1)), wp.ddot(A, SEP.head(Sgo2)))
-            else:
-                afx = afx + dx * vec(wp.ddot(A, SEP.head(Sgo0)), wp.ddot(A, SEP.head(Sgo1)))
+            afx = afx + dx * SEP.head_ddots(A, Sgo0, Sgo1, Sgo2)
         if wp.static(m_grad):
-            if wp.static(dim == 3):
-                afx = afx + vec(wp.ddot(Tg, SEP.head(SH0)), wp.ddot(Tg, SEP.head(SH1)), wp.ddot(Tg, SEP.head(SH2)))
-            else:
-                afx = afx + vec(wp.ddot(Tg, SEP.head(SH0)), wp.ddot(Tg, SEP.head(SH1)))
+            afx = afx + SEP.head_ddots(Tg, SH0, SH1, SH2)
         if wp.static(f_grad):
-            if wp.static(dim == 3):
-                afx = afx + vec(wp.ddot(Fg, SEP.tail(SH0)), wp.ddot(Fg, SEP.tail(SH1)), wp.ddot(Fg, SEP.tail(SH2)))
-            else:
-                afx = afx + vec(wp.ddot(Fg, SEP.tail(SH0)), wp.ddot(Fg, SEP.tail(SH1)))
+            afx = afx + SEP.tail_ddots(Fg, SH0, SH1, SH2)
         fc = vec()                       # the force's node value without its o-term (f_affine: Fm (o dx - fx dx))
         if wp.static(ext_grad or ext_alone):
             fc = fext
@@ -151,10 +142,7 @@ def _p2g_adjoint_kernels(dim: int, precision: str, tr, has_ext: bool, shape):
             fc = -(Fm @ fxd)
             if wp.static(ext_affine):
                 fc = fc + fext
-            if wp.static(dim == 3):
-                afx = afx + dx * vec(wp.ddot(Fm, SEP.tail(Sgo0)), wp.ddot(Fm, SEP.tail(Sgo1)), wp.ddot(Fm, SEP.tail(Sgo2)))
-            else:
-                afx = afx + dx * vec(wp.ddot(Fm, SEP.tail(Sgo0)), wp.ddot(Fm, SEP.tail(Sgo1)))
+            afx = afx + dx * SEP.tail_ddots(Fm, Sgo0, Sgo1, Sgo2)
         if wp.static(ext_grad or ext_alone or f_affine):
             afx = afx + wp.transpose(s_Fg) @ fc
         # the fx inside A (o - fx) dx: -dx A^T sum_o w_o a_q (likewise Fm)
@@ -491,7 +479,24 @@ def _separable(dim: int, precision: str, shape, kind: str, second: bool, need_o:
                 r[b] = M[dim, b]
         return r
 
-    return SimpleNamespace(sums=sums, head=head, tail=tail, headv=headv, tailv=tailv, mrow=mrow)
+    @wp.func
+    def head_ddots(M: mat, S0: kmat, S1: kmat, S2: kmat):
+        """(M : head(S_d)) for d = 0 .. D-1: a family of D matrices contracted with M (S2 unused in 2D)."""
+        if wp.static(dim == 3):
+            return vec(wp.ddot(M, head(S0)), wp.ddot(M, head(S1)), wp.ddot(M, head(S2)))
+        else:
+            return vec(wp.ddot(M, head(S0)), wp.ddot(M, head(S1)))
+
+    @wp.func
+    def tail_ddots(M: mat, S0: kmat, S1: kmat, S2: kmat):
+        """(M : tail(S_d)) for d = 0 .. D-1 (S2 unused in 2D)."""
+        if wp.static(dim == 3):
+            return vec(wp.ddot(M, tail(S0)), wp.ddot(M, tail(S1)), wp.ddot(M, tail(S2)))
+        else:
+            return vec(wp.ddot(M, tail(S0)), wp.ddot(M, tail(S1)))
+
+    return SimpleNamespace(sums=sums, head=head, tail=tail, headv=headv, tailv=tailv, mrow=mrow, head_ddots=head_ddots,
+                           tail_ddots=tail_ddots)
 
 
 class RecordedP2G:
@@ -624,15 +629,9 @@ def _g2p_adjoint_kernel(law, dim: int, precision: str, tr, shape):
                                                                    adj_gvo, a_vp, a_vo, aB, aG)   # Sw, Swo: P2G's
         afx = wp.transpose(SEP.head(Sg)) @ a_vp
         if wp.static(apic):
-            if wp.static(dim == 3):
-                afx = afx + vec(wp.ddot(aB, SEP.head(Sgo0)), wp.ddot(aB, SEP.head(Sgo1)), wp.ddot(aB, SEP.head(Sgo2)))
-            else:
-                afx = afx + vec(wp.ddot(aB, SEP.head(Sgo0)), wp.ddot(aB, SEP.head(Sgo1)))
+            afx = afx + SEP.head_ddots(aB, Sgo0, Sgo1, Sgo2)
         if wp.static(need_grad):
-            if wp.static(dim == 3):
-                afx = afx + vec(wp.ddot(aG, SEP.head(SH0)), wp.ddot(aG, SEP.head(SH1)), wp.ddot(aG, SEP.head(SH2)))
-            else:
-                afx = afx + vec(wp.ddot(aG, SEP.head(SH0)), wp.ddot(aG, SEP.head(SH1)))
+            afx = afx + SEP.head_ddots(aG, SH0, SH1, SH2)
         if wp.static(flip):
             afx = afx + wp.transpose(SEP.tail(Sg)) @ a_vo
         wp.adjoint[x] += inv_dx * afx
