@@ -1,7 +1,7 @@
 """The reduced step's time against the body's size (issue 16, "Speed"): the `rom_tower` scene scaled by
 ``--sizes`` (linear factors at the `cpu` resolution's fixed dx, so particles grow as size^3: 48k to 800k),
-one Eulerian + linear reduced step at |M| = ``--samples`` on the compact node set and on the scene's grid,
-and the full-order step on both backends, all in this one process -> ``benchmarks/rom.md`` (section
+one Eulerian + linear reduced step at |M| = ``--samples`` on the compact node set and on the scene's grid
+(JAX, and Warp with ``--backends`` naming it), and the full-order step on both backends, all in this one process -> ``benchmarks/rom.md`` (section
 ``rom-speed``) and ``benchmarks/results/rom_speed.json``.
 
     python benchmarks/rom_speed.py                       # sizes 1, 1.6, 2, 2.55; ~10 min on 2 cores
@@ -94,17 +94,31 @@ def measure(size: float, samples: int, repeats: int, backends: list[str]) -> dic
         row["quadrature_points"] = int(x.shape[0])
         log(f"  its MPM part, {nodes} nodes: {row[f'mpm_{nodes}_s'] * 1e3:.2f} ms ({x.shape[0]} points)")
     if "warp" in fom_w:
-        # Warp's Eulerian quadrature runs its MPM part on the scene's grid (no compact node set there): the
-        # reduced step (torch networks + a Warp step of the quadrature's pseudo-particles) and that Warp step
-        # alone, to see what the grid's size costs it
+        # Warp's reduced model (torch networks, Warp MPM step of the quadrature's pseudo-particles) on both node
+        # sets: the compact one (the samples' windows' nodes listed, node_list.py) and the scene grid (the box
+        # of the reached nodes); then that Warp MPM step alone (on the compact set: listing, step, release)
         from mpmlab.rom.stepper_warp import WarpReducedStepper
 
-        rom = WarpReducedStepper(fom_w["warp"], w, samples=samples, quadrature="eulerian", projection="linear")
-        s0 = rom.init()
-        row["rom_warp_scene_s"] = timed(lambda: rom.step(s0), repeats)
-        log(f"  reduced step, Warp (scene grid): {row['rom_warp_scene_s'] * 1e3:.2f} ms")
-        row["mpm_warp_scene_s"] = timed(lambda: rom._pseudo._step_into(rom._q_in, rom._q_out), repeats)
-        log(f"  its MPM part, Warp (scene grid): {row['mpm_warp_scene_s'] * 1e3:.2f} ms")
+        for nodes in ("compact", "scene"):
+            rom = WarpReducedStepper(fom_w["warp"], w, samples=samples, quadrature="eulerian", projection="linear",
+                                     nodes=nodes)
+            s0 = rom.init()
+            row[f"rom_warp_{nodes}_s"] = timed(lambda: rom.step(s0), repeats)
+            log(f"  reduced step, Warp ({nodes} nodes): {row[f'rom_warp_{nodes}_s'] * 1e3:.2f} ms")
+            ps, q = rom._pseudo, rom._eu.q_size
+            xM = rom._q_in.x.numpy()[q:q + samples]           # the last step's samples
+            origin = np.floor((xM - np.asarray(rom.scene.origin)) / rom.scene.dx - 0.5).astype(np.int32)
+
+            def mpm(rom=rom, ps=ps, origin=origin + getattr(rom, "_window_low", 0)):
+                if ps.node_list is not None:
+                    ps.node_list.claim_windows(origin)
+                ps._step_into(rom._q_in, rom._q_out)
+                if ps.node_list is not None:
+                    ps.node_list.release()
+                ps._block(rom._q_out)
+
+            row[f"mpm_warp_{nodes}_s"] = timed(mpm, repeats)
+            log(f"  its MPM part, Warp ({nodes} nodes): {row[f'mpm_warp_{nodes}_s'] * 1e3:.2f} ms")
     return row
 
 
@@ -120,26 +134,34 @@ def report(res: dict) -> None:
             f"full-order PIC step per backend, all in the same run; medians of {res['repeats']} calls. Issue "
             f"16's target: the reduced step within 1.5x from 50k to 800k particles.", ""]
     fb = [b for b in ("jax", "warp") if f"fom_{b}_s" in first]
-    wr = "rom_warp_scene_s" in first
+    wr = "rom_warp_compact_s" in first
     head = ["size", "particles", "grid", "reduced, compact nodes [ms]", "x the smallest", "reduced, scene grid [ms]",
             "x the smallest", "its MPM part, compact / scene [ms]"] + [f"full-order {b} [ms]" for b in fb] + \
-        (["reduced, Warp, scene grid [ms]", "x the smallest", "its MPM part [ms]"] if wr else [])
+        (["reduced, Warp, compact nodes [ms]", "x the smallest", "reduced, Warp, scene grid [ms]", "x the smallest",
+          "its Warp MPM part, compact / scene [ms]"] if wr else [])
+
+    def warp_cols(r):
+        if not wr:
+            return []
+        if "rom_warp_compact_s" not in r:
+            return ["–"] * 5
+        return [f"{r['rom_warp_compact_s'] * 1e3:.1f}", f"{r['rom_warp_compact_s'] / first['rom_warp_compact_s']:.2f}",
+                f"{r['rom_warp_scene_s'] * 1e3:.1f}", f"{r['rom_warp_scene_s'] / first['rom_warp_scene_s']:.2f}",
+                f"{r['mpm_warp_compact_s'] * 1e3:.1f} / {r['mpm_warp_scene_s'] * 1e3:.1f}"]
+
     mpm = lambda r: (f"{r['mpm_compact_s'] * 1e3:.1f} / {r['mpm_scene_s'] * 1e3:.1f}" if "mpm_scene_s" in r else "–")
     body += md_table(head, [[f"{r['size']:g}", f"{r['particles']:,}", "x".join(map(str, r["grid"])),
                              f"{r['rom_compact_s'] * 1e3:.2f}", f"{r['rom_compact_s'] / first['rom_compact_s']:.2f}",
                              f"{r['rom_scene_s'] * 1e3:.2f}", f"{r['rom_scene_s'] / first['rom_scene_s']:.2f}", mpm(r)]
-                            + [f"{r[f'fom_{b}_s'] * 1e3:.1f}" for b in fb]
-                            + ([f"{r['rom_warp_scene_s'] * 1e3:.1f}", f"{r['rom_warp_scene_s'] / first['rom_warp_scene_s']:.2f}",
-                                f"{r['mpm_warp_scene_s'] * 1e3:.1f}"] if wr and "rom_warp_scene_s" in r else
-                               (["–", "–", "–"] if wr else [])) for r in rows])
+                            + [f"{r[f'fom_{b}_s'] * 1e3:.1f}" for b in fb] + warp_cols(r) for r in rows])
     if "quadrature_points" in first:
         body += ["", f"The reduced step's MPM part runs on {first['quadrature_points']:,} points (the quadrature's fixed "
                      f"budget, then the samples); the rest of the step is g, its Jacobians and the inverse map at those "
                      f"points, and the projection."]
     if wr:
-        body += ["", "Warp's reduced model (torch networks, Warp MPM step) has no compact node set: its Eulerian "
-                     "quadrature's MPM step runs on the scene's grid (last columns, the Warp step of the pseudo-particles "
-                     "alone)."]
+        body += ["", "Warp's reduced model: torch networks and a Warp MPM step of the pseudo-particles, its grid update "
+                     "over the samples' windows' nodes (compact, `backends/warp/node_list.py`) or over the box of the "
+                     "reached nodes (scene grid); the last column times that Warp MPM step alone (one CPU thread)."]
     body.append("")
     write_readme_section(MD, "rom-speed", "The reduced step against the body's size (compact node set)", "\n".join(body))
 

@@ -94,9 +94,11 @@ def test_warp_replays_the_jax_eulerian_rollout_with_every_boundary_kind(dim):
     """The Eulerian quadrature with walls, a Coulomb floor and a grip (particle_velocity + grid_velocity,
     rotating in 3D) on both backends, JAX's draws replayed on Warp: the grip acts on the samples through
     Warp's scratch arrays (written at the samples' rows only, never cleared) and through JAX's
-    ``apply_particles(..., rows=)``; the latent trajectories agree. In 3D the initial states (Eq. 19's
-    Gauss-Newton on this random map, |x_hat| up to 22) already differ by 3e-8 and the steps add nothing
-    (measured: 2.9e-8 at step 0, 4.9e-8 after 12); a grip about another centre moves x_hat by orders more."""
+    ``apply_particles(..., rows=)``; the latent trajectories agree. The initial states (Eq. 19's
+    Gauss-Newton on this random map, |x_hat| up to 22 in 3D) already differ by what the two linear-algebra
+    libraries make of it on the machine, and the steps add little: 3D 2.9e-8 at step 0, 4.9e-8 after 12 (an
+    Intel Xeon); 2D 2.5e-9 and 4.1e-9 on an AMD EPYC, where 2D was 1e-11 on the Xeon. So the test bounds the
+    initial difference and what the steps add to it; a grip about another centre moves x_hat by orders more."""
     sc = _boundary_scene(dim)
     fj, fw = build_stepper(sc, "jax", "pic", "fp64"), build_stepper(sc, "warp", "pic", "fp64")
     spec = N.RomSpec(dim=dim, latent=3)
@@ -108,7 +110,48 @@ def test_warp_replays_the_jax_eulerian_rollout_with_every_boundary_kind(dim):
     oj = rj.rollout(steps=12, every=4)
     ow = reduced_stepper(fw, w, draws=rj.draws(12), **kw).rollout(steps=12, every=4)
     assert np.ptp(oj["z"], axis=0).max() > 1e-4
-    assert np.max(np.abs(oj["z"] - ow["z"])) <= (1e-11 if dim == 2 else 5e-9) * max(1.0, np.max(np.abs(oj["z"])))
+    scale = max(1.0, np.max(np.abs(oj["z"])))
+    d0, d = np.max(np.abs(oj["z"][0] - ow["z"][0])), np.max(np.abs(oj["z"] - ow["z"]))
+    assert d0 <= 5e-9 * scale and d <= 3.0 * d0 + 1e-11 * scale, (d0, d)
+
+
+@pytest.mark.parametrize("dim", (2, 3))
+def test_the_compact_node_set_steps_as_the_scene_grid_does(dim):
+    """Warp's Eulerian quadrature with its grid update over the samples' windows' nodes only
+    (backends/warp/node_list.py) gives the scene grid's steps exactly: walls, a Coulomb floor and a grip.
+    The list must hold every node the points reach and each once: a missed node keeps its P2G sums into
+    the next step, a node listed twice is updated from cleared sums."""
+    fw = build_stepper(_boundary_scene(dim), "warp", "pic", "fp64")
+    spec = N.RomSpec(dim=dim, latent=3)
+    X = np.asarray(fw.particles.x)
+    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(dim), "u_std": np.full(dim, 3e-3)}
+    w = N.RomWeights(N.init_params(spec, seed=5), norm, spec, 5)
+    # few samples, so that windows overlap little and a window's edge nodes are listed by it alone (with 12
+    # samples a list one node short per axis still passed: measured)
+    kw = dict(samples=4, per_boundary=1, quadrature="eulerian", projection="linear", eulerian_capacity=1e9)
+    compact = WarpReducedStepper(fw, w, nodes="compact", **kw)
+    assert compact._pseudo.node_list is not None
+    a = compact.rollout(steps=12, every=4)
+    assert not compact._pseudo.grid_mm.numpy().any()          # every P2G sum was read and cleared
+    b = WarpReducedStepper(fw, w, nodes="scene", **kw).rollout(steps=12, every=4)
+    assert np.ptp(b["z"], axis=0).max() > 1e-4
+    assert np.array_equal(a["z"], b["z"])
+
+
+def test_a_node_list_holds_each_window_node_once():
+    """Overlapping windows list their shared nodes once, nodes off the grid are skipped, and a release
+    leaves the claims clear for the next step."""
+    from mpmlab.backends.warp.node_list import NodeList
+
+    nl = NodeList(2, (6, 5), width=3, windows=3)
+    origins = np.array([[0, 0], [1, 1], [4, 3]])
+    expect = sorted({(i + a) * 5 + (j + b) for i, j in origins for a in range(3) for b in range(3)
+                     if 0 <= i + a < 6 and 0 <= j + b < 5})
+    for _ in range(2):
+        nl.claim_windows(origins)
+        assert nl.listed().tolist() == expect
+        nl.release()
+        assert not nl.flag.numpy().any()
 
 
 def test_refusals(beam):

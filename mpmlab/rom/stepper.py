@@ -75,7 +75,7 @@ QUADRATURES = ("lagrangian", "eulerian")
 CAPABILITIES = {"lagrangian": {"jax": "reverse", "warp": "reverse"},
                 "eulerian": {"jax": "forward", "warp": None}}
 #: where each backend's Eulerian quadrature runs P2G, the grid update and G2P (the capability matrix)
-EULERIAN_NODES = {"jax": "compact node set", "warp": "scene grid"}
+EULERIAN_NODES = {"jax": "compact node set", "warp": "compact node set"}
 #: the Eulerian quadrature's inverse map: Newton iterations and backtracking halvings per iteration
 INVERSE_ITERATIONS, INVERSE_HALVINGS = 8, 10
 PROJECTIONS = ("linear", "nonlinear")
@@ -103,8 +103,9 @@ _EULER_REACH = np.arange(-3, 7)
 #: |M| = 50: 9,700-10,000 distinct points of 50,000 slots), and each slot costs an inverse map. A step that
 #: needs more (the body spread) is flagged (``ReducedState.overflow``) and the rollout stops with a ConfigError.
 EULER_CAPACITY = 1.5
-#: where the Eulerian quadrature's P2G, grid update and G2P run (JAX): "compact", a window of nodes per
-#: sample (``sample_window``) (backends/jax/node_windows.py), or "scene", the scene's grid
+#: where the Eulerian quadrature's P2G, grid update and G2P run: "compact", a window of nodes per sample
+#: (``sample_window``; JAX: stacked dense windows, backends/jax/node_windows.py; Warp: the windows' nodes
+#: listed in the scene's grid, backends/warp/node_list.py), or "scene", the scene's grid
 NODE_SETS = ("compact", "scene")
 
 
@@ -168,7 +169,7 @@ class _ReducedBase(AbstractStepper):
     backend_name = ""
 
     def _check(self, fom, weights, samples, quadrature, projection, per_boundary, seed, capacity=EULER_CAPACITY,
-               tangent="next"):
+               tangent="next", nodes="compact"):
         if getattr(fom, "backend_name", "") != self.backend_name:
             raise ConfigError(f"{type(self).__name__}: the full-order stepper is on backend "
                               f"'{getattr(fom, 'backend_name', '?')}'; build it with backend '{self.backend_name}' "
@@ -185,6 +186,11 @@ class _ReducedBase(AbstractStepper):
             raise ConfigError(f"ReducedStepper: quadrature '{quadrature}'; choose {' or '.join(QUADRATURES)}.")
         if projection not in PROJECTIONS:
             raise ConfigError(f"ReducedStepper: projection '{projection}'; choose {' or '.join(PROJECTIONS)}.")
+        if nodes not in NODE_SETS:
+            raise ConfigError(f"ReducedStepper: nodes '{nodes}'; choose {' or '.join(NODE_SETS)} (where the Eulerian "
+                              f"quadrature's P2G, grid update and G2P run).")
+        #: the Eulerian quadrature's nodes: "compact" (windows around the samples) or "scene" (the scene's grid)
+        self.nodes = nodes
         if tangent not in TANGENTS:
             raise ConfigError(f"ReducedStepper: tangent '{tangent}'; choose {' or '.join(TANGENTS)} (where the velocity "
                               f"least squares takes dg/dx_hat: at x_hat_(n+1) or, as the paper, at x_hat_n).")
@@ -344,12 +350,7 @@ class ReducedStepper(_ReducedBase):
         import jax
         import jax.numpy as jnp
 
-        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent)
-        if nodes not in NODE_SETS:
-            raise ConfigError(f"ReducedStepper: nodes '{nodes}'; choose {' or '.join(NODE_SETS)} (where the Eulerian "
-                              f"quadrature's P2G, grid update and G2P run).")
-        #: the Eulerian quadrature's nodes: "compact" (windows around the samples) or "scene" (the scene's grid)
-        self.nodes = nodes
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent, nodes)
         self.dtype = dt = fom.dtype
         self.params = N.to_jax(weights.params, dt)
         self.norm = N.to_jax(weights.norm, dt)

@@ -10,7 +10,8 @@ sample draws with the kinematic boundaries' forced points, Eq. 19's initial stat
 full-order guard's test and ``to_numpy``. The Lagrangian quadrature steps the scene's own Warp stepper;
 the Eulerian one a second Warp stepper of the same scene over its fixed-size point set (the JAX stepper's budget of
 lattice points, then the samples; the torch inverse map ``manifold_torch.inverse_map``), the scene's kinematic
-boundaries applied to the samples. Same inputs give the same steps: the conformance test replays the
+boundaries applied to the samples, its grid update over the samples' windows' nodes only (``nodes="compact"``,
+the default: ``backends/warp/node_list.py``; ``"scene"``: the bounding box of the nodes reached). Same inputs give the same steps: the conformance test replays the
 JAX stepper's draws (``draws=``) and compares the latent trajectories.
 
 ``rollout_fn`` is the reduced rollout as a torch function, differentiable by autograd in x_hat_0 and the
@@ -66,13 +67,14 @@ class WarpReducedStepper(_ReducedBase):
 
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0, draws=None,
-                 torch_threads: int | None = 1, eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next"):
+                 torch_threads: int | None = 1, eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next",
+                 nodes: str = "compact"):
         import torch
         import warp as wp
 
         from . import networks_torch as NT
 
-        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent)
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent, nodes)
         self._threads = None if torch_threads is None or fom.device.startswith("cuda") else int(torch_threads)
         self.tdtype = torch.float64 if fom.precision == "fp64" else torch.float32
         self.tdevice = torch.device("cuda", wp.get_device(fom.device).ordinal) if fom.device.startswith("cuda") \
@@ -143,6 +145,13 @@ class WarpReducedStepper(_ReducedBase):
         fom = self.fom
         self._pseudo = ps = WarpStepper(sc, fom.transfer, fom.precision, device=fom.device, threads=1)
         ps._set_dt(fom.dt)
+        if self.nodes == "compact":     # the grid update over the samples' windows' nodes only (node_list.py)
+            from ..backends.warp.node_list import NodeList
+            from .stepper import sample_window
+
+            low, width = sample_window(ps.shape.offset, ps.shape.width)
+            self._window_low = low
+            ps.node_list = NodeList(d, self.scene.grid_shape, width, self.samples, device=ps.device)
         self._q_in, self._q_out = ps._alloc(), ps._alloc()
         self._q_in.order = SimpleNamespace(perm=None, mass=wp.empty_like(ps.mass), vol=wp.empty_like(ps.vol),
                                            params=ps.law_params)
@@ -284,7 +293,12 @@ class WarpReducedStepper(_ReducedBase):
         self._write(st["F"], F)
         wp.launch(ps.k_laws[0].stress, dim=x.shape[0], inputs=[*ps._law_args(0, st), 0, a.tau], device=ps.device)
         a.t = float(s.t)
-        ps._step_into(a, self._q_out)
+        if ps.node_list is not None:          # every point's stencil lies in its sample's window (sample_window)
+            ps.node_list.claim_windows(base + self._window_low)
+            ps._step_into(a, self._q_out)
+            ps.node_list.release()
+        else:
+            ps._step_into(a, self._q_out)
         rows = slice(e.q_size, e.q_size + M.shape[0])
         x0, v_tr = x[rows], wp.to_torch(self._q_out.v)[rows]
         x_tr = x0 + self.dt * v_tr

@@ -491,15 +491,52 @@ def grid_node_func(dim: int, precision: str, split_force: bool):
 
 
 @lru_cache(maxsize=None)
+def _grid_fast_node_func(dim: int, precision: str, split_force: bool):
+    """The fast grid update of one node ``i`` (grid index ``I``): sums the ``copies`` private P2G grids,
+    clears them for the next step (so no separate zeroing pass), updates the velocity (``grid_node_func``)
+    and writes it. Shared by the box form and the listed form of the fast update."""
+    T = warp_types(dim, precision)
+    vec, ivec = T.vec, T.ivec
+    scalar = T.scalar
+    gvec = grid_vec_type(dim, precision)
+    node = grid_node_func(dim, precision, split_force)
+
+    @wp.func
+    def fast_node(i: int, I: ivec, grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), copies: int, G: int,
+                  dt: scalar, gravity_v: vec, shape: ivec, wall_kind: wp.array(dtype=int), thickness: int,
+                  grid_v: wp.array(dtype=vec), grid_v_old: wp.array(dtype=vec)):
+        acc = grid_mm[i]
+        grid_mm[i] = gvec()
+        fs = vec()
+        if wp.static(split_force):
+            fs = grid_f[i]
+            grid_f[i] = vec()
+        for c in range(1, copies):
+            acc = acc + grid_mm[c * G + i]
+            grid_mm[c * G + i] = gvec()
+            if wp.static(split_force):
+                fs = fs + grid_f[c * G + i]
+                grid_f[c * G + i] = vec()
+        vn, vo = node(acc, fs, dt, gravity_v, I, shape, wall_kind, thickness)
+        if wp.static(split_force):
+            grid_v_old[i] = vo
+        grid_v[i] = vn
+
+    return fast_node
+
+
+@lru_cache(maxsize=None)
 def grid_update_kernel(dim: int, precision: str, split_force: bool, tape: bool = False):
     """Grid velocity update (JAX-MPM Eqs. 13-14) fused with the domain walls (kinds are arguments), from
     one node function (``grid_node_func``) in two forms:
 
     * fast (``tape=False``): over the box ``lo + [0, ext)`` of nodes (the nodes particles reached this
-      step), sums the ``copies`` private P2G grids and clears them for the next step (so no separate
-      zeroing pass); gravity is ``gravity_v``;
+      step), ``_grid_fast_node_func``: sums the ``copies`` private P2G grids and clears them; gravity is
+      ``gravity_v``;
     * tape-safe (``tape=True``): over every node, reads one grid and writes fresh outputs (clearing
       what it reads is what a tape cannot replay); gravity is the differentiable ``gravity[0]``.
+
+    ``grid_update_listed_kernel`` is the fast form over a list of nodes (a compact node set).
 
     Warp pitfall: in a differentiated kernel never overwrite a vector component that depends on the
     inputs (``v[d] = 0``): Warp 1.19 still routes the old value's adjoint through. Build new vectors.
@@ -508,6 +545,7 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool, tape: bool =
     scalar, vec, ivec = T.scalar, T.vec, T.ivec
     gvec = grid_vec_type(dim, precision)
     node = grid_node_func(dim, precision, split_force)
+    fast_node = _grid_fast_node_func(dim, precision, split_force)
 
     @wp.kernel(module="unique")
     def grid_update(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), copies: int, G: int, start: int,
@@ -521,6 +559,15 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool, tape: bool =
             i = t
             for d in range(dim):
                 I[d] = (i // strides[d]) % shape[d]
+            acc = grid_mm[i]
+            fs = vec()
+            if wp.static(split_force):
+                fs = grid_f[i]
+            vn, vo = node(acc, fs, dt, gravity[0], I, shape, wall_kind, thickness)
+            if wp.static(split_force):
+                if acc[dim] > scalar(0.0):
+                    grid_v_old[i] = vo
+            grid_v[i] = vn
         else:
             rem = t
             for e in range(dim):
@@ -529,33 +576,36 @@ def grid_update_kernel(dim: int, precision: str, split_force: bool, tape: bool =
                 rem = rem // ext[d]
                 I[d] = lo[d] + c
                 i = i + I[d] * strides[d]
-        acc = grid_mm[i]
-        fs = vec()
-        if wp.static(split_force):
-            fs = grid_f[i]
-        if wp.static(not tape):
-            grid_mm[i] = gvec()
-            if wp.static(split_force):
-                grid_f[i] = vec()
-            for c in range(1, copies):
-                acc = acc + grid_mm[c * G + i]
-                grid_mm[c * G + i] = gvec()
-                if wp.static(split_force):
-                    fs = fs + grid_f[c * G + i]
-                    grid_f[c * G + i] = vec()
-        g = gravity_v
-        if wp.static(tape):
-            g = gravity[0]
-        vn, vo = node(acc, fs, dt, g, I, shape, wall_kind, thickness)
-        if wp.static(split_force):
-            if wp.static(tape):
-                if acc[dim] > scalar(0.0):
-                    grid_v_old[i] = vo
-            else:
-                grid_v_old[i] = vo
-        grid_v[i] = vn
+            fast_node(i, I, grid_mm, grid_f, copies, G, dt, gravity_v, shape, wall_kind, thickness, grid_v, grid_v_old)
 
     return grid_update
+
+
+@lru_cache(maxsize=None)
+def grid_update_listed_kernel(dim: int, precision: str, split_force: bool):
+    """The fast grid update over the first ``count[0]`` entries of ``nodes`` (flat grid indices, each node
+    once): a compact node set (``node_list.NodeList``), so the update costs what the list holds, not the
+    reached nodes' bounding box. Launched over the list's capacity; the threads past the count return."""
+    T = warp_types(dim, precision)
+    scalar, vec, ivec = T.scalar, T.vec, T.ivec
+    gvec = grid_vec_type(dim, precision)
+    fast_node = _grid_fast_node_func(dim, precision, split_force)
+
+    @wp.kernel(module="unique")
+    def grid_update_listed(grid_mm: wp.array(dtype=gvec), grid_f: wp.array(dtype=vec), copies: int, G: int,
+                           nodes: wp.array(dtype=int), count: wp.array(dtype=int), dt: scalar, gravity_v: vec,
+                           shape: ivec, strides: ivec, wall_kind: wp.array(dtype=int), thickness: int,
+                           grid_v: wp.array(dtype=vec), grid_v_old: wp.array(dtype=vec)):
+        t = wp.tid()
+        if t >= count[0]:
+            return
+        i = nodes[t]
+        I = ivec()
+        for d in range(dim):
+            I[d] = (i // strides[d]) % shape[d]
+        fast_node(i, I, grid_mm, grid_f, copies, G, dt, gravity_v, shape, wall_kind, thickness, grid_v, grid_v_old)
+
+    return grid_update_listed
 
 
 def law_module_options(impl) -> dict:

@@ -167,6 +167,9 @@ class WarpStepper(BaseStepper):
         #: launch the grid update only over the nodes particles reached (False: the whole grid, for
         #: measuring what this skip saves)
         self.limit_grid = True
+        #: a compact node set (``node_list.NodeList``) the grid update visits instead of that box (None: the
+        #: box); its owner lists every node the step's particles reach (e.g. the reduced model's windows)
+        self.node_list = None
         # kernels (cached per specialisation)
         #: P2G sums with atomic adds into one grid (CUDA: required, every particle runs at once; None =
         #: by device) instead of plain adds into per-thread copies (CPU)
@@ -174,6 +177,7 @@ class WarpStepper(BaseStepper):
         self.k_p2g = K.p2g_kernel(D, precision, self.warp_transfer, bool(self.force_bcs), atomic=self.p2g_atomic,
                                   shape=self.shape)
         self.k_grid = K.grid_update_kernel(D, precision, self.split_force)
+        self.k_grid_listed = K.grid_update_listed_kernel(D, precision, self.split_force)
         self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, self.warp_transfer, shape=self.shape) for g in self.groups]
         self.k_laws = [K.law_kernels(g.law, D, precision) for g in self.groups]
         _compile_step_kernels(self)
@@ -352,7 +356,6 @@ class WarpStepper(BaseStepper):
         return SimpleNamespace(p2g=p2g, grid=grid, g2p=g2p)
 
     def _step_into(self, s: WarpState, o: WarpState) -> None:
-        D = self.dim
         key = (id(s), id(o), id(s.order))
         cmds = self._cmd_cache.get(key)
         if cmds is None:
@@ -372,22 +375,11 @@ class WarpStepper(BaseStepper):
             bb[1::2] = np.iinfo(np.int32).min
         self._grid_dirty = True
         self._run_static(cmds.p2g)
-        # grid update over the reached nodes (their bounding box) ----------------------------------------------
-        if self.limit_grid and bb is not None:
-            used = bb[: 2 * len(cmds.p2g)]
-            lo = np.maximum(used[0::2].min(axis=0), 0)
-            hi = np.minimum(used[1::2].max(axis=0) + self.shape.width, self.grid_shape)   # + the last base node's window
+        # grid update over the reached nodes (their bounding box, or a compact node set) --------------------
+        if self.node_list is not None:
+            self._grid_update_listed(self.node_list, len(cmds.p2g))
         else:
-            lo, hi = np.zeros(D, int), np.asarray(self.grid_shape)
-        ext = np.maximum(hi - lo, 0)   # 0 when no particle is on the grid (all diverged off it): nothing to do
-        lo_v, ext_v = self.T.ivec(*lo.tolist()), self.T.ivec(*ext.tolist())
-        chunks = self._chunks(int(np.prod(ext)), len(cmds.grid))
-        for c, (start, cnt) in zip(cmds.grid, chunks):
-            c.set_param_by_name("start", start)
-            c.set_param_by_name("lo", lo_v)
-            c.set_param_by_name("ext", ext_v)
-            c.set_dim(cnt)
-        self._run_dynamic(cmds.grid[:len(chunks)])
+            self._grid_update_box(cmds.grid, bb, len(cmds.p2g))
         self._grid_dirty = False
         for bc in self.grid_bcs:
             bc.apply(self.grid_v, s.t)
@@ -397,6 +389,34 @@ class WarpStepper(BaseStepper):
         o.order, o.age = s.order, s.age + 1
         for bc in self.particle_bcs:
             bc.apply_particles(o.v, s.x, o.x, o.t)
+
+    def _grid_update_box(self, grid_cmds, bb, copies: int) -> None:
+        """The grid update over the bounding box of the nodes P2G reached (``bb``: the P2G chunks' boxes;
+        None or ``limit_grid`` False: the whole grid), in the recorded launches ``grid_cmds``."""
+        D = self.dim
+        if self.limit_grid and bb is not None:
+            used = bb[: 2 * copies]
+            lo = np.maximum(used[0::2].min(axis=0), 0)
+            hi = np.minimum(used[1::2].max(axis=0) + self.shape.width, self.grid_shape)   # + the last base node's window
+        else:
+            lo, hi = np.zeros(D, int), np.asarray(self.grid_shape)
+        ext = np.maximum(hi - lo, 0)   # 0 when no particle is on the grid (all diverged off it): nothing to do
+        lo_v, ext_v = self.T.ivec(*lo.tolist()), self.T.ivec(*ext.tolist())
+        chunks = self._chunks(int(np.prod(ext)), len(grid_cmds))
+        for c, (start, cnt) in zip(grid_cmds, chunks):
+            c.set_param_by_name("start", start)
+            c.set_param_by_name("lo", lo_v)
+            c.set_param_by_name("ext", ext_v)
+            c.set_dim(cnt)
+        self._run_dynamic(grid_cmds[:len(chunks)])
+
+    def _grid_update_listed(self, nl, copies: int) -> None:
+        """The grid update over a compact node set (``node_list.NodeList``: its owner listed every node
+        the step's particles reach)."""
+        wp.launch(self.k_grid_listed, dim=nl.capacity, device=self.device,
+                  inputs=[self.grid_mm, self.grid_f, copies, self.node_count, nl.nodes, nl.count, self.dt_s,
+                          self.gravity, self.shape_iv, self.strides, self.wall_kind, self.thickness, self.grid_v,
+                          self.grid_v_old])
 
     def _advance(self, state: WarpState, steps: int) -> WarpState:
         if steps <= 0:
