@@ -72,6 +72,31 @@ def test_a_resume_on_other_data_or_options_is_refused(truth, tmp_path):
     assert fit.epoch == 3
 
 
+def test_data_remade_at_round_off_resumes_with_a_note(truth, tmp_path):
+    """Data made again on another machine differ in their last bits (another digest): with fingerprints in
+    both identities a resume goes on and records why; a real change of the data is still refused."""
+    from mpmlab.core.resume import array_digest, array_fingerprint, read_identity
+
+    def identity(x):
+        return {"dataset": array_digest(x, truth["F"]), "dataset_fingerprint": array_fingerprint(x, truth["F"]),
+                "nets": NETS}
+
+    ck = tmp_path / "ck.pkl"
+    fit = make_fit("jax", truth, steps=20, epochs=3, period=5.0)
+    opt, sch = fit.optimizer(NETS)
+    fit.run(1, opt, sch, progress=False, checkpoint=ck, checkpoint_every=1, identity=identity(truth["x"]))
+    rng = np.random.default_rng(0)
+    moved = truth["x"] + 1e-6 * np.abs(truth["x"]).max() * rng.uniform(-1, 1, truth["x"].shape)    # last bits (fp32)
+    with pytest.raises(ConfigError, match="was made with dataset = "):
+        fit.run(2, opt, sch, progress=False, checkpoint=ck, identity=identity(truth["x"] + 1e-3))   # 1 mm: refused
+    fit.run(2, opt, sch, progress=False, checkpoint=ck, identity=identity(moved))
+    assert fit.epoch == 2 and len(fit.resume_notes) == 1
+    assert "at round-off only" in fit.resume_notes[0] and "resuming" in fit.resume_notes[0]
+    assert read_identity(ck)["resume_notes"] == fit.resume_notes          # kept for the resumes after
+    fit.run(3, opt, sch, progress=False, checkpoint=ck, identity=identity(moved))
+    assert fit.epoch == 3 and len(fit.resume_notes) == 1
+
+
 # ---- the task, from the command line -------------------------------------------------------------------------
 def mpmlab_cli(args, capsys=None, expect=0):
     """`mpmlab ARGS` run in this process: ``mpmlab.cli.main``, the function the console script calls, with

@@ -54,6 +54,8 @@ class Fit:
         self.base = stepper.controls()
         self.reference = reference
         self.history: list[dict[str, Any]] = []
+        #: what a resume accepted (data that differ from the checkpoint's at round-off: mpmlab.core.resume)
+        self.resume_notes: list[str] = []
         self.epoch = 0
         self.lm_stop: str | None = None     # why a Levenberg-Marquardt fit stopped early
         self.stopped_early = False          # a gradient fit ended by its stop() budget
@@ -171,10 +173,17 @@ class Fit:
         if on_divergence == "backoff" and (not isinstance(max_backoffs, int) or max_backoffs < 1):
             raise ConfigError(f"max_backoffs must be a positive integer, not {max_backoffs!r}.")
         if checkpoint is not None and identity is not None:
-            from ..core.resume import check_identity, read_identity, write_identity
+            from ..core.resume import NOTES, check_identity, read_identity, write_identity
 
             if resume and Path(checkpoint).exists():
-                check_identity(type(self).__name__, checkpoint, read_identity(checkpoint), identity)
+                saved = read_identity(checkpoint)
+                notes = check_identity(type(self).__name__, checkpoint, saved, identity)
+                for note in notes:
+                    log.warning(note)
+                # the notes of every resume so far, kept in the identity file (with when they were made)
+                when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+                self.resume_notes = list((saved or {}).get(NOTES, [])) + [f"{when}: {n}" for n in notes]
+            identity = dict(identity, **({NOTES: self.resume_notes} if self.resume_notes else {}))
             write_identity(checkpoint, identity)
         if self.reference is None:
             self.make_reference()

@@ -20,6 +20,7 @@ encoder always reads the whole snapshot). ``fit`` checkpoints every epoch (atomi
 """
 from __future__ import annotations
 
+import logging
 import math
 import pickle
 import time
@@ -33,6 +34,8 @@ from ..core.errors import ConfigError
 from ..io.files import write_pickle
 from . import networks as N
 from .options import TrainSettings
+
+log = logging.getLogger("mpmlab")
 
 #: App. B / the release's README: learning rates and their epochs
 PAPER_SCHEDULE = ((1e-3, 500), (1e-4, 200), (1e-5, 100), (1e-6, 50))
@@ -217,10 +220,19 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
              "schedule": [[float(lr), int(k)] for lr, k in opt.epochs()], "points": opt.points,
              "frame_stride": int(opt.frame_stride), "seed": int(opt.seed)}
     digest = data_digest(data) if ckpt is not None else None
+    fingerprint = data_fingerprint(data) if ckpt is not None else None
     if ckpt is not None and ckpt.exists():
         with open(ckpt, "rb") as f:
             saved = pickle.load(f)
-        if saved.get("data", digest) != digest:
+        from ..core.resume import FINGERPRINT_RTOL, fingerprint_distance
+
+        # snapshots made again on another machine differ in their last bits (mpmlab.core.resume): resumed when
+        # their fingerprints agree
+        near = fingerprint_distance(saved.get("data_fingerprint"), fingerprint)
+        if saved.get("data", digest) != digest and near <= FINGERPRINT_RTOL:
+            log.warning("rom_train: the snapshots differ from those the checkpoint %s was trained on at round-off "
+                        "only (fingerprints agree to %.1e of each array's RMS): resuming", ckpt, near)
+        elif saved.get("data", digest) != digest:
             raise ConfigError(f"rom_train: the checkpoint {ckpt} was trained on other snapshots (data digest "
                               f"{saved['data'][:12]}, these are {digest[:12]}); use another run directory, or the "
                               f"snapshots it was trained on.")
@@ -287,6 +299,7 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
         bar.set_postfix(loss=f"{rec['loss']:.3e}")
         if ckpt is not None:
             write_pickle(ckpt, {"epoch": epoch + 1, "spec": (d, int(opt.latent), n), "options": curve, "data": digest,
+                                  "data_fingerprint": fingerprint,
                                   "params": jax.tree_util.tree_map(np.asarray, params),
                                   "opt_state": jax.tree_util.tree_map(
                                       lambda a: np.asarray(a) if hasattr(a, "shape") else a, state),
@@ -307,6 +320,16 @@ def data_digest(data: TrainingSet) -> str:
     from ..core.resume import array_digest
 
     return array_digest(data.X, data.x, data.v, data.F, np.asarray(data.dt))
+
+
+def data_fingerprint(data: TrainingSet) -> list:
+    """``mpmlab.core.resume.array_fingerprint`` of the snapshots, each run's snapshots as frames."""
+    from ..core.resume import array_fingerprint
+
+    R, T, n, d = data.shape
+    frames = lambda a: None if a is None else np.asarray(a).reshape((R * T, n) + np.asarray(a).shape[3:])
+    return array_fingerprint(np.asarray(data.X)[None], frames(data.x), frames(data.v), frames(data.F),
+                             np.asarray([data.dt], float))
 
 
 def reconstruction_error(weights: N.RomWeights, data: TrainingSet, origin: str = "centroid") -> dict:

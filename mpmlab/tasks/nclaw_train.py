@@ -132,7 +132,7 @@ def load_truth(path: str, stepper, steps: int) -> dict[str, np.ndarray]:
 def run(cfg, ctx) -> dict:
     from .. import __version__
     from ..core.autodiff import adapter_for_backend
-    from ..core.resume import array_digest
+    from ..core.resume import array_digest, array_fingerprint
     from ..inverse.parameters import FitParameter
     from ..inverse.teacher import TeacherForcedFit, TeacherForcing
     from ..simulator import build_stepper
@@ -226,7 +226,8 @@ def run(cfg, ctx) -> dict:
                 or (float(tc.stop_after_s) > 0 and time.perf_counter() - t_run >= float(tc.stop_after_s)))
     # what a resume must share with the run that wrote the checkpoint (mpmlab.core.resume): the data, and
     # every option that shapes the curve (stop_after_*, checkpoint_every and progress do not)
-    identity = {"dataset": array_digest(*(truth[k] for k in sorted(truth))), "method": method,
+    data = [truth[k] for k in sorted(truth)]
+    identity = {"dataset": array_digest(*data), "dataset_fingerprint": array_fingerprint(*data), "method": method,
                 "scene": scene.name, "steps": steps, "transfer": transfer.name, "precision": precision,
                 "material": _plain(cfg.material), "epochs": int(tc.epochs), "nets": {k: nets[k] for k in groups},
                 "lr_schedule": str(tc.lr_schedule),
@@ -257,6 +258,7 @@ def run(cfg, ctx) -> dict:
         "nets": {k: nets[k] for k in groups}, "lr_schedule": str(tc.lr_schedule),
         "teacher": {"start": forcing.start, "end": forcing.end, "reset": list(forcing.reset)},
         "segment_fraction": float(tc.segment_fraction), "velocity_weight": float(tc.velocity_weight),
+        "resume_notes": list(fit.resume_notes),
         "initial_loss": float(hist[0]["loss"]) if hist else None,
         "backoffs": [dict(h["backoff"], resumed_at=h["epoch"], lr_scale=h["lr_scale"]) for h in hist if "backoff" in h],
         "final_loss": float(fit.final_loss),
