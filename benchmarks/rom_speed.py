@@ -96,29 +96,13 @@ def measure(size: float, samples: int, repeats: int, backends: list[str]) -> dic
     if "warp" in fom_w:
         # Warp's reduced model (torch networks, Warp MPM step of the quadrature's pseudo-particles) on both node
         # sets: the compact one (the samples' windows' nodes listed, node_list.py) and the scene grid (the box
-        # of the reached nodes); then that Warp MPM step alone (on the compact set: listing, step, release)
-        from mpmlab.rom.stepper_warp import WarpReducedStepper
+        # of the reached nodes); then that Warp MPM step alone
+        from rom_warp_phases import warp_node_sets
 
+        row.update(warp_node_sets(fom_w["warp"], w, samples, repeats))
         for nodes in ("compact", "scene"):
-            rom = WarpReducedStepper(fom_w["warp"], w, samples=samples, quadrature="eulerian", projection="linear",
-                                     nodes=nodes)
-            s0 = rom.init()
-            row[f"rom_warp_{nodes}_s"] = timed(lambda: rom.step(s0), repeats)
-            log(f"  reduced step, Warp ({nodes} nodes): {row[f'rom_warp_{nodes}_s'] * 1e3:.2f} ms")
-            ps, q = rom._pseudo, rom._eu.q_size
-            xM = rom._q_in.x.numpy()[q:q + samples]           # the last step's samples
-            origin = np.floor((xM - np.asarray(rom.scene.origin)) / rom.scene.dx - 0.5).astype(np.int32)
-
-            def mpm(rom=rom, ps=ps, origin=origin + getattr(rom, "_window_low", 0)):
-                if ps.node_list is not None:
-                    ps.node_list.claim_windows(origin)
-                ps._step_into(rom._q_in, rom._q_out)
-                if ps.node_list is not None:
-                    ps.node_list.release()
-                ps._block(rom._q_out)
-
-            row[f"mpm_warp_{nodes}_s"] = timed(mpm, repeats)
-            log(f"  its MPM part, Warp ({nodes} nodes): {row[f'mpm_warp_{nodes}_s'] * 1e3:.2f} ms")
+            log(f"  reduced step, Warp ({nodes} nodes): {row[f'rom_warp_{nodes}_s'] * 1e3:.2f} ms; its MPM part "
+                f"{row[f'mpm_warp_{nodes}_s'] * 1e3:.2f} ms")
     return row
 
 

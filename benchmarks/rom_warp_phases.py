@@ -20,14 +20,61 @@ from _harness import csv, parser, quiet_warp
 from rom_speed import timed, tower_overrides
 
 
+def warp_node_sets(fom, weights, samples: int, repeats: int, state=None, phases: bool = False) -> dict:
+    """Warp's Eulerian + linear reduced model of ``fom`` at |M| = ``samples`` on each node set ("compact",
+    "scene"): the whole reduced step (``rom_warp_<nodes>_s``) and its Warp MPM step of the pseudo-particles
+    alone (``mpm_warp_<nodes>_s``: ``WarpReducedStepper._pseudo_step``, the listing and release included),
+    medians of ``repeats`` after warm-up (``rom_speed.timed``); with ``phases``, the compact set's MPM step by
+    phase (``compact_phases_s``). ``state``: the reduced state to step from (None: Eq. 19's, made once)."""
+    import warp as wp
+
+    from mpmlab.rom.stepper_warp import WarpReducedStepper
+
+    out = {}
+    for nodes in ("compact", "scene"):
+        rom = WarpReducedStepper(fom, weights, samples=samples, quadrature="eulerian", projection="linear", nodes=nodes)
+        if state is None:
+            state = rom.init()                         # the same on both node sets
+        rom.step(state)                                # fills the pseudo-particles and records the launches
+        ps, a, q = rom._pseudo, rom._q_in, rom._eu.q_size
+        scene = rom.scene
+        xM = a.x.numpy()[q:q + samples]                # the step's samples: their base nodes
+        base = np.floor((xM - np.asarray(scene.origin)) / scene.dx - 0.5).astype(np.int32)
+
+        def mpm(rom=rom, base=base):
+            rom._pseudo_step(base)
+            rom._pseudo._block(rom._q_out)
+
+        out[f"rom_warp_{nodes}_s"] = timed(lambda: rom.step(state), repeats)
+        out[f"mpm_warp_{nodes}_s"] = timed(mpm, repeats)
+        nl = ps.node_list
+        if not phases or nl is None:
+            continue
+        o = rom._q_out
+        cmds = ps._cmd_cache[(id(a), id(o), id(a.order))]
+        steps = {"list": lambda: nl.claim_windows(base + rom._window_low), "p2g": lambda: ps._run_static(cmds.p2g),
+                 "grid": lambda: ps._grid_update_listed(nl, len(cmds.p2g)),
+                 "grid_boundaries": lambda: [bc.apply(ps.grid_v, a.t) for bc in ps.grid_bcs],
+                 "g2p": lambda: ps._run_dynamic(cmds.g2p), "release": nl.release}
+        t = {k: [] for k in steps}
+        for _ in range(repeats):                       # in step order, so each phase sees a real step's data
+            for k, f in steps.items():
+                wp.synchronize()
+                t0 = time.perf_counter()
+                f()
+                wp.synchronize()
+                t[k].append(time.perf_counter() - t0)
+        out["compact_phases_s"] = {k: statistics.median(v) for k, v in t.items()}
+    return out
+
+
 def measure(size: float, samples: int, repeats: int) -> dict:
     import torch
-    import warp as wp
 
     from mpmlab.build import build_scene
     from mpmlab.config import compose
     from mpmlab.rom import networks as N
-    from mpmlab.rom.stepper_warp import ReducedState, WarpReducedStepper
+    from mpmlab.rom.stepper_warp import ReducedState
     from mpmlab.simulator import build_stepper
 
     scene = build_scene(compose(tower_overrides(size) + ["precision=fp32"]))
@@ -37,43 +84,11 @@ def measure(size: float, samples: int, repeats: int) -> dict:
     norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(3), "u_std": np.full(3, 1e-3)}
     w = N.RomWeights(N.init_params(spec, seed=0), norm, spec, 0)
     z = torch.zeros(spec.latent, dtype=torch.float32)
-    s0 = ReducedState(z, z, z, 0.0, 0, 0, 0, 0)
     row = {"size": size, "particles": int(st.particles.count), "grid": list(scene.grid_shape), "samples": samples}
-    for nodes in ("compact", "scene"):
-        rom = WarpReducedStepper(st, w, samples=samples, quadrature="eulerian", projection="linear", nodes=nodes)
-        rom.step(s0)                                   # fills the pseudo-particles and records the launches
-        ps, a, o, q = rom._pseudo, rom._q_in, rom._q_out, rom._eu.q_size
-        xM = a.x.numpy()[q:q + samples]                # the step's samples: their windows
-        origin = (np.floor((xM - np.asarray(scene.origin)) / scene.dx - 0.5).astype(np.int32)
-                  + getattr(rom, "_window_low", 0))
-        nl = ps.node_list
-
-        def mpm():
-            if nl is not None:
-                nl.claim_windows(origin)
-            ps._step_into(a, o)
-            if nl is not None:
-                nl.release()
-            ps._block(o)
-
-        row[f"mpm_{nodes}_ms"] = round(1e3 * timed(mpm, repeats), 2)
-        row[f"step_{nodes}_ms"] = round(1e3 * timed(lambda: rom.step(s0), 3), 1)
-        if nl is None:
-            continue
-        cmds = ps._cmd_cache[(id(a), id(o), id(a.order))]
-        phases = {"list": lambda: nl.claim_windows(origin), "p2g": lambda: ps._run_static(cmds.p2g),
-                  "grid": lambda: ps._grid_update_listed(nl, len(cmds.p2g)),
-                  "grid_boundaries": lambda: [bc.apply(ps.grid_v, a.t) for bc in ps.grid_bcs],
-                  "g2p": lambda: ps._run_dynamic(cmds.g2p), "release": nl.release}
-        t = {k: [] for k in phases}
-        for _ in range(repeats):                       # in step order, so each phase sees a real step's data
-            for k, f in phases.items():
-                wp.synchronize()
-                t0 = time.perf_counter()
-                f()
-                wp.synchronize()
-                t[k].append(time.perf_counter() - t0)
-        row["compact_phases_ms"] = {k: round(1e3 * statistics.median(v), 2) for k, v in t.items()}
+    res = warp_node_sets(st, w, samples, repeats, state=ReducedState(z, z, z, 0.0, 0, 0, 0, 0), phases=True)
+    for k, v in res.items():                       # every key ends in _s: printed in ms
+        row[k[:-2] + "_ms"] = (
+            {p: round(1e3 * x, 2) for p, x in v.items()} if isinstance(v, dict) else round(1e3 * v, 2))
     return row
 
 

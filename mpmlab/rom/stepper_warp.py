@@ -293,12 +293,7 @@ class WarpReducedStepper(_ReducedBase):
         self._write(st["F"], F)
         wp.launch(ps.k_laws[0].stress, dim=x.shape[0], inputs=[*ps._law_args(0, st), 0, a.tau], device=ps.device)
         a.t = float(s.t)
-        if ps.node_list is not None:          # every point's stencil lies in its sample's window (sample_window)
-            ps.node_list.claim_windows(base + self._window_low)
-            ps._step_into(a, self._q_out)
-            ps.node_list.release()
-        else:
-            ps._step_into(a, self._q_out)
+        self._pseudo_step(base)
         rows = slice(e.q_size, e.q_size + M.shape[0])
         x0, v_tr = x[rows], wp.to_torch(self._q_out.v)[rows]
         x_tr = x0 + self.dt * v_tr
@@ -313,6 +308,17 @@ class WarpReducedStepper(_ReducedBase):
         counts = (torch.sum(real & ~in_body).to(torch.int32), torch.sum(real & in_body & ~converged).to(torch.int32),
                   torch.tensor(max(distinct - e.q_size, 0), dtype=torch.int32))
         return x_tr, v_tr, counts
+
+    def _pseudo_step(self, base) -> None:
+        """Alg. 5 on the quadrature's pseudo-particles (written into ``_q_in``): the Warp MPM step into ``_q_out``.
+        On the compact node set its grid update visits the windows around the samples' base nodes ``base``
+        ([|M|, D] ints) only: every point's stencil lies in its sample's window (``sample_window``)."""
+        nl = self._pseudo.node_list
+        if nl is not None:
+            nl.claim_windows(base + self._window_low)
+        self._pseudo._step_into(self._q_in, self._q_out)
+        if nl is not None:
+            nl.release()
 
     def step(self, s: ReducedState) -> ReducedState:
         import torch

@@ -228,11 +228,12 @@ def fit(data: TrainingSet, opt: TrainOptions, checkpoint: str | Path | None = No
 
         # snapshots made again on another machine differ in their last bits (mpmlab.core.resume): resumed when
         # their fingerprints agree
-        near = fingerprint_distance(saved.get("data_fingerprint"), fingerprint)
-        if saved.get("data", digest) != digest and near <= FINGERPRINT_RTOL:
+        other = saved.get("data", digest) != digest
+        near = fingerprint_distance(saved.get("data_fingerprint"), fingerprint) if other else 0.0
+        if other and near <= FINGERPRINT_RTOL:
             log.warning("rom_train: the snapshots differ from those the checkpoint %s was trained on at round-off "
                         "only (fingerprints agree to %.1e of each array's RMS): resuming", ckpt, near)
-        elif saved.get("data", digest) != digest:
+        elif other:
             raise ConfigError(f"rom_train: the checkpoint {ckpt} was trained on other snapshots (data digest "
                               f"{saved['data'][:12]}, these are {digest[:12]}); use another run directory, or the "
                               f"snapshots it was trained on.")

@@ -177,7 +177,6 @@ class WarpStepper(BaseStepper):
         self.k_p2g = K.p2g_kernel(D, precision, self.warp_transfer, bool(self.force_bcs), atomic=self.p2g_atomic,
                                   shape=self.shape)
         self.k_grid = K.grid_update_kernel(D, precision, self.split_force)
-        self.k_grid_listed = K.grid_update_listed_kernel(D, precision, self.split_force)
         self.k_g2p = [K.g2p_law_kernel(g.law, D, precision, self.warp_transfer, shape=self.shape) for g in self.groups]
         self.k_laws = [K.law_kernels(g.law, D, precision) for g in self.groups]
         _compile_step_kernels(self)
@@ -413,7 +412,8 @@ class WarpStepper(BaseStepper):
     def _grid_update_listed(self, nl, copies: int) -> None:
         """The grid update over a compact node set (``node_list.NodeList``: its owner listed every node
         the step's particles reach)."""
-        wp.launch(self.k_grid_listed, dim=nl.capacity, device=self.device,
+        kernel = K.grid_update_listed_kernel(self.dim, self.precision, self.split_force)   # cached; built on first use
+        wp.launch(kernel, dim=nl.capacity, device=self.device,
                   inputs=[self.grid_mm, self.grid_f, copies, self.node_count, nl.nodes, nl.count, self.dt_s,
                           self.gravity, self.shape_iv, self.strides, self.wall_kind, self.thickness, self.grid_v,
                           self.grid_v_old])
