@@ -181,39 +181,49 @@ def test_prescribed_rigid_motion(backend, dim):
 
 @pytest.mark.parametrize("dim", (2, 3))
 def test_grid_velocity_closed_form(dim):
-    """grid_velocity at t = 0.03 s: exactly the nodes whose reference position c0 + R^T (y - c(t)) lies in
-    the box take v0 + omega x (y - c(t)); every other node keeps its velocity. Both backends, fp64."""
+    """grid_velocity: exactly the nodes whose reference position c0 + R^T (y - c(t)) lies in the box take
+    v0 + omega x (y - c(t)); every other node keeps its velocity. Both backends, fp64, at t = 0.03 s and,
+    with a fast pull (the box carried 0.2 m across the grid), at t = 0.045 s. Warp's fast path visits
+    only the nodes within a cell of the moved box's bounding box: it must agree with the whole-grid
+    kernel of the tape bit for bit."""
+    import dataclasses
+
+    import jax.numpy as jnp
     import warp as wp
 
     from mpmlab.backends.boundary_geometry import node_positions
     from mpmlab.backends.jax.boundaries import grid_velocity as jax_grid_velocity
+    from mpmlab.backends.warp.boundaries import grid_velocity as warp_grid_velocity
     from mpmlab.simulator import build_stepper
 
     scene = scene_for("grid_velocity", dim)
-    b = scene.boundaries[1]
     y = node_positions(scene)
     v = np.random.default_rng(0).normal(size=y.shape)
-    t = 0.03
-    c0 = b.rotation_center(scene.particles().x)
-    v0, w = np.asarray(b.velocity), np.asarray(b.angular_velocity, float)
-    r = y - (c0 + v0 * t)
-    ref = c0 + r @ _rotation(w * t, dim)
-    lo, hi = b.box(dim)
-    inside = np.all((ref >= lo) & (ref <= hi), axis=1)
-    assert 0 < inside.sum() < len(y)
-    want = v.copy()
-    want[inside] = v0 + (w * np.stack([-r[:, 1], r[:, 0]], 1) if dim == 2 else np.cross(w, r))[inside]
-    import jax.numpy as jnp
     build_stepper(scene, "jax", "pic", "fp64")            # (switches JAX to fp64)
-    impl = jax_grid_velocity(b, scene, jnp.float64)
-    got = np.asarray(impl.apply(jnp.asarray(v), jnp.asarray(y), None, t, impl.params))
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-14)
     st = build_stepper(scene, "warp", "pic", "fp64")
-    gv = wp.array(v, dtype=st.T.vec, device=st.device)
-    st.grid_bcs[0].apply(gv, t)
-    np.testing.assert_allclose(gv.numpy(), want, rtol=0, atol=1e-14)
-    st.grid_bcs[0].apply(gv := wp.array(v, dtype=st.T.vec, device=st.device), b.t_end)   # after the window: free
-    np.testing.assert_array_equal(gv.numpy(), v)
+    fast_pull = dataclasses.replace(scene.boundaries[1], velocity=[4.0, -2.0] + [1.0] * (dim - 2))
+    for b, t in ((scene.boundaries[1], 0.03), (fast_pull, 0.045)):
+        c0 = b.rotation_center(scene.particles().x)
+        v0, w = np.asarray(b.velocity), np.asarray(b.angular_velocity, float)
+        r = y - (c0 + v0 * t)
+        ref = c0 + r @ _rotation(w * t, dim)
+        lo, hi = b.box(dim)
+        inside = np.all((ref >= lo) & (ref <= hi), axis=1)
+        assert 0 < inside.sum() < len(y)
+        want = v.copy()
+        want[inside] = v0 + (w * np.stack([-r[:, 1], r[:, 0]], 1) if dim == 2 else np.cross(w, r))[inside]
+        impl = jax_grid_velocity(b, scene, jnp.float64)
+        got = np.asarray(impl.apply(jnp.asarray(v), jnp.asarray(y), None, t, impl.params))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-14)
+        bc = warp_grid_velocity(b, scene, st)
+        gv = wp.array(v, dtype=st.T.vec, device=st.device)
+        bc.apply(gv, t)
+        np.testing.assert_allclose(gv.numpy(), want, rtol=0, atol=1e-14)
+        tape, out = bc.tape(), wp.zeros_like(gv)
+        tape.grid(wp.array(v, dtype=st.T.vec, device=st.device), out, bc.params, t)
+        np.testing.assert_array_equal(out.numpy(), gv.numpy())
+        bc.apply(gv := wp.array(v, dtype=st.T.vec, device=st.device), b.t_end)   # after the window: free
+        np.testing.assert_array_equal(gv.numpy(), v)
 
 
 def _column_gaps(x, X):
