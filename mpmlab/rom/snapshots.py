@@ -22,6 +22,7 @@ study                   scene                     runs (parameters)             
 ``poke``                ``rom_poke``               theta = k pi/18, k = 0..35 (5.3)             12/24 (k % 3 == 0 trains)
 ``poke_slow``           ``rom_poke``               the same at 4.8 mm/s (the other reading)     12/24
 ``poke_continual``      ``rom_poke``               10 pokes, random theta, one every 3 s (5.3.2)  0/1
+``poke_slow_continual`` ``rom_poke``               the same at 4.8 mm/s                         0/1
 ``tower``               ``rom_tower``              Latin hypercubes over (r, theta, phi) (5.4)   16/4
 ``beam_2d``             ``rom_beam_2d``            g = 2, 3, ..., 8 m/s^2 (mpmlab's 2D problem)   4/3 (even g trains)
 ======================  ========================  ==========================================  ===========
@@ -109,6 +110,10 @@ class Study:
     notes: str = ""
     #: reads a run's parameters back from its composed config (a dict): ``{name: value}``
     param_of: Callable[[dict], dict] = field(default=None, compare=False, repr=False)
+    #: ``scene.vars`` its experiment sets for every run (the slow poke's speed)
+    scene_vars: dict = field(default_factory=dict, compare=False)
+    #: False for a single run (continual poking): its experiment is run as is, not swept
+    sweep: bool = True
 
     def split(self, which: str | None) -> tuple:
         """Run indices of ``"train"``, ``"test"`` or all (None)."""
@@ -191,7 +196,8 @@ def poke_study(speed: float | None = None, name: str = "poke") -> Study:
     if speed is not None:
         notes += f"; poke speed {speed * 1000:g} mm/s"
     return Study(name, "rom_poke", runs, train, test, ("theta",), 432, 1.0 / 144.0, 0,
-                 "Deformation-map ROM paper, Sec. 5.3, Table 2", notes, param_of=lambda cfg: _vars(cfg, "theta"))
+                 "Deformation-map ROM paper, Sec. 5.3, Table 2", notes, param_of=lambda cfg: _vars(cfg, "theta"),
+                 scene_vars={} if speed is None else {"speed": speed})
 
 
 #: the slow poke's speed [m/s]: the paper's "4.8 cmm/s" (Sec. 5.3) read as 4.8 mm/s instead of 4.8 cm/s
@@ -241,16 +247,24 @@ def continual_poke_boundaries(seed: int = 0, pokes: int = 10, period: float = 3.
     return out
 
 
-def poke_continual_study(seed: int = 0, pokes: int = 10) -> Study:
+def poke_continual_study(seed: int = 0, pokes: int = 10, speed: float | None = None,
+                         name: str = "poke_continual") -> Study:
     """Sec. 5.3.2: one run of ``pokes`` random pokes, 3 s each (4,320 snapshots for 10), a test run; its
-    overrides select ``experiment=rom_snapshots_poke_continual`` (seed 0, 10 pokes)."""
+    overrides select ``experiment=rom_snapshots_<name>`` (seed 0, 10 pokes). ``speed``: as in
+    :func:`poke_study`."""
     sched = continual_pokes(seed, pokes)
-    run = Run("continual", {"thetas": [p["theta"] for p in sched]},
-              ("experiment=rom_snapshots_poke_continual",))
-    return Study("poke_continual", "rom_poke", (run,), (), (0,), (), pokes * 432, 1.0 / 144.0, seed,
-                 "Deformation-map ROM paper, Sec. 5.3.2, Table 6",
-                 "poke directions theta_i ~ U[0, 2 pi) from default_rng(seed); a poke every 3 s",
-                 param_of=lambda cfg: {})
+    run = Run("continual", {"thetas": [p["theta"] for p in sched]}, (f"experiment=rom_snapshots_{name}",))
+    notes = "poke directions theta_i ~ U[0, 2 pi) from default_rng(seed); a poke every 3 s"
+    if speed is not None:
+        notes += f"; poke speed {speed * 1000:g} mm/s"
+    return Study(name, "rom_poke", (run,), (), (0,), (), pokes * 432, 1.0 / 144.0, seed,
+                 "Deformation-map ROM paper, Sec. 5.3.2, Table 6", notes, param_of=lambda cfg: {},
+                 scene_vars={} if speed is None else {"speed": speed}, sweep=False)
+
+
+def poke_slow_continual_study(seed: int = 0, pokes: int = 10) -> Study:
+    """Continual poking at 4.8 mm/s: the test run of the weights trained on ``poke_slow``."""
+    return poke_continual_study(seed, pokes, POKE_SLOW_SPEED, "poke_slow_continual")
 
 
 #: the tower's parameter ranges [lo, hi) (see the module docstring for why these)
@@ -294,7 +308,8 @@ def beam_2d_study(resolution: str | None = None) -> Study:
 
 STUDIES: dict[str, Callable[..., Study]] = {
     "gravity": gravity_study, "torsion": torsion_study, "torsion_fine": torsion_fine_study, "poke": poke_study,
-    "poke_slow": poke_slow_study, "poke_continual": poke_continual_study, "tower": tower_study, "beam_2d": beam_2d_study,
+    "poke_slow": poke_slow_study, "poke_continual": poke_continual_study,
+    "poke_slow_continual": poke_slow_continual_study, "tower": tower_study, "beam_2d": beam_2d_study,
 }
 
 
@@ -313,8 +328,8 @@ def sweep_value(s: Study) -> dict[str, str]:
         return {"scene.gravity": ",".join(f"[0.0,{_num(-r.params['g'])}]" for r in s.runs)}
     if s.name == "gravity":
         return {"scene.gravity": ",".join(f"[0.0,{_num(-r.params['g'])},0.0]" for r in s.runs)}
-    if s.name == "poke_continual":
-        raise ConfigError("study 'poke_continual' is one run; it is not a sweep.")
+    if not s.sweep:
+        raise ConfigError(f"study '{s.name}' is one run; it is not a sweep.")
     return {"scene.vars": ",".join("{" + ",".join(f"{k}:{_num(r.params[k])}" for k in s.param_names) + "}"
                                    for r in s.runs)}
 
@@ -332,16 +347,16 @@ def experiment_yaml(s: Study) -> str:
             f"# trajectory.h5 with x, v and F at the {s.snapshots} snapshots ({s.notes}).",
             f"# Read them back with mpmlab.rom.snapshots.load_snapshots(<sweep dir>, '{s.name}'" + (", split='train')." if s.train else ")."),
             (f"# Run: `mpmlab -m experiment=rom_snapshots_{s.name}` (add scene.resolution=tiny for a smoke test)."
-             if s.name != "poke_continual" else
+             if s.sweep else
              f"# Run: `mpmlab experiment=rom_snapshots_{s.name}` (one run; scene.resolution=tiny for a smoke test).")]
     body: dict = {"defaults": [{"override /scene": s.scene}, {"override /transfer": "pic"}],
                   "output": {"fields": ["F"], "recording": False}}
     if s.name == "torsion_fine":
         body["scene"] = {"resolution": "fine"}
-    if s.name == "poke_slow":
-        body["scene"] = {"vars": {"speed": POKE_SLOW_SPEED}}
-    if s.name == "poke_continual":
-        body["scene"] = {"boundaries": continual_poke_boundaries(s.seed, len(s.runs[0].params["thetas"]))}
+    if s.scene_vars:
+        body["scene"] = {"vars": dict(s.scene_vars)}
+    if not s.sweep:
+        body.setdefault("scene", {})["boundaries"] = continual_poke_boundaries(s.seed, len(s.runs[0].params["thetas"]))
         body["steps"] = f"${{mpmlab.imul:{s.snapshots},${{scene.frame_every}}}}"
     else:
         body["hydra"] = {"sweeper": {"params": sweep_value(s)}}
@@ -481,7 +496,7 @@ def load_snapshots(root: str | os.PathLike | Sequence[str | os.PathLike], s: Stu
         found[i] = (path, attrs, resolved)
     missing = [s.runs[i].name for i in want if i not in found]
     if missing:
-        exp = "run_study" if s.name == "poke_continual" else f"mpmlab -m experiment=rom_snapshots_{s.name}"
+        exp = "run_study" if not s.sweep else f"mpmlab -m experiment=rom_snapshots_{s.name}"
         which = "asked for" if runs is not None else f"of the {split or 'whole'} split"
         raise ConfigError(f"study '{s.name}': {len(missing)} run(s) {which} have no "
                           f"trajectory.h5 under {where} ({', '.join(missing[:4])}{', ...' if len(missing) > 4 else ''}); "
