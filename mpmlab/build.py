@@ -178,6 +178,10 @@ def build_scene(cfg: DictConfig, validate: bool = True):
 
         memory_preflight(cfg, scene)   # before sampling: refuse what cannot fit (issue #12 item 5)
         scene.particles()
+        if cfg.get("precision") is not None:           # (build_stepper checks again, for the Python API)
+            from .simulator import check_representable
+
+            check_representable(scene, str(cfg.precision.name))
         for b in scene.boundaries:
             b.validate(scene)
         scene.resolve_dt()

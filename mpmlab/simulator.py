@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from .core import registry
 from .core.errors import ConfigError, MissingImplementationError
 from .core.interfaces import AbstractTransfer
@@ -21,6 +23,29 @@ def check_capabilities(scene: Scene, backend: str, transfer: AbstractTransfer) -
     for b in scene.boundaries:
         if backend not in b.implementations:
             raise MissingImplementationError("boundary", b.name, backend, list(b.implementations))
+
+
+def check_representable(scene: Scene, precision: str) -> None:
+    """Refuse, before anything runs, a material parameter or shared weight that ``precision`` cannot hold
+    (fp32: magnitudes above 3.4e38 become inf, and the first step returns NaN far from the cause)."""
+    if precision != "fp32":
+        return
+    big = float(np.finfo(np.float32).max)
+    for g in scene.particles().groups:
+        law = g.law
+        names = law.param_names()
+        prm = np.asarray(g.params, float)
+        for j, name in enumerate(names):
+            col = prm[:, j] if prm.ndim == 2 and j < prm.shape[1] else np.empty(0)
+            bad = col[np.abs(col) > big]
+            if bad.size:
+                raise ConfigError(f"law '{law.name}': parameter {name} = {bad[0]:.3g} exceeds fp32's largest value "
+                                  f"({big:.3g}); use precision=fp64 or rescale the units.")
+        for name, w in (g.weights or {}).items():
+            w = np.asarray(w, float)
+            if w.size and np.max(np.abs(w)) > big:
+                raise ConfigError(f"law '{law.name}': weight array '{name}' holds {np.max(np.abs(w)):.3g}, beyond "
+                                  f"fp32's largest value ({big:.3g}); use precision=fp64.")
 
 
 def check_devices_option(backend: str, devices) -> None:
@@ -52,6 +77,7 @@ def build_stepper(scene: Scene, backend: str = "jax", transfer: Any = "mls", pre
     transfer = transfer.for_scene(scene)     # e.g. FLIP's pic_time resolved at the scene's dt
     transfer.check()     # an inconsistent (plugin) transfer is refused here, not during tracing
     check_capabilities(scene, backend, transfer)
+    check_representable(scene, precision)
     if "devices" in options:
         check_devices_option(backend, options["devices"])
         if options["devices"] in (None, 1) and "devices" not in getattr(registry.backends.get(backend), "build_options", ()):

@@ -179,6 +179,8 @@ BAD = [
     (["material=sand", "material.params.friction_angle=95"], EXIT_CONFIG, "friction_angle' = 95 deg is outside"),
     (["scene.bodies.cube.shape.hi=[1.2,0.75,0.75]"], EXIT_CONFIG, "outside the domain"),
     (["scene.dt=0.01"], EXIT_CONFIG, "CFL number"),
+    (["material.params.E=1e39", "precision=fp32", "scene.dt=auto"], EXIT_CONFIG,
+     "parameter E = 1e+39 exceeds fp32's largest value"),
     (["transfer=flip", "transfer.flip_ratio=2"], EXIT_CONFIG, "flip_ratio"),
     (["scene=granular_collapse_2d", "+scene.boundaries.base.kind=friction_walls"], EXIT_CONFIG,
      "'base' is not one of the scene's boundaries, and a new boundary is added whole, e.g. '+scene.boundaries={base:{"),
