@@ -1,23 +1,20 @@
-"""Cubic B-spline weights as a Warp ``@wp.func`` (the formulas of ``reference.py``)."""
+"""Cubic B-spline weights as a Warp ``@wp.func`` (the formulas of ``reference.py``; the per-axis products: ``shapes/_common/warp.py``)."""
 from functools import lru_cache
-from types import SimpleNamespace
 
 import warp as wp
 
 from ...backends.warp.types import warp_types
+from .._common.warp import separable
 
 
 @lru_cache(maxsize=None)
 def make(shape, dim: int, precision: str):
     """``weights(fx, lp) -> (W, DW)`` and ``hessian(fx, lp) -> DDW`` (d2N/dx_p^2, cell units), each
     4 x dim matrices; fx in [1, 2) per axis, lp unused."""
-    T = warp_types(dim, precision)
-    scalar, vec = T.scalar, T.vec
-    wmat = wp.types.matrix((4, dim), scalar)
-    OFFS = wp.types.vector(4, scalar)(*[float(k) for k in range(4)])   # node offsets (not OFFS[k]: Warp 1.19)
+    scalar = warp_types(dim, precision).scalar
 
     @wp.func
-    def n(r: scalar):
+    def n(r: scalar, lp: scalar):
         """N(r) = |r|^3/2 - r^2 + 2/3 (|r| < 1), (2 - |r|)^3/6 (1 <= |r| < 2), 0 beyond."""
         a = wp.abs(r)
         out = scalar(0.0)
@@ -28,7 +25,7 @@ def make(shape, dim: int, precision: str):
         return out
 
     @wp.func
-    def dn(r: scalar):
+    def dn(r: scalar, lp: scalar):
         """dN/dr."""
         a = wp.abs(r)
         out = scalar(0.0)
@@ -39,7 +36,7 @@ def make(shape, dim: int, precision: str):
         return out
 
     @wp.func
-    def ddn(r: scalar):
+    def ddn(r: scalar, lp: scalar):
         """d2N/dr2 = 3|r| - 2 (|r| < 1), 2 - |r| (1 <= |r| < 2), 0 beyond."""
         a = wp.abs(r)
         out = scalar(0.0)
@@ -49,23 +46,4 @@ def make(shape, dim: int, precision: str):
             out = scalar(2.0) - a
         return out
 
-    @wp.func
-    def weights(fx: vec, lp: scalar):
-        W = wmat()
-        DW = wmat()
-        for d in range(dim):
-            for k in range(4):
-                r = fx[d] - OFFS[k]
-                W[k, d] = n(r)
-                DW[k, d] = dn(r)
-        return W, DW
-
-    @wp.func
-    def hessian(fx: vec, lp: scalar):
-        H = wmat()
-        for d in range(dim):
-            for k in range(4):
-                H[k, d] = ddn(fx[d] - OFFS[k])
-        return H
-
-    return SimpleNamespace(weights=weights, hessian=hessian, wmat=wmat)
+    return separable(dim, precision, 4, n, dn, ddn)

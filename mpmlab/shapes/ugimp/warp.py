@@ -1,21 +1,18 @@
 """uGIMP weights as a Warp ``@wp.func`` (the formulas of ``reference.py``; lp = the particle's half
 width in cells, a per-particle constant the kernels read from an array)."""
 from functools import lru_cache
-from types import SimpleNamespace
 
 import warp as wp
 
 from ...backends.warp.types import warp_types
+from .._common.warp import separable
 
 
 @lru_cache(maxsize=None)
 def make(shape, dim: int, precision: str):
     """``weights(fx, lp) -> (W, DW)`` and ``hessian(fx, lp) -> DDW`` (d2S/dx_p^2, cell units), each
     3 x dim matrices; fx in [0.5, 1.5) per axis, 0 < lp <= 1/2."""
-    T = warp_types(dim, precision)
-    scalar, vec = T.scalar, T.vec
-    wmat = wp.types.matrix((3, dim), scalar)
-    OFFS = wp.types.vector(3, scalar)(*[float(k) for k in range(3)])   # node offsets (not OFFS[k]: Warp 1.19)
+    scalar = warp_types(dim, precision).scalar
 
     @wp.func
     def s(r: scalar, lp: scalar):
@@ -57,23 +54,4 @@ def make(shape, dim: int, precision: str):
             out = scalar(1.0) / (scalar(2.0) * lp)
         return out
 
-    @wp.func
-    def weights(fx: vec, lp: scalar):
-        W = wmat()
-        DW = wmat()
-        for d in range(dim):
-            for k in range(3):
-                r = fx[d] - OFFS[k]
-                W[k, d] = s(r, lp)
-                DW[k, d] = ds(r, lp)
-        return W, DW
-
-    @wp.func
-    def hessian(fx: vec, lp: scalar):
-        H = wmat()
-        for d in range(dim):
-            for k in range(3):
-                H[k, d] = dds(fx[d] - OFFS[k], lp)
-        return H
-
-    return SimpleNamespace(weights=weights, hessian=hessian, wmat=wmat)
+    return separable(dim, precision, 3, s, ds, dds)

@@ -1,0 +1,1 @@
+"""Pieces the shape functions share (one place, not one copy per folder)."""
