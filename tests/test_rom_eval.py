@@ -124,7 +124,13 @@ def test_an_unstable_rom_time_step_ends_in_simulation_diverged(beam, tmp_path):
               "task.dt=0.01", "task.tangent=current")
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["status"] == "diverged" and summary["schemes"][0]["diverged"] == 1
-    assert "left the domain or is non-finite" in summary["rows"][0]["message"]
+    row = summary["rows"][0]
+    assert "left the domain or is non-finite" in row["message"]
+    # the snapshots kept before the divergence (one per step here) are scored, and said in the table
+    at, early = row["diverged_at_step"], row["before_divergence"]
+    assert at >= 3 and early["frames"] == at and early["until_s"] == pytest.approx(0.01 * (at - 1))
+    assert 0.0 < early["E"] < float("inf") and early["E_F"] > 0.0
+    assert "before the divergence" in (tmp_path / "rom_eval.md").read_text()
 
 
 def test_rom_eval_on_the_warp_reduced_model_matches_jax(beam, tmp_path):

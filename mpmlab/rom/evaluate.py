@@ -214,11 +214,11 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
             rom._np(rom.step(s0).z)                              # compile the reduced step
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            status, why, at = "ok", "", None
+            status, why, at, partial = "ok", "", None, None
             try:
                 out = rom.rollout(s0, steps=steps, every=every)
             except SimulationDiverged as e:
-                status, why, at = "diverged", str(e), e.step
+                status, why, at, partial = "diverged", str(e), e.step, getattr(e, "partial", None)
             wall = time.perf_counter() - t0
             row = {"run": snap.names[k], "params": dict(zip(snap.param_names, map(float, snap.params[k]))),
                    "scheme": sch.label, "quadrature": sch.quadrature, "projection": sch.projection,
@@ -233,6 +233,12 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
                            latent_return=latent_return(out["z"]))
             else:
                 row.update(message=why, diverged_at_step=at)
+                if partial is not None and len(partial["z"]) > 1:    # the errors over the frames before it
+                    n = len(partial["z"])
+                    per_frame, sums = _sums(params, norm, Xt, partial["z"], partial["zdot"], truth.x[k, :n],
+                                            truth.v[k, :n], truth.F[k, :n], c, domain_corner(cfg))
+                    row["before_divergence"] = {"frames": n, "until_s": float(partial["time"][-1]), **errors_of(sums),
+                                                "per_frame": per_frame}
             rows.append(row)
             bar.update()
             if log is not None:

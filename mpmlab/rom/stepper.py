@@ -291,7 +291,8 @@ class _ReducedBase(AbstractStepper):
         every ``every`` steps, the first one the initial state), and the final state as ``"state"``. At every
         kept frame the full-order guard's test: a non-finite x_hat, a point outside the scene's domain, or
         a folded map (J = det dg/dX <= 0 at a point, the full-order J > 0 check) raises ``SimulationDiverged``
-        (an unstable time step, or a latent state the manifold does not cover)."""
+        (an unstable time step, or a latent state the manifold does not cover), whose ``partial`` holds the
+        frames kept before it (``{"z", "zdot", "time"}``, or None)."""
         from ..core.errors import SimulationDiverged
 
         state = self.init() if state is None else state
@@ -319,11 +320,15 @@ class _ReducedBase(AbstractStepper):
                                          "latent state left what the manifold covers; lower the time step")
             zs.append(z); vs.append(self._np(s.zdot)); xs.append(x); ts.append(float(s.t))
 
-        keep(0, state)
-        for k in range(1, int(steps) + 1):
-            state = self.step(state)
-            if k % every == 0 or k == steps:
-                keep(k, state)
+        try:
+            keep(0, state)
+            for k in range(1, int(steps) + 1):
+                state = self.step(state)
+                if k % every == 0 or k == steps:
+                    keep(k, state)
+        except SimulationDiverged as e:   # the frames kept before it: what the run got right until then
+            e.partial = {"z": np.stack(zs), "zdot": np.stack(vs), "time": np.asarray(ts)} if zs else None
+            raise
         z, x = np.stack(zs), np.stack(xs)
         return {"z": z, "zdot": np.stack(vs), "x": x, "time": np.asarray(ts), "state": state}
 

@@ -216,6 +216,15 @@ def table_markdown(s: dict) -> str:
         lines.append(f"| tracer baseline (the truth's points advected in the coarse full-order run) | {_pct(tb['E'])} | "
                      f"{_pct(tb.get('E_corner'))} | {_pct(tb['E_displacement'])} | {_pct(tb['E_v'])} | {_pct(tb['E_F'])} | "
                      f"{tb['wall_s_per_simulated_s']:.3g} | — | — | — |")
+    early = [r for r in s["rows"] if r.get("before_divergence")]
+    if early:
+        lines += ["", "Diverged runs, their errors over the snapshots before the divergence:", "",
+                  "| run | scheme | diverged at step | snapshots kept | until [s] | E | E (corner) | E (displacement) | E_F |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in early:
+            b = r["before_divergence"]
+            lines.append(f"| {r['run']} | {r['scheme']} | {r['diverged_at_step']} | {b['frames']} | {b['until_s']:.4g} | "
+                         f"{_pct(b['E'])} | {_pct(b.get('E_corner'))} | {_pct(b['E_displacement'])} | {_pct(b['E_F'])} |")
     lines += ["", "E = sqrt(sum |x_ROM - x_FOM|^2 / sum |x_FOM - c|^2), c the initial centroid; E (corner): the same "
                   "about the scene domain's lower corner, the kind of origin the paper's numbers are consistent with "
                   "(mpmlab.rom.evaluate)."]
@@ -237,6 +246,12 @@ def _plot(path: Path, s: dict) -> None:
         den = np.sum([r["per_frame"]["x_c"] for r in rows], axis=0)
         t = np.arange(len(num)) * s["snapshot_interval"]
         ax.plot(t, 100 * np.sqrt(num / den), label=sch["scheme"], lw=1.2)
+    for r in s["rows"]:                  # a diverged run: its snapshots before the divergence, dashed
+        b = r.get("before_divergence")
+        if b:
+            e = np.sqrt(np.asarray(b["per_frame"]["x"]) / np.asarray(b["per_frame"]["x_c"]))
+            ax.plot(np.arange(len(e)) * s["snapshot_interval"], 100 * e, ls="--", lw=1.0,
+                    label=f"{r['scheme']}, {r['run']}: diverged at {b['until_s']:.3g} s")
     ax.set_xlabel("time [s]"); ax.set_ylabel("E per snapshot [%]")
     ax.set_title(f"rom_eval {s['study']}: latent {s['latent']}", fontsize=9); ax.legend(fontsize=7)
     fig.tight_layout()
