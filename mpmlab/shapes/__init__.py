@@ -16,7 +16,8 @@ cpdi        2^D x 2  linear hat at the domain's corners (Sadeghirad et al. 2011)
 =========== ====== =========================================================== ================
 
 A new shape function: a folder of your package like these, registered under the ``mpmlab.shapes``
-entry-point group.
+entry-point group. A separable one (a product over axes of one 1-D N(r)) writes only N, N', N'' for Warp
+and returns ``mpmlab.shapes._common.warp.separable(...)`` from its ``warp.make``, as ``cubic`` and ``ugimp`` do.
 """
 from __future__ import annotations
 
