@@ -32,19 +32,16 @@ def check_representable(scene: Scene, precision: str) -> None:
         return
     big = float(np.finfo(np.float32).max)
     for g in scene.particles().groups:
-        law = g.law
-        names = law.param_names()
-        prm = np.asarray(g.params, float)
-        for j, name in enumerate(names):
-            col = prm[:, j] if prm.ndim == 2 and j < prm.shape[1] else np.empty(0)
-            bad = col[np.abs(col) > big]
-            if bad.size:
-                raise ConfigError(f"law '{law.name}': parameter {name} = {bad[0]:.3g} exceeds fp32's largest value "
-                                  f"({big:.3g}); use precision=fp64 or rescale the units.")
+        prm = np.asarray(g.params, float)                       # [n, P], the law's declared order
+        bad = np.argwhere(np.abs(prm) > big)
+        if len(bad):
+            i, j = bad[0]
+            raise ConfigError(f"law '{g.law.name}': parameter {g.law.param_names()[j]} = {prm[i, j]:.3g} exceeds fp32's "
+                              f"largest value ({big:.3g}); use precision=fp64 or rescale the units.")
         for name, w in (g.weights or {}).items():
             w = np.asarray(w, float)
             if w.size and np.max(np.abs(w)) > big:
-                raise ConfigError(f"law '{law.name}': weight array '{name}' holds {np.max(np.abs(w)):.3g}, beyond "
+                raise ConfigError(f"law '{g.law.name}': weight array '{name}' holds {np.max(np.abs(w)):.3g}, beyond "
                                   f"fp32's largest value ({big:.3g}); use precision=fp64.")
 
 

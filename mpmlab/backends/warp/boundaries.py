@@ -487,11 +487,9 @@ def _rotate_host(r: np.ndarray, a: np.ndarray) -> np.ndarray:
     if r.shape[-1] == 2:
         ca, sa = np.cos(a), np.sin(a)
         return np.stack([ca * r[:, 0] - sa * r[:, 1], sa * r[:, 0] + ca * r[:, 1]], -1)
-    th = float(np.linalg.norm(a))
-    if th == 0.0:
-        return r
-    k = a / th
-    return r * np.cos(th) + np.cross(k, r) * np.sin(th) + np.outer(r @ k, k) * (1 - np.cos(th))
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(a).apply(r)
 
 
 def grid_velocity(b, scene, stepper):
