@@ -10,8 +10,10 @@ Cases (2D, dx = 0.05, a 0.3 m square of 4 particles per cell unless said):
   then the log-strain pressure throws it apart (the failure: a particle leaving the domain at step ~150);
   the kept frames' J range names the collapse;
 * ``velocity`` -- one particle of a square at rest thrown at 400 m/s (20 cells per step);
-* ``law`` -- fp32 and E = 1e39 (beyond float32: mu = inf, and 2 mu (F - R) = inf * 0 at rest) with the
-  dt of CFL 0.3: NaN from a quiet state in one step;
+* ``law`` -- fp32, E = 3e38 and nu = 0.45: both parameters fit in float32 (E = 1e39 would not, and is
+  refused before the run: ``simulator.check_representable``), but the Lame lambda = E nu / ((1 + nu)(1 - 2 nu))
+  = 9.3e38 the law derives in the kernel is inf, and lambda (J - 1) J = inf * 0 at rest; with the dt of CFL 0.3:
+  NaN from a quiet state in one step;
 * ``domain`` -- a square sliding at 5 m/s off a domain without walls (0.2 cells per step);
 * ``cell_crossing`` -- the twisted annulus of ``mpmlab.scenes.large_shear`` at dx = 0.1 (APIC, fp64): J
   rings in grid-aligned modes long before the peak shear; halving dt fails the same way.
@@ -95,6 +97,11 @@ def test_velocity_blow_up():
 
 def test_law_out_of_range_parameter():
     sc = square(dt=1.0, E=1e39, walls=False)
+    sc.dt = 0.3 * sc.dx / sc.wave_speed()
+    with pytest.raises(mpmlab.ConfigError, match="exceeds fp32's largest value"):
+        mpmlab.build_stepper(sc, "jax", "pic", "fp32")       # a parameter fp32 cannot hold: refused up front
+    sc = square(dt=1.0, E=3e38, walls=False)                  # representable, but its derived lambda is not
+    sc.bodies[0].params["nu"] = 0.45
     sc.dt = 0.3 * sc.dx / sc.wave_speed()
     st = mpmlab.build_stepper(sc, "jax", "pic", "fp32", check_every=1)
     e = diverge(st, steps=3, every=1)
