@@ -119,7 +119,8 @@ def run(a) -> None:
     rc = mpmlab(["task=rom_eval", f"task.study={a.study}", f"task.data={data}",
                  f"task.weights={train / 'rom_weights.safetensors'}", f"task.samples=[{a.samples}]",
                  f"task.quadratures=[{a.quadratures}]", f"task.projections=[{a.projections}]", f"precision={a.precision}",
-                 f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"hydra.run.dir={ev}",
+                 f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"task.kinematic={a.kinematic}",
+                 f"hydra.run.dir={ev}",
                  "output.overwrite=true", *([f"task.max_runs={a.max_runs}"] if a.max_runs else [])])
     if rc not in (0, 3):
         raise SystemExit(f"rom_eval failed (exit {rc})")
@@ -164,8 +165,8 @@ def superres(a) -> None:
     for name, opts in jobs.items():
         ev = RAW / "runs" / a.tag / name
         rc = mpmlab(["task=rom_eval", *opts, f"task.weights={weights}", f"precision={a.precision}",
-                     f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"hydra.run.dir={ev}",
-                     "output.overwrite=true"])
+                     f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"task.kinematic={a.kinematic}",
+                     f"hydra.run.dir={ev}", "output.overwrite=true"])
         if rc not in (0, 3):
             raise SystemExit(f"rom_eval ({name}) failed (exit {rc})")
         keep_eval(ev, RES / a.tag / f"{name}.json")
@@ -325,6 +326,9 @@ def main():
     ap.add_argument("--tangent", default="next", choices=("next", "current"),
                     help="where the velocity least squares takes dg/dx_hat: x_hat_(n+1), or x_hat_n as the paper "
                          "(mpmlab.rom.stepper)")
+    ap.add_argument("--kinematic", default="position", choices=("position", "velocity"),
+                    help="how the reduced model holds particle_velocity points: at their prescribed positions (Eq. 3) "
+                         "or velocities only (before session 38): mpmlab.rom.kinematic")
     ap.add_argument("--eval-tag", dest="eval_tag", default="",
                     help="keep this evaluation as eval_<tag>.json beside the others (e.g. another quadrature)")
     ap.add_argument("--eval-only", dest="eval_only", action="store_true",

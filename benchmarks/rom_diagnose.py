@@ -73,7 +73,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RES = ROOT / "benchmarks" / "results" / "rom"
 
 
-def setup(tag: str):
+def setup(tag: str, eval_file: str = "eval.json"):
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -82,7 +82,7 @@ def setup(tag: str):
     from mpmlab.rom import networks as N
     from mpmlab.rom.snapshots import load_snapshots, study
 
-    ev = json.loads((RES / tag / "eval.json").read_text())
+    ev = json.loads((RES / tag / eval_file).read_text())
     w = N.load(RES / tag / "train" / "rom_weights.safetensors")
     s = study(ev["study"])
     snap = load_snapshots(ev["data"], s, split=None)
@@ -532,7 +532,7 @@ def constrain_kinematic(rom, held, poked, t_end, rcond):
         self._t_now = s.t
         return step_impl(self, s, law, fom_params)
 
-    def project(self, mf, XM, z, z_prev, x_tr, v_tr):
+    def project(self, mf, XM, z, z_prev, x_tr, v_tr, v_step=None):
         d = XM.shape[1]
         on = jnp.concatenate([jnp.ones(held), jnp.where(self._t_now < t_end, 1.0, 0.0) * jnp.ones(poked),
                               jnp.zeros(XM.shape[0] - held - poked)])
@@ -608,12 +608,63 @@ def poke(a, w, params, norm, snap):
                       f"{u(xr[f][None])[0]:.2f} mm reduced; body rms error {rms(xr[f] - x[f]):.3f} mm, reduced body "
                       f"moved {rms(xr[f] - X):.3f} mm rms")
 
+def kabsch(P, Q):
+    """(R, t) of the rigid motion that best maps points P [N, 3] onto Q (least squares)."""
+    cp, cq = P.mean(0), Q.mean(0)
+    U, _, Vt = np.linalg.svd((P - cp).T @ (Q - cq))
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ S @ U.T
+    return R, cq - R @ cp
+
+
+def settle(a, w, params, norm, snap):
+    """Where the reduced body comes to rest after a poke, and what holds it there (benchmarks/rom.md,
+    "Tab. 6: what holds the reduced body off its rest shape")."""
+    import jax.numpy as jnp
+
+    from mpmlab.rom import networks as N
+    from mpmlab.rom.evaluate import build_full_order, run_config
+    from mpmlab.rom.stepper import reduced_stepper
+
+    interval = float(snap.time[1] - snap.time[0])
+    rms = lambda e: 1e3 * float(np.sqrt(np.mean(np.sum(e ** 2, -1))))              # noqa: E731
+    for run in a.runs:
+        k = list(snap.names).index(run)
+        cfg = run_config(snap, k)
+        X, xs = snap.x[k, 0], snap.x[k]
+        _, fom = build_full_order(cfg, "fp64")
+        base = held_points(fom)
+        every = int(round(interval / float(fom.dt)))
+        frames = int(round(a.hold / interval))
+        rom = reduced_stepper(fom, w, samples=int(a.samples[0]), quadrature="lagrangian", projection=a.projection,
+                              kinematic=a.kinematic)
+        out = rom.rollout(steps=every * frames, every=every)
+        zs = np.asarray(out["z"])
+        c = X.mean(0)
+        print(f"{run}: {len(X)} points, {int(base.sum())} held at the base; reduced M = {a.samples[0]}, {a.projection}, "
+              f"kinematic {a.kinematic}, "
+              f"{len(rom._forced)} forced samples ({int(base[rom._forced].sum())} of them at the base)")
+        for f in range(0, frames + 1, max(1, frames // 12)):
+            xr = rom._positions(zs[f])[0]
+            xf = xs[f]
+            Fr = np.asarray(N.g_jacobians(params, norm, jnp.asarray(X), jnp.asarray(zs[f])[None, :])[1])
+            R, t = kabsch(xf, xr)                        # the reduced body against the full-order one, rigidly
+            rigid = xf @ R.T + t
+            ang = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+            E = np.sqrt(np.sum((xr - xf) ** 2) / np.sum((xf - c) ** 2))
+            print(f"  t {snap.time[f]:6.3f} s: E {E:6.2%}; reduced - full-order {rms(xr - xf):.4f} mm rms, of which "
+                  f"non-rigid {rms(xr - rigid):.4f} mm (rigid part: {1e3 * np.linalg.norm(t + (R - np.eye(3)) @ c):.4f} mm "
+                  f"at the centroid, {ang:.4f} deg); base points moved {rms(xr[base] - X[base]):.4f} mm (full-order "
+                  f"{rms(xf[base] - X[base]):.4f}); |dg/dX - I| {np.sqrt(np.mean(np.sum((Fr - np.eye(3)) ** 2, (1, 2)))):.2e} "
+                  f"(full-order |F - I| {np.sqrt(np.mean(np.sum((snap.F[k, f] - np.eye(3)) ** 2, (1, 2)))):.2e}); "
+                  f"|x_hat - x_hat(0)| {np.linalg.norm(zs[f] - zs[0]):.3f}")
+
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=("reconstruction", "rollout", "profile", "one-interval", "equilibrium",
                                            "consistency", "swing", "energy", "attachment",
-                                           "damping", "accounting", "poke"))
+                                           "damping", "accounting", "poke", "settle"))
     ap.add_argument("runs", type=lambda s: s.split(","))
     ap.add_argument("--tag", default="torsion_grip_l7_s02")
     ap.add_argument("--dt-scale", dest="dt_scale", type=float, default=1.0)
@@ -635,12 +686,16 @@ def main():
                     help="poke: fit the forced samples' rows first while their boundary acts (a study)")
     ap.add_argument("--no-poke", dest="no_poke", action="store_true",
                     help="poke: the rollouts without the poke (a body at rest should stay at rest)")
+    ap.add_argument("--kinematic", default="position", choices=("position", "velocity"),
+                    help="settle: how the reduced model holds particle_velocity points (mpmlab.rom.kinematic)")
+    ap.add_argument("--eval", default="eval.json", help="the evaluation whose study and snapshots to use "
+                    "(e.g. eval_continual.json for the continual poking run)")
     a = ap.parse_args()
-    w, params, norm, snap = setup(a.tag)
+    w, params, norm, snap = setup(a.tag, a.eval)
     {"reconstruction": reconstruction, "rollout": rollout, "profile": profile,
      "one-interval": one_interval, "equilibrium": equilibrium, "consistency": consistency, "swing": swing,
      "energy": energy, "attachment": attachment, "damping": damping,
-     "accounting": accounting, "poke": poke}[a.what](a, w, params, norm, snap)
+     "accounting": accounting, "poke": poke, "settle": settle}[a.what](a, w, params, norm, snap)
 
 
 if __name__ == "__main__":

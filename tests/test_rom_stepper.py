@@ -125,7 +125,9 @@ def test_the_compact_node_set_steps_as_the_scene_grid_does(dim):
     X = np.asarray(fom.particles.x)
     norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(dim), "u_std": np.full(dim, 3e-3)}
     w = N.RomWeights(N.init_params(spec, seed=5), norm, spec, 5)
-    kw = dict(samples=12, quadrature="eulerian", projection="linear", eulerian_capacity=1e9)
+    # velocity-level hold: this random map starts the grip 0.7 mm off, and the position-level hold's corrections
+    # amplify round-off ~1e4-fold in 12 steps (tests/test_rom_kinematic.py), which is not what is tested here
+    kw = dict(samples=12, quadrature="eulerian", projection="linear", eulerian_capacity=1e9, kinematic="velocity")
     a = ReducedStepper(fom, w, nodes="compact", **kw).rollout(steps=12, every=4)
     b = ReducedStepper(fom, w, nodes="scene", **kw).rollout(steps=12, every=4)
     assert np.ptp(b["z"], axis=0).max() > 1e-4

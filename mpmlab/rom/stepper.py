@@ -66,6 +66,7 @@ from ..core.errors import ConfigError
 from ..core.interfaces import AbstractStepper
 from . import manifold as Mf
 from . import networks as N
+from .kinematic import Holds, hold
 
 QUADRATURES = ("lagrangian", "eulerian")
 #: what the reduced model has per backend (the capability matrix, ``mpmlab.capabilities``): the rollout, and
@@ -169,7 +170,7 @@ class _ReducedBase(AbstractStepper):
     backend_name = ""
 
     def _check(self, fom, weights, samples, quadrature, projection, per_boundary, seed, capacity=EULER_CAPACITY,
-               tangent="next", nodes="compact"):
+               tangent="next", nodes="compact", kinematic="position"):
         if getattr(fom, "backend_name", "") != self.backend_name:
             raise ConfigError(f"{type(self).__name__}: the full-order stepper is on backend "
                               f"'{getattr(fom, 'backend_name', '?')}'; build it with backend '{self.backend_name}' "
@@ -224,6 +225,9 @@ class _ReducedBase(AbstractStepper):
         self._capacity = float(capacity)
         self._free_np = np.setdiff1d(np.arange(n), self._forced)
         self._n_random = samples - len(self._forced)
+        #: the particle_velocity boundaries held at the position level (``kinematic``: mpmlab.rom.kinematic)
+        self._holds = Holds(self.scene, np.asarray(P.x), kinematic)
+        self.kinematic = kinematic
 
     def _eulerian_layout(self) -> SimpleNamespace:
         """The fixed parts of Alg. 4, numpy: the quadrature lattice, V_q, rho_0, one law-parameter row and
@@ -260,18 +264,22 @@ class _ReducedBase(AbstractStepper):
             q_lattice=tuple(2 * int(a) for a in self.scene.grid_shape), q_size=q_size,
             inv_tol=1e-10 if self.fom.precision == "fp64" else 1e-5 * dx)
 
-    def _project(self, mf, XM, z, z_prev, x_tr, v_tr):
+    def _project(self, mf, XM, z, z_prev, x_tr, v_tr, v_step=None):
         """The samples' trial state back onto the manifold with the backend's ``mf`` (``manifold`` or
         ``manifold_torch``): x_hat by Alg. 7 (linear: x_hat_n + dt v_hat, v_hat fitted with dg/dx_hat at
         x_hat_n) or Alg. 6 / Eq. 22 (nonlinear, from 2 z - z_prev), and v_hat by Eqs. 21/23 with dg/dx_hat
-        at x_hat_{n+1} (``tangent`` "next") or x_hat_n ("current"). Returns (x_hat_{n+1}, v_hat_{n+1})."""
-        def fit(at):                          # Eqs. 21/23 with dg/dx_hat at the latent ``at``
-            return mf.project_velocity(self.params, self.norm, XM, at, v_tr)
+        at x_hat_{n+1} (``tangent`` "next") or x_hat_n ("current"). Returns (x_hat_{n+1}, v_hat_{n+1}).
+        ``v_step``: the velocities the linear step fits where they differ from ``v_tr`` (the position-level
+        hold of ``mpmlab.rom.kinematic``: held rows reach their prescribed positions); None: ``v_tr``."""
+        def fit(at, v=v_tr):                  # Eqs. 21/23 with dg/dx_hat at the latent ``at``
+            return mf.project_velocity(self.params, self.norm, XM, at, v)
 
         if self.projection == "linear":
-            vhat = fit(z)
+            vhat = fit(z) if v_step is None else fit(z, v_step)
             z1 = mf.project_linear(z, vhat, self.dt)
-            return z1, fit(z1) if self.tangent == "next" else vhat
+            if self.tangent == "next":
+                return z1, fit(z1)
+            return z1, vhat if v_step is None else fit(z)
         z1 = mf.project_nonlinear(self.params, self.norm, XM, x_tr, z, z_prev)
         return z1, fit(z1 if self.tangent == "next" else z)
 
@@ -351,17 +359,20 @@ class ReducedStepper(_ReducedBase):
 
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0,
-                 eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next", nodes: str = "compact"):
+                 eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next", nodes: str = "compact",
+                 kinematic: str = "position"):
         import jax
         import jax.numpy as jnp
 
-        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent, nodes)
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent, nodes,
+                    kinematic)
         self.dtype = dt = fom.dtype
         self.params = N.to_jax(weights.params, dt)
         self.norm = N.to_jax(weights.norm, dt)
         self.X = jnp.asarray(fom.particles.x, dt)
         self._free = jnp.asarray(self._free_np)
         self._forced_j = jnp.asarray(self._forced)
+        self._hold_of = jnp.asarray(self._holds.which)
         self._base0 = fom._node_x[0]
         self._fom_params = dict(fom.params)          # made here, outside any trace (it is cached on the stepper)
         if quadrature == "eulerian":
@@ -539,8 +550,22 @@ class ReducedStepper(_ReducedBase):
         else:                                         # Alg. 5 over every material point (massless off P)
             new = self.fom.step_fn(state, prm, update_law=False)
             x_tr, v_tr = new["x"][rows], new["v"][rows]
-        z, vhat = self._project(Mf, self.X[M], s.z, s.z_prev, x_tr, v_tr)
+        x_tr, v_step = self._held(M, x[rows], x_tr, v_tr, s.t + self.dt, prm["boundary"])
+        z, vhat = self._project(Mf, self.X[M], s.z, s.z_prev, x_tr, v_tr, v_step)
         return ReducedState(z, vhat, s.z, s.t + self.dt, key, counts[0], counts[1], jnp.maximum(s.overflow, counts[2]))
+
+    def _held(self, M, x_M, x_tr, v_tr, t1, boundary):
+        """The position-level hold on the samples (``mpmlab.rom.kinematic.hold``), with the step's boundary
+        parameters (stepper order, as ``fom.params["boundary"]``)."""
+        import jax.numpy as jnp
+
+        from ..backends.jax.boundaries import _rotation
+
+        nb = len(self.fom._grid_bcs)
+        params = [dict(p, center=jnp.asarray(c, self.dtype))
+                  for p, c in zip(boundary[nb:nb + len(self.fom._particle_bcs)], self._holds.centers)]
+        return hold(self._holds, jnp, lambda th: _rotation(th, self.dim), self._hold_of[M], self.X[M], x_M, x_tr, v_tr,
+                    t1, params, self.dt)
 
     def step(self, state):
         return self._step(state)

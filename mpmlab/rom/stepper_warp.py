@@ -29,6 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ..core.errors import ConfigError
+from .kinematic import hold
 from .stepper import EULER_CAPACITY, ReducedState, _ReducedBase
 
 
@@ -68,13 +69,14 @@ class WarpReducedStepper(_ReducedBase):
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0, draws=None,
                  torch_threads: int | None = 1, eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next",
-                 nodes: str = "compact"):
+                 nodes: str = "compact", kinematic: str = "position"):
         import torch
         import warp as wp
 
         from . import networks_torch as NT
 
-        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent, nodes)
+        self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent, nodes,
+                    kinematic)
         self._threads = None if torch_threads is None or fom.device.startswith("cuda") else int(torch_threads)
         self.tdtype = torch.float64 if fom.precision == "fp64" else torch.float32
         self.tdevice = torch.device("cuda", wp.get_device(fom.device).ordinal) if fom.device.startswith("cuda") \
@@ -89,6 +91,10 @@ class WarpReducedStepper(_ReducedBase):
         self._vol0 = torch.as_tensor(np.asarray(P.volume), **kw)
         self._forced_t = torch.as_tensor(self._forced, device=self.tdevice)
         self._free_t = torch.as_tensor(self._free_np, device=self.tdevice)
+        self._hold_of = torch.as_tensor(self._holds.which, device=self.tdevice)
+        self._hold_params = [{k: torch.as_tensor(np.asarray(v, float), **kw) for k, v in
+                              (("velocity", b.velocity), ("angular_velocity", b.angular_velocity), ("center", c))
+                              if v is not None} for b, c in zip(self._holds.bcs, self._holds.centers)]
         self._draws = None if draws is None else [np.array(m, np.int64) for m in draws]
         # one input and one output Warp state for every step: the stepper's recorded launches are reused.
         # The input's ``order`` carries this step's quadrature masses (P2G reads order.mass / order.vol).
@@ -230,7 +236,7 @@ class WarpReducedStepper(_ReducedBase):
             wp.launch(k.stress, dim=g.count, inputs=[*fom._law_args(i, st), g.start, a.tau], device=fom.device)
         a.t = float(s.t)
         fom._step_into(a, self._out)              # P2G, grid update, boundaries, G2P (Alg. 5)
-        return wp.to_torch(self._out.x)[M], wp.to_torch(self._out.v)[M], (s.outside, s.unconverged, 0)
+        return x[M], wp.to_torch(self._out.x)[M], wp.to_torch(self._out.v)[M], (s.outside, s.unconverged, 0)
 
     def _eulerian(self, s, M):
         """Alg. 4 and Alg. 5 on the quadrature's stepper (as ``ReducedStepper._eulerian_points``): lattice
@@ -307,7 +313,7 @@ class WarpReducedStepper(_ReducedBase):
             x_tr, v_tr = wp.to_torch(xe)[M], wp.to_torch(vs)[M]
         counts = (torch.sum(real & ~in_body).to(torch.int32), torch.sum(real & in_body & ~converged).to(torch.int32),
                   torch.tensor(max(distinct - e.q_size, 0), dtype=torch.int32))
-        return x_tr, v_tr, counts
+        return x0, x_tr, v_tr, counts
 
     def _pseudo_step(self, base) -> None:
         """Alg. 5 on the quadrature's pseudo-particles (written into ``_q_in``): the Warp MPM step into ``_q_out``.
@@ -328,8 +334,9 @@ class WarpReducedStepper(_ReducedBase):
         M = self._sample(int(s.key))
         with torch.no_grad(), _torch_threads(self._threads):
             points = self._eulerian if self.quadrature == "eulerian" else self._lagrangian
-            x_tr, v_tr, counts = points(s, M)
-            z, vhat = self._project(MT, self.X[M], s.z, s.z_prev, x_tr, v_tr)
+            x_M, x_tr, v_tr, counts = points(s, M)
+            x_tr, v_step = self._held(M, x_M, x_tr, v_tr, float(s.t) + self.dt)
+            z, vhat = self._project(MT, self.X[M], s.z, s.z_prev, x_tr, v_tr, v_step)
         return ReducedState(z, vhat, s.z, float(s.t) + self.dt, int(s.key) + 1, counts[0], counts[1],
                             torch.maximum(torch.as_tensor(s.overflow, dtype=torch.int32), torch.as_tensor(counts[2], dtype=torch.int32)))
 
@@ -397,7 +404,25 @@ class WarpReducedStepper(_ReducedBase):
         quad = quad.to(self.tdtype)
         Fs = [F[g.start:g.stop] for g in self.fom.groups]
         x_new, v_new = _warp_step().apply(self, float(t), x, v, self._mass0 * quad, self._vol0 * quad, *Fs, *law)
-        return self._project(MT, self.X[M], z, z_prev, x_new[M], v_new[M])
+        x_tr, v_step = self._held(M, x[M], x_new[M], v_new[M], float(t) + self.dt)
+        return self._project(MT, self.X[M], z, z_prev, x_tr, v_new[M], v_step)
+
+    def _held(self, M, x_M, x_tr, v_tr, t1):
+        """The position-level hold on the samples (``mpmlab.rom.kinematic.hold``): the boundaries' own velocities,
+        the rotation R(theta) from scipy (t1 is a number here)."""
+        import torch
+
+        def rotation(theta):
+            th = np.asarray(theta.detach().cpu(), float)
+            if self.dim == 2:
+                c, s_ = np.cos(th), np.sin(th)
+                R = np.array([[c, -s_], [s_, c]])
+            else:
+                from scipy.spatial.transform import Rotation
+                R = Rotation.from_rotvec(th).as_matrix()
+            return torch.as_tensor(R, dtype=self.tdtype, device=self.tdevice)
+        return hold(self._holds, torch, rotation, self._hold_of[M], self.X[M], x_M, x_tr, v_tr, t1, self._hold_params,
+                    self.dt)
 
     def _positions(self, z):
         import torch

@@ -60,6 +60,9 @@ class RomEvalConfig(TaskConfig):
     #: where the velocity least squares (Eqs. 21/23) takes dg/dx_hat: "next" (at x_hat_{n+1}) or "current"
     #: (at x_hat_n, as the paper writes it; it gains kinetic energy on a curved manifold): mpmlab.rom.stepper
     tangent: str = "next"
+    #: how the reduced model holds the particle_velocity boundaries' points: "position" (at their prescribed
+    #: positions, the paper's Eq. 3) or "velocity" (their velocities only, as before): mpmlab.rom.kinematic
+    kinematic: str = "position"
     #: the reduced model's time step (None: the full-order run's); it must divide the snapshot interval
     dt: Optional[float] = None
     #: evaluate only the first k test runs
@@ -163,7 +166,8 @@ def run(cfg, ctx) -> dict:
     res = ev.evaluate(weights, snap, sch, precision=precision, dt=None if tc.dt is None else float(tc.dt),
                       seed=int(tc.seed), truth=truth, fom_timing_steps=int(tc.fom_timing_steps),
                       fom_backend=str(tc.fom_backend), backend=str(tc.rom_backend), progress=ctx.progress, log=log,
-                      eulerian_capacity=float(tc.eulerian_capacity), tangent=str(tc.tangent))
+                      eulerian_capacity=float(tc.eulerian_capacity), tangent=str(tc.tangent),
+                      kinematic=str(tc.kinematic))
     if tc.tracer_baseline:
         res["tracer_baseline"] = ev.tracer_baseline(snap, truth, precision=precision, backend=str(tc.fom_backend),
                                                     progress=ctx.progress, log=log)
