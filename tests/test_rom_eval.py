@@ -184,6 +184,31 @@ def test_error_measures_of_a_uniform_offset():
     assert per_frame["x"] == pytest.approx([30 * 0.005 ** 2] * 2, rel=1e-9)
 
 
+def test_error_sums_in_chunks_of_snapshots_are_the_sums_in_one(monkeypatch):
+    """``_sums`` evaluates g a few snapshots at a time (the 30 s continual poke in one call needed 17.7 GB):
+    one snapshot per chunk gives the one-call sums and per-snapshot lists, on a nonlinear map."""
+    import jax
+
+    from mpmlab.rom import evaluate as ev
+    from mpmlab.rom import networks as N
+
+    jax.config.update("jax_enable_x64", True)
+    spec = N.RomSpec(dim=2, latent=2)
+    rng = np.random.default_rng(1)
+    X = rng.uniform(0, 1, (30, 2))
+    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(2), "u_std": np.full(2, 3e-3)}
+    params, nrm = N.to_jax(N.init_params(spec, seed=2)), N.to_jax(norm)
+    z, zdot = rng.normal(size=(5, 2)), rng.normal(size=(5, 2))
+    x = X[None] + rng.normal(0, 1e-3, (5, 30, 2))
+    v = rng.normal(size=(5, 30, 2))
+    F = np.eye(2) + rng.normal(0, 1e-2, (5, 30, 2, 2))
+    one = ev._sums(params, nrm, X, z, zdot, x, v, F, X.mean(0), np.zeros(2))
+    monkeypatch.setattr(ev, "SUM_CHUNK_POINTS", 30)
+    chunked = ev._sums(params, nrm, X, z, zdot, x, v, F, X.mean(0), np.zeros(2))
+    assert chunked[0] == pytest.approx(one[0], rel=1e-12) and len(chunked[0]["x"]) == 5
+    assert chunked[1] == pytest.approx(one[1], rel=1e-12) and one[1]["F"] > 0 and one[1]["v"] > 0
+
+
 def test_a_study_without_parameters_is_not_taken_for_a_training_run():
     """The continual poke (one run, no parameters) evaluated with weights trained on the poke study is not
     refused; a poke run the weights were trained on is."""
