@@ -276,7 +276,8 @@ def report() -> None:
         for s in e["schemes"]:
             rows.append([d.parent.name, e["study"], e["fom"].get("rom_backend", "jax"), t["latent"], t["batch"],
                          t["epochs"], t["lambda_F"],
-                         pct(rec.get("test", {}).get("E")), f"{s['scheme']}, {e.get('tangent', 'current')}",
+                         pct(rec.get("test", {}).get("E")),
+                         f"{s['scheme']}, {e.get('tangent', 'current')}, {e.get('kinematic', 'velocity')} hold",
                          pct(s["E"]), pct(s.get("E_corner")), pct(s["E_displacement"]),
                          pct(s["E_v"]), pct(s["E_F"]), f"{s['wall_s_per_simulated_s']:.3g}",
                          f"{e['fom']['wall_s_per_simulated_s']:.3g}", f"{s['diverged']}/{s['runs']}"])
@@ -285,7 +286,9 @@ def report() -> None:
             "domain's lower corner (`E corner`, evaluations from session 34 on; section \"The error's origin\"), and "
             "relative to the displacement, the velocity and F - I. The scheme ends with the velocity fit's tangent (`next`: "
             "dg/dx_hat at the new latent, the default since session 23; `current`: the paper's explicit one, every "
-            "evaluation before it). `recon.` is the encoder + g reconstruction of the test "
+            "evaluation before it), then how particle_velocity points are held (`position`: at their prescribed positions, "
+            "the default since session 38, `mpmlab.rom.kinematic`; `velocity`: their velocities only, every evaluation "
+            "before it). `recon.` is the encoder + g reconstruction of the test "
             "snapshots (no time stepping). Wall times per simulated second, ROM (its backend) and full-order model "
             "(JAX, PIC) in the same process. Regenerate: `python benchmarks/rom.py --study ... --tag ...` (resumes), "
             "`--report` rewrites this table.", "",
