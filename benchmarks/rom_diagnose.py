@@ -637,12 +637,12 @@ def settle(a, w, params, norm, snap):
         every = int(round(interval / float(fom.dt)))
         frames = int(round(a.hold / interval))
         rom = reduced_stepper(fom, w, samples=int(a.samples[0]), quadrature="lagrangian", projection=a.projection,
-                              kinematic=a.kinematic)
+                              kinematic=a.kinematic, hold_steps=a.hold_steps)
         out = rom.rollout(steps=every * frames, every=every)
         zs = np.asarray(out["z"])
         c = X.mean(0)
         print(f"{run}: {len(X)} points, {int(base.sum())} held at the base; reduced M = {a.samples[0]}, {a.projection}, "
-              f"kinematic {a.kinematic}, "
+              f"kinematic {a.kinematic}{f' over {a.hold_steps:g} steps' if a.hold_steps != 1 else ''}, "
               f"{len(rom._forced)} forced samples ({int(base[rom._forced].sum())} of them at the base)")
         for f in range(0, frames + 1, max(1, frames // 12)):
             xr = rom._positions(zs[f])[0]
@@ -688,6 +688,8 @@ def main():
                     help="poke: the rollouts without the poke (a body at rest should stay at rest)")
     ap.add_argument("--kinematic", default="position", choices=("position", "velocity"),
                     help="settle: how the reduced model holds particle_velocity points (mpmlab.rom.kinematic)")
+    ap.add_argument("--hold-steps", dest="hold_steps", type=float, default=1.0,
+                    help="settle: the position-level hold closes a held point's position error over this many steps")
     ap.add_argument("--eval", default="eval.json", help="the evaluation whose study and snapshots to use "
                     "(e.g. eval_continual.json for the continual poking run)")
     a = ap.parse_args()

@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 
 from mpmlab.core.errors import ConfigError
-from mpmlab.rom import networks as N
 from mpmlab.rom.stepper import reduced_stepper
 from mpmlab.simulator import build_stepper
 
-from .test_rom_stepper import _boundary_scene, translation
+from .test_rom_stepper import _boundary_scene, random_map, translation
 
 
 @pytest.mark.parametrize("dim", (2, 3))
@@ -54,12 +53,12 @@ def _held_only(backend):
 def test_a_drifted_reduced_state_returns_to_the_prescribed_positions(backend, projection):
     """Started 1 cm off (x_hat = (0.01, 0)), one step with the position-level hold puts the held rows, and so
     the translating body, back on x_bar(dt) = X + v0 dt; the velocity-level hold keeps the 1 cm. v_hat is
-    the prescribed velocity either way."""
+    the prescribed velocity either way. Closing the error over 4 steps (``hold_steps``) closes a quarter of it."""
     fom, w = _held_only(backend)
     v0 = np.array([0.2, 0.0])
     ends = {}
-    for mode in ("position", "velocity"):
-        rom = reduced_stepper(fom, w, samples=5, projection=projection, kinematic=mode)
+    for mode, k in (("position", 1), ("velocity", 1), ("position", 4)):
+        rom = reduced_stepper(fom, w, samples=5, projection=projection, kinematic=mode, hold_steps=k)
         s0 = rom.init()
         if backend == "jax":
             import jax.numpy as jnp
@@ -69,13 +68,15 @@ def test_a_drifted_reduced_state_returns_to_the_prescribed_positions(backend, pr
             s0 = s0._replace(z=torch.tensor([0.01, 0.0], dtype=torch.float64),
                              z_prev=torch.tensor([0.01, 0.0], dtype=torch.float64))
         s1 = rom.step(s0)
-        ends[mode] = (np.asarray(rom._np(s1.z)), np.asarray(rom._np(s1.zdot)))
+        ends[mode, k] = (np.asarray(rom._np(s1.z)), np.asarray(rom._np(s1.zdot)))
     dt = float(fom.dt)
-    z, zdot = ends["position"]
+    z, zdot = ends["position", 1]
     assert np.max(np.abs(z - v0 * dt)) <= 1e-12, z
     assert np.max(np.abs(zdot - v0)) <= 1e-9, zdot
-    z, zdot = ends["velocity"]
+    z, zdot = ends["velocity", 1]
     assert np.max(np.abs(z - (np.array([0.01, 0.0]) + v0 * dt))) <= 1e-12, z
+    z, zdot = ends["position", 4]
+    assert np.max(np.abs(z - (np.array([0.0075, 0.0]) + v0 * dt))) <= 1e-12, z
 
 
 @pytest.mark.parametrize("quadrature", ("lagrangian", "eulerian"))
@@ -92,10 +93,7 @@ def test_warp_replays_the_jax_rollout_with_the_position_hold(dim, quadrature):
 
     sc = _boundary_scene(dim)
     fj, fw = build_stepper(sc, "jax", "pic", "fp64"), build_stepper(sc, "warp", "pic", "fp64")
-    spec = N.RomSpec(dim=dim, latent=3)
-    X = np.asarray(fj.particles.x)
-    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(dim), "u_std": np.full(dim, 3e-3)}
-    w = N.RomWeights(N.init_params(spec, seed=5), norm, spec, 5)
+    w = random_map(np.asarray(fj.particles.x), dim)
     kw = dict(samples=12, quadrature=quadrature, eulerian_capacity=1e9)
     rj = reduced_stepper(fj, w, **kw)
     assert rj.kinematic == "position" and rj._holds.active
@@ -119,6 +117,8 @@ def test_refusals():
     fom = build_stepper(_boundary_scene(2), "jax", "pic", "fp64")
     with pytest.raises(ConfigError, match="choose position or velocity"):
         reduced_stepper(fom, translation(2), samples=12, kinematic="force")
+    with pytest.raises(ConfigError, match="hold_steps = 0.5; .* at least 1"):
+        reduced_stepper(fom, translation(2), samples=12, hold_steps=0.5)
     sc = _boundary_scene(2)
     late = {"kind": "particle_velocity", "region": {"kind": "box", "lo": [0.5, 0.0], "hi": [1.0, 1.0]},
             "velocity": [0.2, 0.0], "t_start": 0.1}

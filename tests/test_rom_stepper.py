@@ -97,6 +97,13 @@ def test_the_eulerian_point_budget_changes_no_step():
     assert np.ptp(a["z"], axis=0).max() > 1e-3 and np.array_equal(a["z"], b["z"])
 
 
+def random_map(X, dim, seed=5, latent=3):
+    """A random smooth map (a random MLP, displacements of a few mm) for the points X [N, dim]."""
+    spec = N.RomSpec(dim=dim, latent=latent)
+    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(dim), "u_std": np.full(dim, 3e-3)}
+    return N.RomWeights(N.init_params(spec, seed=seed), norm, spec, seed)
+
+
 def _boundary_scene(dim):
     """A body on a Coulomb floor, gripped at one end (particle_velocity + grid_velocity, rotating in 3D),
     between separating walls, under gravity: every built-in grid boundary kind the ROM scenes use."""
@@ -121,10 +128,7 @@ def test_the_compact_node_set_steps_as_the_scene_grid_does(dim):
     scene grid's steps to round-off: overlapping windows summed, every boundary read at the windows' nodes,
     the grip applied to the samples only. A nonlinear map, so the points carry different F and v."""
     fom = build_stepper(_boundary_scene(dim), "jax", "pic", "fp64")
-    spec = N.RomSpec(dim=dim, latent=3)
-    X = np.asarray(fom.particles.x)
-    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(dim), "u_std": np.full(dim, 3e-3)}
-    w = N.RomWeights(N.init_params(spec, seed=5), norm, spec, 5)
+    w = random_map(np.asarray(fom.particles.x), dim)
     # velocity-level hold: this random map starts the grip 0.7 mm off, and the position-level hold's corrections
     # amplify round-off ~1e4-fold in 12 steps (tests/test_rom_kinematic.py), which is not what is tested here
     kw = dict(samples=12, quadrature="eulerian", projection="linear", eulerian_capacity=1e9, kinematic="velocity")

@@ -9,12 +9,11 @@ import pytest
 
 import mpmlab
 from mpmlab.core.errors import ConfigError
-from mpmlab.rom import networks as N
 from mpmlab.rom.stepper import ReducedStepper, reduced_stepper
 from mpmlab.rom.stepper_warp import WarpReducedStepper
 from mpmlab.simulator import build_stepper
 
-from .test_rom_stepper import _boundary_scene, scene, translation
+from .test_rom_stepper import _boundary_scene, random_map, scene, translation
 
 
 COMBINATIONS = [(q, p) for q in ("lagrangian", "eulerian") for p in ("linear", "nonlinear")]
@@ -60,10 +59,7 @@ def beam():
 
     sc = build_scene(compose(["scene=rom_beam_2d", "scene.resolution=tiny"]))
     fj, fw = build_stepper(sc, "jax", "pic", "fp64"), build_stepper(sc, "warp", "pic", "fp64")
-    spec = N.RomSpec(dim=2, latent=3)
-    X = np.asarray(fj.particles.x)
-    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(2), "u_std": np.full(2, 3e-3)}
-    return fj, fw, N.RomWeights(N.init_params(spec, seed=3), norm, spec, 3)
+    return fj, fw, random_map(np.asarray(fj.particles.x), 2, seed=3)
 
 
 @pytest.mark.parametrize("quadrature,projection,samples,tol_z,tol_x",
@@ -101,10 +97,7 @@ def test_warp_replays_the_jax_eulerian_rollout_with_every_boundary_kind(dim):
     initial difference and what the steps add to it; a grip about another centre moves x_hat by orders more."""
     sc = _boundary_scene(dim)
     fj, fw = build_stepper(sc, "jax", "pic", "fp64"), build_stepper(sc, "warp", "pic", "fp64")
-    spec = N.RomSpec(dim=dim, latent=3)
-    X = np.asarray(fj.particles.x)
-    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(dim), "u_std": np.full(dim, 3e-3)}
-    w = N.RomWeights(N.init_params(spec, seed=5), norm, spec, 5)
+    w = random_map(np.asarray(fj.particles.x), dim)
     # the velocity-level hold: with the position-level one this map's grip misfit amplifies the initial
     # states' difference ~1e4-fold (tests/test_rom_kinematic.py replays it from one initial state)
     kw = dict(samples=12, quadrature="eulerian", projection="linear", eulerian_capacity=1e9, kinematic="velocity")
@@ -124,10 +117,7 @@ def test_the_compact_node_set_steps_as_the_scene_grid_does(dim):
     The list must hold every node the points reach and each once: a missed node keeps its P2G sums into
     the next step, a node listed twice is updated from cleared sums."""
     fw = build_stepper(_boundary_scene(dim), "warp", "pic", "fp64")
-    spec = N.RomSpec(dim=dim, latent=3)
-    X = np.asarray(fw.particles.x)
-    norm = {"X_min": X.min(0), "X_max": X.max(0), "u_mean": np.zeros(dim), "u_std": np.full(dim, 3e-3)}
-    w = N.RomWeights(N.init_params(spec, seed=5), norm, spec, 5)
+    w = random_map(np.asarray(fw.particles.x), dim)
     # few samples, so that windows overlap little and a window's edge nodes are listed by it alone (with 12
     # samples a list one node short per axis still passed: measured)
     kw = dict(samples=4, per_boundary=1, quadrature="eulerian", projection="linear", eulerian_capacity=1e9)

@@ -166,14 +166,15 @@ def errors_of(sums: dict) -> dict:
 def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64", dt: float | None = None,
              seed: int = 0, truth=None, fom_timing_steps: int = 100, fom_backend: str = "jax",
              backend: str = "jax", progress: bool | None = False, log=None, eulerian_capacity: float | None = None,
-             tangent: str = "next", kinematic: str = "position") -> dict:
+             tangent: str = "next", kinematic: str = "position", hold_steps: float = 1.0) -> dict:
     """Every scheme on every run of ``snap`` (``mpmlab.rom.snapshots.load_snapshots``' result: the test
     runs). ``truth``: snapshots of the same runs to compare against (default ``snap``; e.g. a 2x finer
     FOM). ``backend``: the reduced model's (jax: ``ReducedStepper``; warp: ``WarpReducedStepper``; both
     have every scheme). ``eulerian_capacity``: the Eulerian quadrature's point budget (None: the stepper's
     default, ``mpmlab.rom.stepper.EULER_CAPACITY``). ``tangent``: where the velocity least squares takes
     dg/dx_hat (``mpmlab.rom.stepper.TANGENTS``: "next", or the paper's "current"). ``kinematic``: how the
-    particle_velocity boundaries are held (``mpmlab.rom.kinematic``: "position", or "velocity"). ``progress``: a bar
+    particle_velocity boundaries are held (``mpmlab.rom.kinematic``: "position", or "velocity"), and over how
+    many steps the position-level hold closes an error (``hold_steps``). ``progress``: a bar
     over the rollouts (None: when stderr is a terminal). Returns
     ``{"schemes": [...], "runs": [...], "fom": {...}}`` (module doc)."""
     import jax.numpy as jnp
@@ -226,7 +227,8 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
             m = len(X0) if sch.samples == "all" else int(sch.samples)
             more = {} if eulerian_capacity is None else {"eulerian_capacity": float(eulerian_capacity)}
             rom = reduced_stepper(fom, weights, samples=m, quadrature=sch.quadrature, projection=sch.projection,
-                                  seed=seed, tangent=tangent, kinematic=kinematic, **more)
+                                  seed=seed, tangent=tangent, kinematic=kinematic,
+                                  hold_steps=hold_steps, **more)
             s0 = rom.init()
             t0 = time.perf_counter()
             rom._np(rom.step(s0).z)                              # compile the reduced step
@@ -285,7 +287,7 @@ def evaluate(weights: N.RomWeights, snap, scheme_list, *, precision: str = "fp64
     for row in table:
         a, b = row["wall_s_per_simulated_s"], fom["wall_s_per_simulated_s"]
         row["speedup_vs_fom"] = b / a if a and b else None
-    return {"schemes": table, "rows": rows, "runs": runs, "fom": fom, "tangent": tangent, "kinematic": kinematic, "snapshot_interval": interval,
+    return {"schemes": table, "rows": rows, "runs": runs, "fom": fom, "tangent": tangent, "kinematic": kinematic, "hold_steps": hold_steps, "snapshot_interval": interval,
             "snapshots": T}
 
 

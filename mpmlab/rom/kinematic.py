@@ -17,6 +17,12 @@ reaches it, (x_bar(t + dt) - g(X; x_hat_n)) / dt, which is the prescribed veloci
 drifted. v_hat is still fitted to the prescribed velocity. ``kinematic="velocity"`` is the earlier,
 velocity-level hold.
 
+Where the map cannot put the held points exactly where they belong while it follows the rest of the body,
+the exact hold asks every step for the whole position error as a velocity ((0.05 mm) / dt = 0.18 m/s on the
+poke, against the body's mm/s): those rows then outweigh the free ones in the least squares and can lock the
+body in a strained state (benchmarks/rom.md). ``hold_steps`` = k closes 1/k of the error per step instead (a
+relaxation time of k dt, as Baumgarte's stabilisation of constraint drift); 1 (the default) is the exact hold.
+
 The prescribed position is the boundary's motion in closed form from the reference position X (the
 scene's positions at t = 0): x_bar(t) = c(t) + R(omega t) (X - c(0)), with c(t) = c0 + v0 (t - t_start)
 (a translation when omega is absent), which the full-order model's exactly rigid steps compose to.
@@ -37,11 +43,14 @@ class Holds:
     boundary (in the stepper's particle-boundary order) that prescribes material point p, or -1; per
     boundary its centre c0, t_start, t_end and whether it rotates."""
 
-    def __init__(self, scene, x0: np.ndarray, mode: str):
+    def __init__(self, scene, x0: np.ndarray, mode: str, steps: float = 1.0):
         if mode not in KINEMATIC:
             raise ConfigError(f"ReducedStepper: kinematic '{mode}'; choose {' or '.join(KINEMATIC)} (hold the "
                               f"particle_velocity boundaries' points at their prescribed positions, or velocities only).")
-        self.mode = mode
+        if not float(steps) >= 1.0:
+            raise ConfigError(f"ReducedStepper: hold_steps = {steps}; the position-level hold closes a held point's "
+                              f"position error over this many steps: at least 1 (1: at once).")
+        self.mode, self.steps = mode, float(steps)
         self.bcs = [b for b in scene.boundaries if getattr(b, "stage", "") == "particle_velocity"]
         self.which = np.full(len(x0), -1, np.int64)
         for i, b in enumerate(self.bcs):                 # a later boundary overrides, as the steppers apply them
@@ -79,9 +88,12 @@ class Holds:
 
 def hold(holds: Holds, xp, rotation, which_M, X_M, x_M, x_tr, v_tr, t1, params, dt):
     """The samples' trial state with the position-level hold: (x_tr, v_step) where held rows get
-    x_bar(t1) and the velocity (x_bar(t1) - x_M) / dt that the linear projection steps with; other rows
-    keep x_tr and v_tr. Without held points: (x_tr, None), the velocity-level step unchanged."""
+    x_bar(t1) (or, with ``holds.steps`` = k > 1, the trial position moved 1/k of the way to it) and the
+    velocity (that - x_M) / dt that the linear projection steps with; other rows keep x_tr and v_tr.
+    Without held points: (x_tr, None), the velocity-level step unchanged."""
     if not holds.active:
         return x_tr, None
     target, on = holds.targets(xp, rotation, which_M, X_M, t1, params)
+    if holds.steps != 1.0:
+        target = x_tr + (target - x_tr) / holds.steps
     return xp.where(on[:, None], target, x_tr), xp.where(on[:, None], (target - x_M) / dt, v_tr)

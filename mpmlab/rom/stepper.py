@@ -170,7 +170,7 @@ class _ReducedBase(AbstractStepper):
     backend_name = ""
 
     def _check(self, fom, weights, samples, quadrature, projection, per_boundary, seed, capacity=EULER_CAPACITY,
-               tangent="next", nodes="compact", kinematic="position"):
+               tangent="next", nodes="compact", kinematic="position", hold_steps=1.0):
         if getattr(fom, "backend_name", "") != self.backend_name:
             raise ConfigError(f"{type(self).__name__}: the full-order stepper is on backend "
                               f"'{getattr(fom, 'backend_name', '?')}'; build it with backend '{self.backend_name}' "
@@ -226,7 +226,7 @@ class _ReducedBase(AbstractStepper):
         self._free_np = np.setdiff1d(np.arange(n), self._forced)
         self._n_random = samples - len(self._forced)
         #: the particle_velocity boundaries held at the position level (``kinematic``: mpmlab.rom.kinematic)
-        self._holds = Holds(self.scene, np.asarray(P.x), kinematic)
+        self._holds = Holds(self.scene, np.asarray(P.x), kinematic, hold_steps)
         self.kinematic = kinematic
 
     def _eulerian_layout(self) -> SimpleNamespace:
@@ -360,12 +360,12 @@ class ReducedStepper(_ReducedBase):
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0,
                  eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next", nodes: str = "compact",
-                 kinematic: str = "position"):
+                 kinematic: str = "position", hold_steps: float = 1.0):
         import jax
         import jax.numpy as jnp
 
         self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent, nodes,
-                    kinematic)
+                    kinematic, hold_steps)
         self.dtype = dt = fom.dtype
         self.params = N.to_jax(weights.params, dt)
         self.norm = N.to_jax(weights.norm, dt)

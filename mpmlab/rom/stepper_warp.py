@@ -69,14 +69,14 @@ class WarpReducedStepper(_ReducedBase):
     def __init__(self, fom, weights, *, samples: int = 50, quadrature: str = "lagrangian",
                  projection: str = "linear", per_boundary: int = 5, seed: int = 0, draws=None,
                  torch_threads: int | None = 1, eulerian_capacity: float = EULER_CAPACITY, tangent: str = "next",
-                 nodes: str = "compact", kinematic: str = "position"):
+                 nodes: str = "compact", kinematic: str = "position", hold_steps: float = 1.0):
         import torch
         import warp as wp
 
         from . import networks_torch as NT
 
         self._check(fom, weights, samples, quadrature, projection, per_boundary, seed, eulerian_capacity, tangent, nodes,
-                    kinematic)
+                    kinematic, hold_steps)
         self._threads = None if torch_threads is None or fom.device.startswith("cuda") else int(torch_threads)
         self.tdtype = torch.float64 if fom.precision == "fp64" else torch.float32
         self.tdevice = torch.device("cuda", wp.get_device(fom.device).ordinal) if fom.device.startswith("cuda") \

@@ -63,6 +63,8 @@ class RomEvalConfig(TaskConfig):
     #: how the reduced model holds the particle_velocity boundaries' points: "position" (at their prescribed
     #: positions, the paper's Eq. 3) or "velocity" (their velocities only, as before): mpmlab.rom.kinematic
     kinematic: str = "position"
+    #: the position-level hold closes a held point's position error over this many steps (1: at once, Eq. 3 exactly)
+    hold_steps: float = 1.0
     #: the reduced model's time step (None: the full-order run's); it must divide the snapshot interval
     dt: Optional[float] = None
     #: evaluate only the first k test runs
@@ -167,7 +169,7 @@ def run(cfg, ctx) -> dict:
                       seed=int(tc.seed), truth=truth, fom_timing_steps=int(tc.fom_timing_steps),
                       fom_backend=str(tc.fom_backend), backend=str(tc.rom_backend), progress=ctx.progress, log=log,
                       eulerian_capacity=float(tc.eulerian_capacity), tangent=str(tc.tangent),
-                      kinematic=str(tc.kinematic))
+                      kinematic=str(tc.kinematic), hold_steps=float(tc.hold_steps))
     if tc.tracer_baseline:
         res["tracer_baseline"] = ev.tracer_baseline(snap, truth, precision=precision, backend=str(tc.fom_backend),
                                                     progress=ctx.progress, log=log)
