@@ -142,7 +142,9 @@ def keep_eval(ev: Path, dst: Path) -> None:
     e = json.loads((ev / "summary.json").read_text())
     for row in e["rows"]:
         row.pop("z", None)
-    dst.write_text(json.dumps(e, indent=1))
+    tmp = dst.with_name(dst.name + ".tmp")          # whole or not at all: --report may read it meanwhile
+    tmp.write_text(json.dumps(e, indent=1))
+    tmp.replace(dst)
 
 
 def superres(a) -> None:
