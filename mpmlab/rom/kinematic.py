@@ -7,7 +7,7 @@ for a ``particle_velocity`` boundary by moving the prescribed particles exactly 
 those points at g(X; x_hat), and the velocity least squares (Eqs. 21/23) gives them the prescribed
 *velocity* only in the least-squares sense: whatever position error a step leaves (e.g. while a poke
 pushes the body) is never corrected. On the continual poke (no gravity) the reduced body slid off its
-held base by 0.13 mm in the first poke and rested there, a rigid offset that carries 99.8 % of the error
+held base by 0.13 mm in the first poke and rested there, a rigid offset that carries 99.8 % of the squared error
 (benchmarks/rom.md, "Tab. 6: the base slides").
 
 ``kinematic="position"`` (the default of the reduced steppers) makes each sample point of an active
