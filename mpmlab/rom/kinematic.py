@@ -8,7 +8,7 @@ those points at g(X; x_hat), and the velocity least squares (Eqs. 21/23) gives t
 *velocity* only in the least-squares sense: whatever position error a step leaves (e.g. while a poke
 pushes the body) is never corrected. On the continual poke (no gravity) the reduced body slid off its
 held base by 0.13 mm in the first poke and rested there, a rigid offset that carries 99.8 % of the squared error
-(benchmarks/rom.md, "Tab. 6: the base slides").
+(benchmarks/rom.md, "Tab. 6: the base slid").
 
 ``kinematic="position"`` (the default of the reduced steppers) makes each sample point of an active
 ``particle_velocity`` region target its prescribed position at the end of the step: the nonlinear
