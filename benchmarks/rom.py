@@ -119,9 +119,7 @@ def run(a) -> None:
     rc = mpmlab(["task=rom_eval", f"task.study={a.study}", f"task.data={data}",
                  f"task.weights={train / 'rom_weights.safetensors'}", f"task.samples=[{a.samples}]",
                  f"task.quadratures=[{a.quadratures}]", f"task.projections=[{a.projections}]", f"precision={a.precision}",
-                 f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"task.kinematic={a.kinematic}",
-                 f"task.hold_steps={a.hold_steps}",
-                 f"hydra.run.dir={ev}",
+                 *reduced_options(a), f"hydra.run.dir={ev}",
                  "output.overwrite=true", *([f"task.max_runs={a.max_runs}"] if a.max_runs else [])])
     if rc not in (0, 3):
         raise SystemExit(f"rom_eval failed (exit {rc})")
@@ -135,6 +133,12 @@ def run(a) -> None:
                     (ev / "rom_latent.png", f"rom_latent{suffix}.png")):
         if f.exists():
             shutil.copy(f, dst / name)
+
+
+def reduced_options(a) -> list[str]:
+    """The reduced model's options of every ``task=rom_eval`` this script runs."""
+    return [f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"task.kinematic={a.kinematic}",
+            f"task.hold_steps={a.hold_steps}"]
 
 
 def keep_eval(ev: Path, dst: Path) -> None:
@@ -168,9 +172,7 @@ def superres(a) -> None:
     for name, opts in jobs.items():
         ev = RAW / "runs" / a.tag / name
         rc = mpmlab(["task=rom_eval", *opts, f"task.weights={weights}", f"precision={a.precision}",
-                     f"task.rom_backend={a.rom_backend}", f"task.tangent={a.tangent}", f"task.kinematic={a.kinematic}",
-                 f"task.hold_steps={a.hold_steps}",
-                     f"hydra.run.dir={ev}", "output.overwrite=true"])
+                     *reduced_options(a), f"hydra.run.dir={ev}", "output.overwrite=true"])
         if rc not in (0, 3):
             raise SystemExit(f"rom_eval ({name}) failed (exit {rc})")
         keep_eval(ev, RES / a.tag / f"{name}.json")

@@ -619,7 +619,8 @@ def kabsch(P, Q):
 
 def settle(a, w, params, norm, snap):
     """Where the reduced body comes to rest after a poke, and what holds it there (benchmarks/rom.md,
-    "Tab. 6: what holds the reduced body off its rest shape")."""
+    "Tab. 6: the base slid"): the reduced body against the full-order one, split into a rigid motion and
+    the rest, how far the held base points moved, and the strain, every twelfth of ``--hold``."""
     import jax.numpy as jnp
 
     from mpmlab.rom import networks as N

@@ -100,12 +100,12 @@ def _sums(params, norm, X, z, zdot, x, v, F, c, corner=None):
     ``[T, N, ...]``, in chunks of snapshots (``SUM_CHUNK_POINTS``)."""
     import jax.numpy as jnp
 
-    z, zdot = np.asarray(z), np.asarray(zdot)
+    z, zdot, Xj = np.asarray(z), np.asarray(zdot), jnp.asarray(X)[None]
     step = max(1, SUM_CHUNK_POINTS // max(1, len(X)))
     per_frame, total = {}, {}
     for a in range(0, len(z), step):
         b = slice(a, a + step)
-        xr, Fr, vr = N.g_state(params, norm, jnp.asarray(X)[None], jnp.asarray(z[b])[:, None, :],
+        xr, Fr, vr = N.g_state(params, norm, Xj, jnp.asarray(z[b])[:, None, :],
                                jnp.asarray(zdot[b])[:, None, :])
         pf, tot = error_sums(np.asarray(xr), np.asarray(vr), np.asarray(Fr), x[b], v[b], F[b], X, c, corner)
         for key, val in pf.items():

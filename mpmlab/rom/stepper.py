@@ -227,7 +227,11 @@ class _ReducedBase(AbstractStepper):
         self._n_random = samples - len(self._forced)
         #: the particle_velocity boundaries held at the position level (``kinematic``: mpmlab.rom.kinematic)
         self._holds = Holds(self.scene, np.asarray(P.x), kinematic, hold_steps)
-        self.kinematic = kinematic
+
+    @property
+    def kinematic(self) -> str:
+        """How the particle_velocity boundaries' points are held: "position" or "velocity" (mpmlab.rom.kinematic)."""
+        return self._holds.mode
 
     def _eulerian_layout(self) -> SimpleNamespace:
         """The fixed parts of Alg. 4, numpy: the quadrature lattice, V_q, rho_0, one law-parameter row and
@@ -525,10 +529,15 @@ class ReducedStepper(_ReducedBase):
         (trial positions, velocities) at M after the step from x0; ``boundary``: the step's boundary
         parameters (stepper order, as ``fom.params["boundary"]``)."""
         vp = vpic = v
-        nb = len(self.fom._grid_bcs)
-        for bc, bp in zip(self.fom._particle_bcs, boundary[nb:nb + len(self.fom._particle_bcs)]):
+        for bc, bp in zip(self.fom._particle_bcs, self._particle_bc_params(boundary)):
             vp, vpic = bc.apply_particles(x0, vp, vpic, t_end, self.dt, bp, rows=M)   # O(|M|), not O(N)
         return x0 + self.dt * vpic, vp
+
+    def _particle_bc_params(self, boundary):
+        """The particle_velocity boundaries' part of the step's boundary parameters (stepper order: grid,
+        particle_velocity, particle_force)."""
+        nb = len(self.fom._grid_bcs)
+        return boundary[nb:nb + len(self.fom._particle_bcs)]
 
     def _step_impl(self, s: ReducedState, law=None, fom_params=None):
         """One reduced step; ``law``: the law parameters (as ``fom.params["law"]``; default the scene's);
@@ -561,9 +570,8 @@ class ReducedStepper(_ReducedBase):
 
         from ..backends.jax.boundaries import _rotation
 
-        nb = len(self.fom._grid_bcs)
         params = [dict(p, center=jnp.asarray(c, self.dtype))
-                  for p, c in zip(boundary[nb:nb + len(self.fom._particle_bcs)], self._holds.centers)]
+                  for p, c in zip(self._particle_bc_params(boundary), self._holds.centers)]
         return hold(self._holds, jnp, lambda th: _rotation(th, self.dim), self._hold_of[M], self.X[M], x_M, x_tr, v_tr,
                     t1, params, self.dt)
 

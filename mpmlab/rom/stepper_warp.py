@@ -409,17 +409,13 @@ class WarpReducedStepper(_ReducedBase):
 
     def _held(self, M, x_M, x_tr, v_tr, t1):
         """The position-level hold on the samples (``mpmlab.rom.kinematic.hold``): the boundaries' own velocities,
-        the rotation R(theta) from scipy (t1 is a number here)."""
+        the rotation R(theta) on the host (t1 is a number here), by the Warp boundaries' ``_rotate_host``."""
         import torch
 
-        def rotation(theta):
-            th = np.asarray(theta.detach().cpu(), float)
-            if self.dim == 2:
-                c, s_ = np.cos(th), np.sin(th)
-                R = np.array([[c, -s_], [s_, c]])
-            else:
-                from scipy.spatial.transform import Rotation
-                R = Rotation.from_rotvec(th).as_matrix()
+        from ..backends.warp.boundaries import _rotate_host
+
+        def rotation(theta):              # _rotate_host rotates rows: the rotated identity is R^T
+            R = _rotate_host(np.eye(self.dim), np.asarray(theta.detach().cpu(), float)).T
             return torch.as_tensor(R, dtype=self.tdtype, device=self.tdevice)
         return hold(self._holds, torch, rotation, self._hold_of[M], self.X[M], x_M, x_tr, v_tr, t1, self._hold_params,
                     self.dt)
