@@ -52,8 +52,14 @@ VARIANTS = {
 PAPER_C = {"jelly": 4.1e-4, "sand": 3.6e-4, "plasticine": 2.3e-4, "water": 2.4e-4}
 
 
-def weights(run: str, material: str) -> Path:
-    return RESULTS / run / "train" / f"{material}_jax" / "nclaw_weights.safetensors"
+def weights(run: str, material: str) -> Path | None:
+    """The training's final weights, or None while it runs (its weight file is written every epoch): a
+    finished training has a summary.json with status ok."""
+    d = RESULTS / run / "train" / f"{material}_jax"
+    s = d / "summary.json"
+    if not s.exists() or json.loads(s.read_text()).get("status") != "ok":
+        return None
+    return d / "nclaw_weights.safetensors"
 
 
 def draw0(run: str, material: str) -> dict | None:
@@ -90,8 +96,8 @@ def evaluate(material: str, run: str, variant: str) -> dict | None:
     if result(material, run, variant) is not None:
         return result(material, run, variant)
     w = weights(run, material)
-    if not w.exists():
-        log(f"skip {material} {run}: no weights ({w}; its training has not finished)")
+    if w is None:
+        log(f"skip {material} {run}: its training has not finished (no summary.json with status ok)")
         return None
     name, ov = VARIANTS[variant]
     case = "{name:%s,scene:nclaw_geometry_%s,steps:2000,overrides:[%s]}" % (

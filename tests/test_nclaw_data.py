@@ -361,6 +361,34 @@ def test_return_map_reach_from_a_dilation():
         return_map_reach(Law(), _zeroed("p"), 3, [1.1], kinds=("twist",), steps=1)
 
 
+def test_acoustic_minimum_closed_form():
+    """Fixed corotated elasticity at F = I: one step's acoustic tensor is Q = (lambda + mu) n n^T + mu I, so
+    the smallest eigenvalue over directions is mu and the largest lambda + 2 mu, at any rotation R (the
+    response is objective); stretched in 2D as in 3D; a J-only law (WATER's truth, no shear stiffness) gives
+    0 and its bulk modulus. A law keeping another state is refused."""
+    from mpmlab.core import registry
+    from mpmlab.nclaw.probe import acoustic_minimum, sphere_directions
+
+    E, nu = 1.0e5, 0.2
+    lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+    law = registry.laws.get("fixed_corotated")()
+    row = [E, nu]
+    th = 0.7
+    Rz = np.array([[np.cos(th), -np.sin(th), 0.0], [np.sin(th), np.cos(th), 0.0], [0.0, 0.0, 1.0]])
+    F = np.stack([np.eye(3), Rz])
+    assert acoustic_minimum(law, {}, 3, F, row=row) == pytest.approx([mu, mu], rel=1e-9)
+    assert acoustic_minimum(law, {}, 3, F, row=row, largest=True) == pytest.approx([lam + 2 * mu] * 2, rel=1e-9)
+    assert acoustic_minimum(law, {}, 2, np.eye(2)[None], row=row, directions=64) == pytest.approx([mu], rel=1e-9)
+    n = sphere_directions(200)
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0)
+    water = registry.laws.get("weakly_compressible")()             # tau = -p J I: bulk stiffness only
+    K = 2.0e6
+    assert abs(acoustic_minimum(water, {}, 3, np.eye(3)[None], row=[K])[0]) <= 1e-9 * K
+    assert acoustic_minimum(water, {}, 3, np.eye(3)[None], row=[K], largest=True) == pytest.approx([K], rel=1e-9)
+    with pytest.raises(ValueError, match="F- or J-state"):
+        acoustic_minimum(registry.laws.get("drucker_prager_jaumann")(), {}, 3, np.eye(3)[None], row=[1.0] * 6)
+
+
 def test_range_tracker_and_beyond_training():
     """RangeTracker over frames equals state_range of the frames it samples; beyond_training names each
     bound the rollout passed (J above / below, stretch, inverted) and nothing inside the range."""

@@ -247,3 +247,58 @@ def return_map_reach(law, weights: Mapping[str, Any], dim: int, stretches: Seque
         out.append({"kind": kind, "stretch": a, "log_stretch": float(np.log(a)), "after": rows,
                     "returned": bool(ok)})
     return out
+
+
+def sphere_directions(n: int, dim: int = 3) -> np.ndarray:
+    """``n`` unit vectors spread over the sphere (Fibonacci lattice; in 2D: angles k pi / n, half a circle
+    suffices since the acoustic tensor is even in n)."""
+    if dim == 2:
+        t = np.pi * np.arange(n) / n
+        return np.stack([np.cos(t), np.sin(t)], axis=1)
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (1.0 + 5.0 ** 0.5) * k
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def acoustic_minimum(law, weights: Mapping[str, Any], dim: int, F, dt: float = 5e-4, row=None,
+                     directions: int = 200, chunk: int = 512, largest: bool = False) -> np.ndarray:
+    """Per state F [M, D, D]: the smallest eigenvalue [Pa] over ``directions`` unit vectors n of the acoustic
+    tensor Q_ik(n) = K_ijkl n_j n_l of one explicit step's response, K = d tau(Z((I + L) F)) / dL at L = 0, with
+    Z the law's update at zero velocity gradient (its return map) and tau its Kirchhoff stress: how the stress
+    the next P2G spreads answers a small displacement gradient L of the current configuration. A negative
+    value is a loss of strong ellipticity: a wave of normal n grows, whatever dt (material instability, not
+    CFL). The initial-stress (geometric) term is left out: it is of the order of tau, small beside the moduli
+    at the strains here. ``row``: the law's parameters in declared order (a learned nclaw law has none); a
+    J-only law (WATER's truth) gets J = det F, and the 3D Hencky laws' plane-strain eps_zz is 0. ``largest``:
+    the largest eigenvalue over the directions instead (at F = I: the P-wave modulus, a scale for the rest)."""
+    import jax
+    import jax.numpy as jnp
+
+    fns, w = _jax_law(law, dim, weights)
+    row = jnp.zeros((0,)) if row is None else jnp.asarray(np.asarray(row, np.float64))
+    zero = jnp.zeros((dim, dim))
+    n = jnp.asarray(sphere_directions(directions, dim))
+    fields = set(law.state_fields)
+    if fields == {"J"}:
+        state_of = lambda Ft: {"J": jnp.linalg.det(Ft)}  # noqa: E731
+    elif fields - {"eps_zz"} == {"F"}:
+        state_of = lambda Ft: {"F": Ft, **({"eps_zz": jnp.zeros(())} if "eps_zz" in fields else {})}  # noqa: E731
+    else:
+        raise ValueError(f"acoustic_minimum: law '{law.name}' keeps {sorted(fields)}; it takes F- or J-state laws")
+
+    def stress_after_step(L, F0):
+        Ft = (jnp.eye(dim) + L) @ F0
+        return fns.kirchhoff(fns.update(state_of(Ft), zero, dt, row, w), row, w)
+
+    def qmin(F0):
+        K = jax.jacfwd(stress_after_step)(zero, F0)             # [i, j, k, l]: d tau_ij / d L_kl
+        Q = jnp.einsum("ijkl,nj,nl->nik", K, n, n)              # per direction: Q_ik
+        Q = 0.5 * (Q + jnp.swapaxes(Q, 1, 2))                   # its symmetric part decides the growth
+        ev = jnp.linalg.eigvalsh(Q)
+        return jnp.max(ev) if largest else jnp.min(ev)
+
+    f = jax.jit(jax.vmap(qmin))
+    F = np.asarray(F, np.float64)
+    return np.concatenate([np.asarray(f(jnp.asarray(F[i:i + chunk]))) for i in range(0, len(F), chunk)])

@@ -1,0 +1,161 @@
+"""Do the learned laws that diverge on NCLaw (c) lose ellipticity where the ones that run do not? (issue 15)
+
+    python benchmarks/nclaw_stability.py            # every full-schedule JAX training and the true laws (~10 min)
+    python benchmarks/nclaw_stability.py --report   # only rewrite the section from the JSON
+
+-> ``benchmarks/nclaw.md`` (section ``nclaw-stability``) and ``benchmarks/results/nclaw_stability.json``.
+
+For each law, :func:`mpmlab.nclaw.probe.acoustic_minimum`: the smallest eigenvalue over 200 directions of the
+acoustic tensor of one explicit step's stress response (the return map, then the elastic net) to a small
+displacement gradient, on
+
+* the training's own states: 1,000 deformation gradients of its ground-truth trajectory (every 10th frame,
+  particles drawn with PCG64(0)), where the law was fitted;
+* a ladder of states outside them: F = J^(1/3) diag(a, a^(-1/2), a^(-1/2)) (uniaxial) and J^(1/3) (I + gamma e1 e2^T)
+  with gamma = a - 1/a (simple shear), log a in 0.1 ... 0.5, J in 0.8, 1, 1.2.
+
+Values are divided by the same law's largest eigenvalue at F = I (its rest P-wave modulus), so the true law is the
+reference:
+a ratio below 0 is a loss of strong ellipticity (a wave grows whatever dt); the true elastoplastic laws reach 0
+(perfect plasticity, cohesionless tension), not below. The (c) outcome is read from ``nclaw_draws``.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from _harness import OUT, RESULTS, log, md_table, parser, write_readme_section
+from nclaw_draws import PAPER_C, TRAININGS, draw0, result, weights
+
+MD = Path(__file__).resolve().parent / "nclaw.md"
+JSON = RESULTS / "nclaw_stability.json"
+DATA = OUT / "nclaw" / "data"
+LOG_A = (0.1, 0.2, 0.3, 0.5)
+JS = (0.8, 1.0, 1.2)
+
+
+def ladder() -> tuple[np.ndarray, list[tuple[str, float, float]]]:
+    Fs, tags = [], []
+    for kind in ("uniaxial", "shear"):
+        for la in LOG_A:
+            a = float(np.exp(la))
+            if kind == "uniaxial":
+                F = np.diag([a, a ** -0.5, a ** -0.5])
+            else:
+                F = np.eye(3)
+                F[0, 1] = a - 1.0 / a
+            for J in JS:
+                Fs.append(J ** (1.0 / 3.0) * F)
+                tags.append((kind, la, J))
+    return np.stack(Fs), tags
+
+
+def training_states(ds, n: int = 1000) -> np.ndarray:
+    F = np.asarray(ds.F[::10], np.float64).reshape(-1, 3, 3)
+    rng = np.random.Generator(np.random.PCG64(0))
+    return F[rng.choice(len(F), size=min(n, len(F)), replace=False)]
+
+
+def probe(law, w, F_train, F_ladder, tags, dt, row=None) -> dict:
+    from mpmlab.nclaw.probe import acoustic_minimum
+
+    q_min0 = float(acoustic_minimum(law, w, 3, np.eye(3)[None], dt=dt, row=row)[0])
+    q0 = float(acoustic_minimum(law, w, 3, np.eye(3)[None], dt=dt, row=row, largest=True)[0])
+    qt = acoustic_minimum(law, w, 3, F_train, dt=dt, row=row) / q0
+    ql = acoustic_minimum(law, w, 3, F_ladder, dt=dt, row=row) / q0
+    out = {"q_rest_Pa": q0, "q_min_rest_Pa": q_min0, "train_negative_share": float(np.mean(qt < -1e-6)),
+           "train_p1": float(np.percentile(qt, 1)), "train_min": float(qt.min())}
+    for lim in LOG_A:
+        sel = [i for i, t in enumerate(tags) if t[1] <= lim + 1e-12]
+        out[f"ladder_min_loga{lim}"] = float(ql[sel].min())
+    out["ladder"] = [[*t, float(v)] for t, v in zip(tags, ql)]
+    return out
+
+
+def outcome(material: str, run: str) -> str:
+    rs = [draw0(run, material)] + [result(material, run, v) for v in ("draw1", "draw2", "lattice")]
+    rs = [r for r in rs if r is not None]
+    if not rs:
+        return "–"
+    bad = sum(r["status"] != "ok" for r in rs)
+    ok = [r["mse"] / PAPER_C[material] for r in rs if r["status"] == "ok"]
+    if bad == len(rs):
+        return f"diverges ({bad} of {len(rs)} particle sets)"
+    if bad:
+        return f"diverges on {bad} of {len(rs)}; {min(ok):.2f}-{max(ok):.2f}x on the rest"
+    return f"{min(ok):.2f}-{max(ok):.2f}x Tab. 2 ({len(rs)} particle sets)"
+
+
+def measure(res: dict) -> None:
+    from safetensors.numpy import load_file
+
+    from mpmlab.laws.nclaw import Law
+    from mpmlab.nclaw.baselines import true_law
+    from mpmlab.nclaw.data import load_dataset
+
+    F_ladder, tags = ladder()
+    for material, runs in TRAININGS.items():
+        ds = load_dataset(DATA / material / "trajectory.h5")
+        F_train = training_states(ds)
+        dt = float(ds.dt)
+        key = f"{material}|truth"
+        if key not in res:
+            law, rows = true_law(ds)
+            res[key] = probe(law, {k: np.asarray(a) for k, a in law.initial_weights(3).items()}, F_train, F_ladder,
+                             tags, dt, row=rows[0])
+            save(res)
+        for label, run in runs:
+            key = f"{material}|{label}"
+            if key in res or weights(run, material) is None:
+                continue
+            log(f"{material} {label}")
+            res[key] = probe(Law(), load_file(str(weights(run, material))), F_train, F_ladder, tags, dt)
+            save(res)
+
+
+def save(res: dict) -> None:
+    JSON.parent.mkdir(parents=True, exist_ok=True)
+    tmp = JSON.with_suffix(".tmp")
+    tmp.write_text(json.dumps(res, indent=1))
+    tmp.replace(JSON)
+
+
+def report(res: dict) -> None:
+    rows = []
+    for material, runs in TRAININGS.items():
+        for label, run in [("truth", None)] + list(runs):
+            r = res.get(f"{material}|{label}")
+            if r is None:
+                continue
+            rows.append([material, label, f"{r['q_rest_Pa'] / 1e3:.3g}", f"{r['q_min_rest_Pa'] / r['q_rest_Pa']:.3f}", f"{100 * r['train_negative_share']:.1f} %",
+                         f"{r['train_p1']:.3f}", f"{r['train_min']:.3f}",
+                         *(f"{r[f'ladder_min_loga{lim}']:.3f}" for lim in LOG_A),
+                         "(reference)" if run is None else outcome(material, run)])
+    head = ["material", "law", "largest eigenvalue at F = I [kPa]", "smallest at F = I", "training states below 0", "1st percentile", "min",
+            *(f"ladder, log a <= {lim}" for lim in LOG_A), "(c)"]
+    body = ["Regenerate: `python benchmarks/nclaw_stability.py` (`--report` rewrites this; raw numbers in "
+            "`benchmarks/results/nclaw_stability.json`). The smallest eigenvalue of one explicit step's acoustic "
+            "tensor (`mpmlab.nclaw.probe.acoustic_minimum`: the return map, then the elastic stress, answering a "
+            "small displacement gradient), divided by the same law's largest eigenvalue at F = I (its P-wave modulus); "
+            "below 0 a wave grows whatever dt. "
+            "Training states: 1,000 ground-truth F of the training trajectory; the ladder: isochoric uniaxial "
+            f"stretch and simple shear of log-stretch up to the column's, times J in {list(JS)}.", "",
+            *md_table(head, rows), ""]
+    write_readme_section(MD, "nclaw-stability", "The learned laws' ellipticity", "\n".join(body))
+    log(f"wrote {MD}")
+
+
+def main():
+    ap = parser(__doc__.splitlines()[0])
+    ap.add_argument("--report", action="store_true", help="only rewrite the nclaw.md section")
+    a = ap.parse_args()
+    res = json.loads(JSON.read_text()) if JSON.exists() else {}
+    if not a.report:
+        measure(res)
+    report(res)
+
+
+if __name__ == "__main__":
+    main()
