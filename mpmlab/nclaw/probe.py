@@ -15,6 +15,9 @@ Tab. 5), the reach of its learned return map, and how far a rollout's states lie
   stretch (uniaxial, or simple shear) of principal stretch ``a``: does it bring F back to J^(1/D) I,
   and does it keep J? A learned return map is a relaxation with a finite rate and a finite basin;
   beyond the basin it drives F away (benchmarks/nclaw.md, "WATER (c)").
+* :func:`acoustic_minimum` -- the smallest eigenvalue of one explicit step's acoustic tensor at given states:
+  below 0, a loss of strong ellipticity (waves grow at any dt). For learned and true laws alike; it does not
+  tell NCLaw's (c) failures from its successes (benchmarks/nclaw.md, "The learned laws' ellipticity").
 """
 from __future__ import annotations
 
