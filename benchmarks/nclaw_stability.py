@@ -14,6 +14,12 @@ displacement gradient, on
 * a ladder of states outside them: F = J^(1/3) diag(a, a^(-1/2), a^(-1/2)) (uniaxial) and J^(1/3) (I + gamma e1 e2^T)
   with gamma = a - 1/a (simple shear), log a in 0.1 ... 0.5, J in 0.8, 1, 1.2.
 
+Two multi-step and stiffness measures beside it: the return map's reach (:func:`mpmlab.nclaw.probe.return_map_reach`,
+400 steps at zero velocity gradient from isochoric uniaxial and shear stretches a = 1.1 ... 2.35: how many of the 16
+come back), and the largest CFL number dt sqrt(q_max / rho) / dx of the (c) scene (dt 5e-4 s, dx 1/32 m, rho 1000)
+over a wider ladder (log a up to 1, J 0.6 ... 1.5), q_max the acoustic tensor's largest eigenvalue: does the law
+stiffen past the explicit step's bound where the training never went?
+
 Values are divided by the same law's largest eigenvalue at F = I (its rest P-wave modulus), so the true law is the
 reference:
 a ratio below 0 is a loss of strong ellipticity (a wave grows whatever dt); the true elastoplastic laws reach 0
@@ -34,19 +40,23 @@ JSON = RESULTS / "nclaw_stability.json"
 DATA = OUT / "nclaw" / "data"
 LOG_A = (0.1, 0.2, 0.3, 0.5)
 JS = (0.8, 1.0, 1.2)
+REACH = (1.1, 1.2, 1.35, 1.5, 1.65, 1.8, 2.0, 2.35)
+#: the wider ladder of the stiffness measure, and the (c) scene's step, cell and density
+WIDE_LOG_A, WIDE_JS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0), (0.6, 0.8, 1.0, 1.2, 1.5)
+C_DT, C_DX, C_RHO = 5e-4, 1.0 / 32, 1000.0
 
 
-def ladder() -> tuple[np.ndarray, list[tuple[str, float, float]]]:
+def ladder(log_a=LOG_A, js=JS) -> tuple[np.ndarray, list[tuple[str, float, float]]]:
     Fs, tags = [], []
     for kind in ("uniaxial", "shear"):
-        for la in LOG_A:
+        for la in log_a:
             a = float(np.exp(la))
             if kind == "uniaxial":
                 F = np.diag([a, a ** -0.5, a ** -0.5])
             else:
                 F = np.eye(3)
                 F[0, 1] = a - 1.0 / a
-            for J in JS:
+            for J in js:
                 Fs.append(J ** (1.0 / 3.0) * F)
                 tags.append((kind, la, J))
     return np.stack(Fs), tags
@@ -59,7 +69,7 @@ def training_states(ds, n: int = 1000) -> np.ndarray:
 
 
 def probe(law, w, F_train, F_ladder, tags, dt, row=None) -> dict:
-    from mpmlab.nclaw.probe import acoustic_minimum
+    from mpmlab.nclaw.probe import acoustic_minimum, return_map_reach
 
     q_min0 = float(acoustic_minimum(law, w, 3, np.eye(3)[None], dt=dt, row=row)[0])
     q0 = float(acoustic_minimum(law, w, 3, np.eye(3)[None], dt=dt, row=row, largest=True)[0])
@@ -71,6 +81,12 @@ def probe(law, w, F_train, F_ladder, tags, dt, row=None) -> dict:
         sel = [i for i, t in enumerate(tags) if t[1] <= lim + 1e-12]
         out[f"ladder_min_loga{lim}"] = float(ql[sel].min())
     out["ladder"] = [[*t, float(v)] for t, v in zip(tags, ql)]
+    reach = return_map_reach(law, w, 3, REACH, steps=400, dt=dt, report=(400,)) if row is None else []
+    out["returned"] = [sum(r["returned"] for r in reach), len(reach)]
+    F_wide, _ = ladder(WIDE_LOG_A, WIDE_JS)
+    q_max = acoustic_minimum(law, w, 3, F_wide, dt=dt, row=row, largest=True)
+    out["cfl_rest"] = C_DT * float(np.sqrt(max(q0, 0.0) / C_RHO)) / C_DX
+    out["cfl_wide_max"] = C_DT * float(np.sqrt(max(float(q_max.max()), 0.0) / C_RHO)) / C_DX
     return out
 
 
@@ -132,16 +148,24 @@ def report(res: dict) -> None:
             rows.append([material, label, f"{r['q_rest_Pa'] / 1e3:.3g}", f"{r['q_min_rest_Pa'] / r['q_rest_Pa']:.3f}", f"{100 * r['train_negative_share']:.1f} %",
                          f"{r['train_p1']:.3f}", f"{r['train_min']:.3f}",
                          *(f"{r[f'ladder_min_loga{lim}']:.3f}" for lim in LOG_A),
+                         ("– (elastic truth: F stays)" if material == "jelly" and run is not None else "–")
+                         if not r.get("returned") or not r["returned"][1] or material == "jelly"
+                         else "%d of %d" % tuple(r["returned"]),
+                         "–" if "cfl_rest" not in r else f"{r['cfl_rest']:.2f} / {r['cfl_wide_max']:.2f}",
                          "(reference)" if run is None else outcome(material, run)])
     head = ["material", "law", "largest eigenvalue at F = I [kPa]", "smallest at F = I", "training states below 0", "1st percentile", "min",
-            *(f"ladder, log a <= {lim}" for lim in LOG_A), "(c)"]
+            *(f"ladder, log a <= {lim}" for lim in LOG_A), "return map: stretches returned",
+            "CFL at rest / largest on the wide ladder", "(c)"]
     body = ["Regenerate: `python benchmarks/nclaw_stability.py` (`--report` rewrites this; raw numbers in "
             "`benchmarks/results/nclaw_stability.json`). The smallest eigenvalue of one explicit step's acoustic "
             "tensor (`mpmlab.nclaw.probe.acoustic_minimum`: the return map, then the elastic stress, answering a "
             "small displacement gradient), divided by the same law's largest eigenvalue at F = I (its P-wave modulus); "
             "below 0 a wave grows whatever dt. "
             "Training states: 1,000 ground-truth F of the training trajectory; the ladder: isochoric uniaxial "
-            f"stretch and simple shear of log-stretch up to the column's, times J in {list(JS)}.", "",
+            f"stretch and simple shear of log-stretch up to the column's, times J in {list(JS)}. Return map: of "
+            f"the 16 isochoric stretches a in {list(REACH)} (uniaxial and shear), how many the learned return map "
+            "brings back within 400 steps (`return_map_reach`; the elastic true laws have none to test). CFL: "
+            "dt sqrt(q_max / rho) / dx of the (c) scene at F = I and the largest over log a <= 1, J 0.6-1.5.", "",
             *md_table(head, rows), ""]
     write_readme_section(MD, "nclaw-stability", "The learned laws' ellipticity", "\n".join(body))
     log(f"wrote {MD}")
