@@ -21,12 +21,11 @@ true F is that of the true law driven by the same scaled flow.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from _harness import OUT, RESULTS, log, md_table, parser, write_readme_section
+from _harness import OUT, RESULTS, log, md_table, parser, read_json, write_json, write_readme_section
 from nclaw_draws import TRAININGS, weights
 from nclaw_stability import outcome
 
@@ -143,21 +142,14 @@ def measure(res: dict, materials: list[str], steps: int, source: str = "c", scal
         key = f"{material}|truth|{tag}"
         if key not in res:
             res[key] = drive(law, w_true, flow, row=rows[0])
-            save(res)
+            write_json(JSON, res)
         for label, run in TRAININGS[material]:
             key = f"{material}|{label}|{tag}"
             if key in res or weights(run, material) is None:
                 continue
             log(f"{material} {label}")
             res[key] = drive(Law(), load_file(str(weights(run, material))), flow)
-            save(res)
-
-
-def save(res: dict) -> None:
-    JSON.parent.mkdir(parents=True, exist_ok=True)
-    tmp = JSON.with_suffix(".tmp")
-    tmp.write_text(json.dumps(res, indent=1))
-    tmp.replace(JSON)
+            write_json(JSON, res)
 
 
 def report(res: dict) -> None:
@@ -190,7 +182,7 @@ def main():
     ap.add_argument("--scale", type=float, default=1.0, help="--flow training: multiply its velocity gradients")
     ap.add_argument("--report", action="store_true")
     a = ap.parse_args()
-    res = json.loads(JSON.read_text()) if JSON.exists() else {}
+    res = read_json(JSON, {})
     if not a.report:
         measure(res, [m for m in a.materials.split(",") if m], a.steps, a.flow, a.scale)
     report(res)

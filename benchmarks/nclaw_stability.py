@@ -27,12 +27,11 @@ a ratio below 0 is a loss of strong ellipticity (a wave grows whatever dt); the 
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from _harness import OUT, RESULTS, log, md_table, parser, write_readme_section
+from _harness import OUT, RESULTS, log, md_table, parser, read_json, write_json, write_readme_section
 from nclaw_draws import PAPER_C, TRAININGS, draw0, result, weights
 
 MD = Path(__file__).resolve().parent / "nclaw.md"
@@ -121,21 +120,14 @@ def measure(res: dict) -> None:
             law, rows = true_law(ds)
             res[key] = probe(law, {k: np.asarray(a) for k, a in law.initial_weights(3).items()}, F_train, F_ladder,
                              tags, dt, row=rows[0])
-            save(res)
+            write_json(JSON, res)
         for label, run in runs:
             key = f"{material}|{label}"
             if key in res or weights(run, material) is None:
                 continue
             log(f"{material} {label}")
             res[key] = probe(Law(), load_file(str(weights(run, material))), F_train, F_ladder, tags, dt)
-            save(res)
-
-
-def save(res: dict) -> None:
-    JSON.parent.mkdir(parents=True, exist_ok=True)
-    tmp = JSON.with_suffix(".tmp")
-    tmp.write_text(json.dumps(res, indent=1))
-    tmp.replace(JSON)
+            write_json(JSON, res)
 
 
 def report(res: dict) -> None:
@@ -175,7 +167,7 @@ def main():
     ap = parser(__doc__.splitlines()[0])
     ap.add_argument("--report", action="store_true", help="only rewrite the nclaw.md section")
     a = ap.parse_args()
-    res = json.loads(JSON.read_text()) if JSON.exists() else {}
+    res = read_json(JSON, {})
     if not a.report:
         measure(res)
     report(res)
