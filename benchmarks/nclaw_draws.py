@@ -69,10 +69,10 @@ def draw0(run: str, material: str) -> dict | None:
         return None
     c = json.loads(p.read_text())["cases"].get("geometry")
     return None if c is None else {"status": c["status"], "mse": c.get("mse"), "particles": c.get("particles"),
-                                   "diverged_at": _step(p.parent)}
+                                   "diverged_at": _diverged_at(p.parent)}
 
 
-def _step(run_dir: Path) -> int | None:
+def _diverged_at(run_dir: Path) -> int | None:
     """The step of a learned rollout's divergence, from the run's log (None: it did not diverge)."""
     import re
 
@@ -89,12 +89,13 @@ def result(material: str, run: str, variant: str) -> dict | None:
     if not p.exists():
         return None
     c = next(iter(json.loads(p.read_text())["cases"].values()))
-    return {"status": c["status"], "mse": c.get("mse"), "particles": c.get("particles"), "diverged_at": _step(d)}
+    return {"status": c["status"], "mse": c.get("mse"), "particles": c.get("particles"), "diverged_at": _diverged_at(d)}
 
 
 def evaluate(material: str, run: str, variant: str) -> dict | None:
-    if result(material, run, variant) is not None:
-        return result(material, run, variant)
+    done = result(material, run, variant)
+    if done is not None:
+        return done
     w = weights(run, material)
     if w is None:
         log(f"skip {material} {run}: its training has not finished (no summary.json with status ok)")

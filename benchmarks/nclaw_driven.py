@@ -76,17 +76,14 @@ def _step(law, w, dt: float, row=None):
     import jax
     import jax.numpy as jnp
 
-    from mpmlab.nclaw.probe import _jax_law
+    from mpmlab.nclaw.probe import F_of_state, _jax_law, state_from_F
 
     fns, wj = _jax_law(law, 3, w)
     rowj = jnp.zeros((0,)) if row is None else jnp.asarray(np.asarray(row, np.float64))
-    fields = set(law.state_fields)
+    state_of = state_from_F(law, "nclaw_driven")
 
     def one(F, C):
-        s = {"J": jnp.linalg.det(F)} if fields == {"J"} else \
-            {"F": F, **({"eps_zz": jnp.zeros(())} if "eps_zz" in fields else {})}
-        new = fns.update(s, C, dt, rowj, wj)
-        return jnp.cbrt(new["J"]) * jnp.eye(3) if fields == {"J"} else new["F"]
+        return F_of_state(law, fns.update(state_of(F), C, dt, rowj, wj), 3)
 
     return jax.jit(jax.vmap(one))
 
@@ -134,6 +131,10 @@ def measure(res: dict, materials: list[str], steps: int, source: str = "c", scal
 
     tag = f"{steps}" if source == "c" else f"training x{scale:g}"
     for material in materials:
+        missing = [f"{material}|truth|{tag}"] + [f"{material}|{label}|{tag}" for label, run in TRAININGS[material]
+                                                 if weights(run, material) is not None]
+        if all(k in res for k in missing):
+            continue
         flow = truth_flow(material, steps) if source == "c" else training_flow(material, scale)
         law, rows = true_law(load_dataset(OUT / "nclaw" / "data" / material / "trajectory.h5"))
         w_true = {k: np.asarray(a) for k, a in law.initial_weights(3).items()}
@@ -152,9 +153,19 @@ def measure(res: dict, materials: list[str], steps: int, source: str = "c", scal
             write_json(JSON, res)
 
 
+def _order(key: str) -> tuple:
+    """Report order: the (c) flows by length, then the training flows by scale; materials and laws as listed
+    in TRAININGS, the truth first."""
+    material, label, flow = key.split("|")
+    labels = ["truth"] + [lab for lab, _ in TRAININGS[material]]
+    by_flow = (0, int(flow), 0.0) if flow.isdigit() else (1, 0, float(flow.split("x")[-1]))
+    return (*by_flow, list(TRAININGS).index(material), labels.index(label) if label in labels else len(labels))
+
+
 def report(res: dict) -> None:
     rows = []
-    for key, r in res.items():
+    for key in sorted(res, key=_order):
+        r = res[key]
         material, label, flow = key.split("|")
         run = dict(TRAININGS[material]).get(label)
         for n, v in r.items():
@@ -182,6 +193,8 @@ def main():
     ap.add_argument("--scale", type=float, default=1.0, help="--flow training: multiply its velocity gradients")
     ap.add_argument("--report", action="store_true")
     a = ap.parse_args()
+    if a.scale != 1.0 and a.flow != "training":
+        raise SystemExit("--scale multiplies the training trajectory's flow; give --flow training with it")
     res = read_json(JSON, {})
     if not a.report:
         measure(res, [m for m in a.materials.split(",") if m], a.steps, a.flow, a.scale)

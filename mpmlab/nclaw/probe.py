@@ -15,6 +15,8 @@ Tab. 5), the reach of its learned return map, and how far a rollout's states lie
   stretch (uniaxial, or simple shear) of principal stretch ``a``: does it bring F back to J^(1/D) I,
   and does it keep J? A learned return map is a relaxation with a finite rate and a finite basin;
   beyond the basin it drives F away (benchmarks/nclaw.md, "WATER (c)").
+* :func:`state_from_F`, :func:`F_of_state` -- a law's per-particle state from F and back, for the probes that
+  drive a law by F (F-state laws, and J-only ones through J = det F).
 * :func:`acoustic_minimum` -- the smallest eigenvalue of one explicit step's acoustic tensor at given states:
   below 0, a loss of strong ellipticity (waves grow at any dt). For learned and true laws alike; it does not
   tell NCLaw's (c) failures from its successes (benchmarks/nclaw.md, "The learned laws' ellipticity").
@@ -265,6 +267,31 @@ def sphere_directions(n: int, dim: int = 3) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
+def state_from_F(law, who: str = "probe"):
+    """(state of one particle from its F, F from such a state), JAX functions for the F-driven probes: an F-state
+    law keeps F (the 3D Hencky laws' plane-strain eps_zz is 0, as in ``baselines.labeled_pairs``), a J-only law
+    (WATER's truth) J = det F, whose F is J^(1/D) I; any other law is refused (``who`` names the caller)."""
+    import jax.numpy as jnp
+
+    fields = set(law.state_fields)
+    if fields == {"J"}:
+        return lambda F: {"J": jnp.linalg.det(F)}
+    if fields - {"eps_zz"} == {"F"}:
+        return lambda F: {"F": F, **({"eps_zz": jnp.zeros(())} if "eps_zz" in fields else {})}
+    raise ValueError(f"{who}: law '{law.name}' keeps {sorted(fields)}; it takes F- or J-state laws")
+
+
+def F_of_state(law, state, dim: int):
+    """F of one particle's state (the inverse of :func:`state_from_F`): F, or J^(1/D) I for a J-only law (in 3D
+    the real cube root, so an inverted J < 0 stays an inverted F)."""
+    import jax.numpy as jnp
+
+    if "F" in state:
+        return state["F"]
+    root = jnp.cbrt(state["J"]) if dim == 3 else jnp.power(state["J"], 1.0 / dim)
+    return root * jnp.eye(dim)
+
+
 def acoustic_minimum(law, weights: Mapping[str, Any], dim: int, F, dt: float = 5e-4, row=None,
                      directions: int = 200, chunk: int = 512, largest: bool = False) -> np.ndarray:
     """Per state F [M, D, D]: the smallest eigenvalue [Pa] over ``directions`` unit vectors n of the acoustic
@@ -283,13 +310,7 @@ def acoustic_minimum(law, weights: Mapping[str, Any], dim: int, F, dt: float = 5
     row = jnp.zeros((0,)) if row is None else jnp.asarray(np.asarray(row, np.float64))
     zero = jnp.zeros((dim, dim))
     n = jnp.asarray(sphere_directions(directions, dim))
-    fields = set(law.state_fields)
-    if fields == {"J"}:
-        state_of = lambda Ft: {"J": jnp.linalg.det(Ft)}  # noqa: E731
-    elif fields - {"eps_zz"} == {"F"}:
-        state_of = lambda Ft: {"F": Ft, **({"eps_zz": jnp.zeros(())} if "eps_zz" in fields else {})}  # noqa: E731
-    else:
-        raise ValueError(f"acoustic_minimum: law '{law.name}' keeps {sorted(fields)}; it takes F- or J-state laws")
+    state_of = state_from_F(law, "acoustic_minimum")
 
     def stress_after_step(L, F0):
         Ft = (jnp.eye(dim) + L) @ F0
